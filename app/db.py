@@ -1,0 +1,75 @@
+"""Database engine and sessions, safe to use from the API, from Celery's forked workers and from threads.
+
+SQLite (the embedded default) runs in WAL mode with a busy timeout, so one writer and many readers in
+several processes do not block each other. An engine is created per process: a forked worker never
+reuses its parent's connections.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.models import Base
+from app.settings import Settings
+
+SQLITE_BUSY_TIMEOUT_MS = 30_000
+
+_lock = threading.Lock()
+_engines: dict[tuple[int, str], tuple[Engine, sessionmaker[Session]]] = {}
+
+
+def _configure_sqlite(dbapi_connection, _record) -> None:
+    cursor = dbapi_connection.cursor()
+    cursor.execute("PRAGMA journal_mode=WAL")
+    cursor.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
+    cursor.execute("PRAGMA synchronous=NORMAL")
+    cursor.close()
+
+
+def _engine_and_factory(settings: Settings) -> tuple[Engine, sessionmaker[Session]]:
+    url = settings.sqlalchemy_url
+    key = (os.getpid(), url)
+    with _lock:
+        if key not in _engines:
+            if url.startswith("sqlite"):
+                settings.data_dir.mkdir(parents=True, exist_ok=True)
+                engine = create_engine(
+                    url, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000, "check_same_thread": False}
+                )
+                event.listen(engine, "connect", _configure_sqlite)
+            else:
+                engine = create_engine(url, pool_pre_ping=True)
+            Base.metadata.create_all(engine)
+            _engines[key] = (engine, sessionmaker(engine, expire_on_commit=False))
+        return _engines[key]
+
+
+def get_engine(settings: Settings) -> Engine:
+    """This process's engine for ``settings.sqlalchemy_url``; creates the tables on first use."""
+    return _engine_and_factory(settings)[0]
+
+
+@contextmanager
+def session_scope(settings: Settings) -> Iterator[Session]:
+    """A session committed on success and rolled back on error. Loaded rows stay usable after it closes."""
+    session = _engine_and_factory(settings)[1]()
+    try:
+        yield session
+        session.commit()
+    except BaseException:
+        session.rollback()
+        raise
+    finally:
+        session.close()
+
+
+def ping(settings: Settings) -> None:
+    """Raise if the database cannot answer ``SELECT 1``."""
+    with get_engine(settings).connect() as conn:
+        conn.execute(text("SELECT 1"))

@@ -1,0 +1,107 @@
+"""The FastAPI application: routes, auth, body limits, the dashboard, and stale-job recovery.
+
+``create_app(settings)`` builds one app; ``uvicorn --factory app.main:create_app`` serves it with settings
+from the environment.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from fastapi import Depends, FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from app import db
+from app.body_limit import BodyLimitMiddleware
+from app.deps import require_token
+from app.jobstore import json_safe
+from app.routes import health, jobs, render, scenes
+from app.settings import Settings, get_settings
+from app.uploads import UploadError
+from worker.celery_app import create_celery
+from worker.dispatch import requeue_stale_jobs
+from worker.render_results import remove_old_outcomes
+
+log = logging.getLogger(__name__)
+STATIC_DIR = Path(__file__).parent / "static"
+
+
+def sweep_once(app: FastAPI) -> None:
+    """Requeue jobs whose worker died and drop render results nobody collected."""
+    settings: Settings = app.state.settings
+    requeue_stale_jobs(settings, app.state.celery)
+    remove_old_outcomes(settings.render_results_dir, 2 * settings.render_timeout_s)
+
+
+async def _sweep_forever(app: FastAPI) -> None:
+    while True:
+        try:
+            await run_in_threadpool(sweep_once, app)
+        except Exception:  # broker or database down: keep serving, try again next round
+            log.exception("stale-job sweep failed")
+        await asyncio.sleep(app.state.settings.sweep_interval_s)
+
+
+@contextlib.asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings: Settings = app.state.settings
+    settings.make_dirs()
+    db.get_engine(settings)
+    sweeper = asyncio.create_task(_sweep_forever(app))  # its first round is the startup recovery
+    try:
+        yield
+    finally:
+        sweeper.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await sweeper
+
+
+async def _upload_error(_request: Request, err: UploadError) -> JSONResponse:
+    return JSONResponse({"detail": err.detail}, status_code=err.status_code)
+
+
+async def _validation_error(_request: Request, err: RequestValidationError) -> JSONResponse:
+    """FastAPI's 422, with NaN/inf in the echoed input made JSON-safe (a NaN pose must not become a 500)."""
+    return JSONResponse({"detail": json_safe(jsonable_encoder(err.errors()))}, status_code=422)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The API for ``settings`` (default: from ``VOXNERF_*`` environment variables)."""
+    settings = settings or get_settings()
+    app = FastAPI(
+        title="VoxNeRF",
+        version="0.1.0",
+        summary="Upload indoor scans, train prior-guided radiance fields, render any pose.",
+        lifespan=_lifespan,
+    )
+    app.state.settings = settings
+    app.state.celery = create_celery(settings)
+    app.add_middleware(
+        BodyLimitMiddleware,
+        limit_for=lambda method, path: (
+            settings.max_upload_bytes if (method, path) == ("POST", "/scenes") else settings.max_request_bytes
+        ),
+    )
+    app.add_exception_handler(UploadError, _upload_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+
+    protected = [Depends(require_token)]
+    for module in (scenes, jobs, render):
+        app.include_router(module.router, dependencies=protected)
+    app.include_router(health.router)
+
+    @app.get("/", include_in_schema=False)
+    def dashboard() -> FileResponse:
+        """The dashboard shell (static; it asks for the API token itself when the API needs one)."""
+        return FileResponse(STATIC_DIR / "index.html", media_type="text/html")
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    return app

@@ -1,0 +1,91 @@
+"""``/jobs``: list, show, cancel, and the evaluation renders of a finished job."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from urllib.parse import quote
+
+from fastapi import APIRouter, HTTPException, Query
+from fastapi.responses import FileResponse
+
+from app import jobstore
+from app.deps import JobId, SettingsDep
+from app.schemas import EvalRender, JobOut
+from app.settings import Settings
+
+router = APIRouter(tags=["jobs"])
+
+EVAL_DIR = "eval"  # the trainer writes <run_dir>/eval/<split>/<view name>.png
+
+
+def _job_or_404(settings: Settings, job_id: str):
+    row = jobstore.get_job(settings, job_id)
+    if row is None:
+        raise HTTPException(404, f"no job {job_id}")
+    return row
+
+
+@router.get("/jobs", response_model=list[JobOut], summary="List jobs, newest first")
+def list_jobs(
+    settings: SettingsDep,
+    limit: int = Query(100, ge=1, le=1000),
+    scene_id: str | None = Query(None, pattern=jobstore.ID_RE.pattern),
+) -> list[JobOut]:
+    return [JobOut.from_row(row) for row in jobstore.list_jobs(settings, limit, scene_id)]
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut, summary="State, progress, ETA, history, stages, metrics")
+def get_job(job_id: JobId, settings: SettingsDep) -> JobOut:
+    return JobOut.from_row(_job_or_404(settings, job_id))
+
+
+@router.post("/jobs/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job")
+def cancel_job(job_id: JobId, settings: SettingsDep) -> JobOut:
+    """Cancel a queued job at once, a running one at its next iteration (its checkpoint is kept)."""
+    _job_or_404(settings, job_id)
+    job = jobstore.request_cancel(settings, job_id)
+    if job.state in ("succeeded", "failed"):
+        raise HTTPException(409, f"job {job_id} already {job.state}")
+    return JobOut.from_row(job)
+
+
+def _eval_root(settings: Settings, job_id: str) -> Path:
+    return settings.runs_dir / job_id / EVAL_DIR
+
+
+@router.get("/jobs/{job_id}/renders", response_model=list[EvalRender], summary="Evaluation renders of a job")
+def list_renders(job_id: JobId, settings: SettingsDep) -> list[EvalRender]:
+    _job_or_404(settings, job_id)
+    root = _eval_root(settings, job_id)
+    if not root.is_dir():
+        return []
+    return [
+        EvalRender(
+            split=path.parent.name,
+            name=path.stem,
+            url=f"/jobs/{job_id}/renders/{quote(path.parent.name, safe='')}/{quote(path.name, safe='')}",
+        )
+        for path in sorted(root.glob("*/*.png"))
+        if path.is_file() and not path.name.startswith(".")
+    ]
+
+
+def _plain_name(value: str) -> bool:
+    return bool(value) and value not in (".", "..") and not any(c in value for c in "/\\\x00")
+
+
+@router.get(
+    "/jobs/{job_id}/renders/{split}/{filename}",
+    response_class=FileResponse,
+    responses={200: {"content": {"image/png": {}}}},
+    summary="Download one evaluation render (PNG)",
+)
+def get_render(job_id: JobId, split: str, filename: str, settings: SettingsDep) -> FileResponse:
+    _job_or_404(settings, job_id)
+    if not (_plain_name(split) and _plain_name(filename) and filename.endswith(".png")):
+        raise HTTPException(404, "no such render")
+    root = _eval_root(settings, job_id).resolve()
+    path = (root / split / filename).resolve()
+    if not path.is_relative_to(root) or not path.is_file():
+        raise HTTPException(404, "no such render")
+    return FileResponse(path, media_type="image/png")

@@ -1,0 +1,143 @@
+"""``/scenes``: upload (zip or files), list, show, delete; and ``POST /scenes/{id}/jobs`` to train on one."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import APIRouter, HTTPException, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from kombu.exceptions import KombuError
+from pydantic import ValidationError
+from starlette.datastructures import UploadFile
+
+from app import jobstore, uploads
+from app.deps import CeleryDep, SceneId, SettingsDep
+from app.schemas import JobOptions, JobOut, SceneOut
+from voxnerf.config import TrainConfig
+from worker.dispatch import send_train
+
+log = logging.getLogger(__name__)
+router = APIRouter(tags=["scenes"])
+
+UPLOAD_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "file": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": "a .zip of the scene directory",
+                    },
+                    "files": {
+                        "type": "array",
+                        "items": {"type": "string", "format": "binary"},
+                        "description": "or the scene's files, each part's filename its path in the scene "
+                        "(transforms.json, images/0001.png, prior.ply...)",
+                    },
+                    "name": {"type": "string", "description": "display name (default: the zip's file name)"},
+                },
+            }
+        }
+    },
+}
+
+
+def _display_name(value: object, fallback: str) -> str:
+    text = value if isinstance(value, str) and value.strip() else fallback
+    return "".join(ch for ch in text if ch.isprintable())[:255] or "scene"
+
+
+@router.post(
+    "/scenes",
+    status_code=201,
+    response_model=SceneOut,
+    openapi_extra={"requestBody": UPLOAD_BODY},
+    summary="Upload a scene (zip in field 'file', or its files in fields 'files')",
+)
+async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
+    form = await request.form(max_files=settings.max_files + 1, max_fields=8, max_part_size=64 * 1024)
+    try:
+        archive = form.get("file")
+        parts = [p for p in form.getlist("files") if isinstance(p, UploadFile)]
+        if isinstance(archive, UploadFile) and parts:
+            raise HTTPException(
+                422, "send either a zip in field 'file' or the scene's files in 'files', not both"
+            )
+        if isinstance(archive, UploadFile):
+            stem = (archive.filename or "scene").rsplit("/", 1)[-1].removesuffix(".zip")
+            stored = await run_in_threadpool(
+                uploads.store_zip, settings, _display_name(form.get("name"), stem), archive.file
+            )
+        elif parts:
+            named = [(p.filename or "", p.file) for p in parts]
+            stored = await run_in_threadpool(
+                uploads.store_parts, settings, _display_name(form.get("name"), "scene"), named
+            )
+        else:
+            raise HTTPException(
+                422,
+                "no scene: send a multipart form with a .zip in field 'file', or the files in field 'files'",
+            )
+    finally:
+        await form.close()
+    return SceneOut.from_row(jobstore.get_scene(settings, stored.id))
+
+
+@router.get("/scenes", response_model=list[SceneOut], summary="List scenes, newest first")
+def list_scenes(settings: SettingsDep) -> list[SceneOut]:
+    return [SceneOut.from_row(row) for row in jobstore.list_scenes(settings)]
+
+
+def _scene_or_404(settings, scene_id: str):
+    row = jobstore.get_scene(settings, scene_id)
+    if row is None:
+        raise HTTPException(404, f"no scene {scene_id}")
+    return row
+
+
+@router.get("/scenes/{scene_id}", response_model=SceneOut, summary="One scene and its summary")
+def get_scene(scene_id: SceneId, settings: SettingsDep) -> SceneOut:
+    return SceneOut.from_row(_scene_or_404(settings, scene_id))
+
+
+@router.delete("/scenes/{scene_id}", status_code=204, summary="Delete a scene (refused while a job uses it)")
+def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
+    try:
+        deleted = jobstore.delete_scene(settings, scene_id)
+    except jobstore.SceneBusy as busy:
+        raise HTTPException(409, f"scene {scene_id} is {busy}; cancel or wait for them first") from None
+    if not deleted:
+        raise HTTPException(404, f"no scene {scene_id}")
+    uploads.remove_scene_files(settings, scene_id)
+    return Response(status_code=204)
+
+
+@router.post(
+    "/scenes/{scene_id}/jobs",
+    status_code=202,
+    response_model=JobOut,
+    summary="Start training a scene",
+)
+def create_job(
+    scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response
+) -> JobOut:
+    values = options.model_dump(exclude_none=True)
+    try:
+        TrainConfig(**values, device=settings.device)
+    except ValidationError as err:
+        raise HTTPException(422, f"invalid training options: {err}") from None
+    _scene_or_404(settings, scene_id)
+    job = jobstore.create_job(settings, scene_id, values)
+    if job is None:
+        raise HTTPException(404, f"no scene {scene_id}")
+    try:
+        send_train(celery, job.id)
+    except (KombuError, OSError) as err:
+        log.error("cannot queue job %s: %s", job.id, err)
+        jobstore.fail_job(settings, job.id, f"the broker refused the job: {err}")
+        raise HTTPException(503, f"the job queue is unavailable ({err}); try again later") from None
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return JobOut.from_row(jobstore.get_job(settings, job.id))

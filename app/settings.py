@@ -1,0 +1,119 @@
+"""Every setting of the service and its workers, in one place (environment variables prefixed ``VOXNERF_``).
+
+Embedded default (no server to run): the job store is SQLite under ``data_dir`` and the Celery broker is
+kombu's filesystem transport in ``data_dir/broker``. Setting ``VOXNERF_BROKER_URL=redis://host:6379/0``
+switches the broker to Redis; ``VOXNERF_DATABASE_URL`` points the job store at PostgreSQL (or another
+SQLAlchemy URL). Scene files, runs and render results always live under ``data_dir``, which every API and
+worker process must share (the same directory, or a shared filesystem when they run on several machines).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MiB = 1024 * 1024
+
+
+class Settings(BaseSettings):
+    """Service settings; each field is read from ``VOXNERF_<FIELD NAME IN CAPITALS>``."""
+
+    model_config = SettingsConfigDict(env_prefix="VOXNERF_", extra="ignore")
+
+    data_dir: Path = Field(default=Path("data"), description="scenes, runs, broker queue and SQLite database")
+    database_url: str | None = Field(
+        default=None,
+        description="SQLAlchemy URL of the job store; default sqlite:///<data_dir>/voxnerf.sqlite",
+    )
+    broker_url: str | None = Field(
+        default=None, description="Celery broker, e.g. redis://127.0.0.1:6379/0; default: filesystem queue"
+    )
+    broker_polling_interval_s: float = Field(
+        default=0.05, gt=0, le=5, description="how often an idle worker looks into the filesystem queue"
+    )
+    api_token: SecretStr | None = Field(
+        default=None,
+        description="when set, every endpoint but /healthz needs 'Authorization: Bearer <token>'",
+    )
+
+    max_upload_bytes: int = Field(default=2048 * MiB, gt=0, description="request body of POST /scenes")
+    max_request_bytes: int = Field(default=1 * MiB, gt=0, description="request body of every other endpoint")
+    max_scene_bytes: int = Field(default=8192 * MiB, gt=0, description="total uncompressed size of a scene")
+    max_files: int = Field(default=20_000, gt=0, description="files in one uploaded scene")
+    max_compression_ratio: float = Field(
+        default=200.0, gt=1, description="uncompressed/compressed size above which a zip entry is a bomb"
+    )
+    max_image_pixels: int = Field(
+        default=64_000_000, gt=0, description="declared width x height of one image"
+    )
+    max_render_pixels: int = Field(default=4096 * 4096, gt=0, description="width x height of one render")
+
+    render_timeout_s: float = Field(
+        default=120.0, gt=0, description="POST /render waits this long for a worker"
+    )
+    render_cache_size: int = Field(default=2, ge=1, description="loaded models each render process keeps")
+    device: str = Field(default="auto", description="torch device of the workers: auto, cpu or cuda[:N]")
+
+    progress_interval_s: float = Field(default=1.0, ge=0, description="least time between progress writes")
+    heartbeat_s: float = Field(default=2.0, gt=0, description="how often a training task renews its lease")
+    stale_after_s: float = Field(
+        default=60.0, gt=0, description="a running job whose lease is this old is requeued (its worker died)"
+    )
+    sweep_interval_s: float = Field(default=10.0, gt=0, description="how often the API looks for stale jobs")
+    health_timeout_s: float = Field(
+        default=1.0, gt=0, description="how long /healthz waits for worker replies"
+    )
+
+    @field_validator("data_dir")
+    @classmethod
+    def _absolute(cls, value: Path) -> Path:
+        return value.expanduser().resolve()
+
+    @property
+    def embedded_broker(self) -> bool:
+        """True when no broker URL is set: the filesystem queue under ``data_dir`` carries the messages."""
+        return not self.broker_url
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        return self.database_url or f"sqlite:///{self.data_dir / 'voxnerf.sqlite'}"
+
+    @property
+    def scenes_dir(self) -> Path:
+        return self.data_dir / "scenes"
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.data_dir / "runs"
+
+    @property
+    def staging_dir(self) -> Path:
+        """Uploads are unpacked and validated here, then renamed into ``scenes_dir`` (same filesystem)."""
+        return self.data_dir / "staging"
+
+    @property
+    def render_results_dir(self) -> Path:
+        """Render workers write finished images here; the API picks them up and deletes them."""
+        return self.data_dir / "render-results"
+
+    @property
+    def broker_dir(self) -> Path:
+        return self.data_dir / "broker"
+
+    def make_dirs(self) -> None:
+        """Create every directory the service writes to (idempotent)."""
+        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.render_results_dir):
+            path.mkdir(parents=True, exist_ok=True)
+        if self.embedded_broker:
+            (self.broker_dir / "queue").mkdir(parents=True, exist_ok=True)
+            (self.broker_dir / "control").mkdir(parents=True, exist_ok=True)
+            (self.broker_dir / "claimed").mkdir(parents=True, exist_ok=True)
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings, read from the environment once."""
+    return Settings()

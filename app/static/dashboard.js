@@ -1,0 +1,331 @@
+// VoxNeRF dashboard: polls the REST API and draws jobs, progress, PSNR plots, evaluation renders and renders.
+// No framework and no build step. Every request carries the API token saved in localStorage (if any).
+"use strict";
+
+const TOKEN_KEY = "voxnerf.token";
+const POLL_MS = 1000;
+const HEALTH_MS = 5000;
+const MAX_THUMBS = 12;
+const SPLIT_COLOURS = ["#2f6fdb", "#d9822b", "#1f8a4c", "#9b59b6", "#c23b30", "#16a2b8"];
+const SVG_NS = "http://www.w3.org/2000/svg";
+
+const $ = (id) => document.getElementById(id);
+const thumbsLoaded = new Set();  // job ids whose evaluation renders were fetched
+
+// ------------------------------------------------------------------------------------------- API access
+
+function savedToken() {
+  return localStorage.getItem(TOKEN_KEY) || "";
+}
+
+function detailText(body, status) {
+  const detail = body && body.detail;
+  if (typeof detail === "string") return detail;
+  if (Array.isArray(detail)) {
+    return detail.map((d) => `${(d.loc || []).slice(1).join(".") || "body"}: ${d.msg}`).join("; ");
+  }
+  return `HTTP ${status}`;
+}
+
+async function api(path, options = {}) {
+  const headers = new Headers(options.headers || {});
+  const token = savedToken();
+  if (token) headers.set("Authorization", `Bearer ${token}`);
+  const response = await fetch(path, { ...options, headers });
+  if (response.ok) return response;
+  let body = null;
+  try {
+    body = await response.json();
+  } catch (_) {
+    body = null;
+  }
+  if (response.status === 401) {
+    $("token").focus();
+    throw new Error("This server needs an API token: enter it above and press Save.");
+  }
+  throw new Error(detailText(body, response.status));
+}
+
+function showMessage(text, kind = "error") {
+  const box = $("message");
+  box.textContent = text;
+  box.className = kind === "info" ? "message info" : "message";
+  box.hidden = !text;
+}
+
+// ------------------------------------------------------------------------------------------- drawing
+
+function svg(tag, attrs, text) {
+  const node = document.createElementNS(SVG_NS, tag);
+  for (const [key, value] of Object.entries(attrs)) node.setAttribute(key, value);
+  if (text !== undefined) node.textContent = text;
+  return node;
+}
+
+// PSNR (dB) of every split against training seconds, one polyline per split.
+function psnrPlot(history) {
+  const width = 260, height = 80, left = 30, right = 8, top = 8, bottom = 16;
+  const series = new Map();
+  for (const point of history || []) {
+    for (const [split, value] of Object.entries(point.psnr || {})) {
+      if (typeof value !== "number" || !Number.isFinite(value)) continue;
+      if (!series.has(split)) series.set(split, []);
+      series.get(split).push([point.elapsed_s, value]);
+    }
+  }
+  const root = svg("svg", { width, height, class: "plot", role: "img", "aria-label": "PSNR against time" });
+  const all = [...series.values()].flat();
+  root.dataset.points = String(all.length);
+  if (!all.length) {
+    root.appendChild(svg("text", { x: left, y: height / 2 }, "no evaluation yet"));
+    return root;
+  }
+  const xMax = Math.max(1, ...all.map((p) => p[0]));
+  let yMin = Math.min(...all.map((p) => p[1])), yMax = Math.max(...all.map((p) => p[1]));
+  if (yMax - yMin < 1) { yMin -= 0.5; yMax += 0.5; }
+  const x = (s) => left + (s / xMax) * (width - left - right);
+  const y = (v) => top + (1 - (v - yMin) / (yMax - yMin)) * (height - top - bottom);
+  root.appendChild(svg("line", { x1: left, y1: top, x2: left, y2: height - bottom, class: "axis" }));
+  root.appendChild(svg("line", { x1: left, y1: height - bottom, x2: width - right, y2: height - bottom, class: "axis" }));
+  root.appendChild(svg("text", { x: 2, y: top + 6 }, yMax.toFixed(1)));
+  root.appendChild(svg("text", { x: 2, y: height - bottom }, yMin.toFixed(1)));
+  root.appendChild(svg("text", { x: width - right - 28, y: height - 3 }, `${xMax.toFixed(0)} s`));
+  let index = 0;
+  for (const [split, points] of series) {
+    const colour = SPLIT_COLOURS[index % SPLIT_COLOURS.length];
+    points.sort((a, b) => a[0] - b[0]);
+    root.appendChild(svg("polyline", {
+      points: points.map(([s, v]) => `${x(s).toFixed(1)},${y(v).toFixed(1)}`).join(" "),
+      fill: "none", stroke: colour, "stroke-width": 1.5, "data-split": split,
+    }));
+    for (const [s, v] of points) {
+      root.appendChild(svg("circle", { cx: x(s), cy: y(v), r: 2, fill: colour }));
+    }
+    root.appendChild(svg("text", { x: left + 4 + 70 * index, y: height - 3, fill: colour }, split));
+    index += 1;
+  }
+  return root;
+}
+
+function progressBar(job) {
+  const percent = Math.round(100 * Math.max(0, Math.min(1, job.progress || 0)));
+  const wrap = document.createElement("div");
+  wrap.className = "bar";
+  wrap.setAttribute("role", "progressbar");
+  wrap.setAttribute("aria-valuemin", "0");
+  wrap.setAttribute("aria-valuemax", "100");
+  wrap.setAttribute("aria-valuenow", String(percent));
+  const fill = document.createElement("div");
+  fill.className = "fill";
+  fill.style.width = `${percent}%`;
+  wrap.appendChild(fill);
+  const text = document.createElement("span");
+  text.className = "bar-text";
+  text.textContent = `${percent}% · it ${job.iteration}${job.stage ? " · " + job.stage : ""}`;
+  const cell = document.createElement("div");
+  cell.style.display = "flex";
+  cell.style.alignItems = "center";
+  cell.append(wrap, text);
+  return cell;
+}
+
+function formatEta(job) {
+  if (job.state !== "running" || job.eta_s === null || job.eta_s === undefined) return "";
+  const s = Math.round(job.eta_s);
+  return s >= 60 ? `${Math.floor(s / 60)} min ${s % 60} s` : `${s} s`;
+}
+
+async function loadThumbnails(job, cell) {
+  thumbsLoaded.add(job.id);
+  try {
+    const renders = await (await api(`/jobs/${job.id}/renders`)).json();
+    for (const item of renders.slice(0, MAX_THUMBS)) {
+      const blob = await (await api(item.url)).blob();
+      const img = document.createElement("img");
+      img.src = URL.createObjectURL(blob);
+      img.alt = `${item.split}/${item.name}`;
+      img.title = `${item.split}/${item.name}`;
+      cell.appendChild(img);
+    }
+  } catch (err) {
+    thumbsLoaded.delete(job.id);  // try again on the next poll
+    showMessage(`Evaluation renders of ${job.id}: ${err.message}`);
+  }
+}
+
+function cancelButton(job) {
+  const button = document.createElement("button");
+  button.className = "secondary";
+  button.textContent = "Cancel";
+  button.addEventListener("click", async () => {
+    try {
+      await api(`/jobs/${job.id}/cancel`, { method: "POST" });
+      refreshJobs();
+    } catch (err) {
+      showMessage(err.message);
+    }
+  });
+  return button;
+}
+
+function jobRow(job) {
+  let row = document.querySelector(`tr[data-job-id="${job.id}"]`);
+  if (!row) {
+    row = document.createElement("tr");
+    row.dataset.jobId = job.id;
+    for (const name of ["id", "scene", "state", "progress", "eta", "plot", "thumbs", "actions"]) {
+      const cell = document.createElement("td");
+      cell.className = `col-${name}`;
+      row.appendChild(cell);
+    }
+    row.querySelector(".col-thumbs").appendChild(Object.assign(document.createElement("div"), { className: "thumbs" }));
+  }
+  return row;
+}
+
+function updateRow(row, job) {
+  const cell = (name) => row.querySelector(`.col-${name}`);
+  cell("id").replaceChildren(Object.assign(document.createElement("code"), { textContent: job.id.slice(0, 8), title: job.id }));
+  cell("scene").replaceChildren(Object.assign(document.createElement("code"), { textContent: job.scene_id.slice(0, 8), title: job.scene_id }));
+  const state = Object.assign(document.createElement("span"), { className: `state state-${job.state}`, textContent: job.state });
+  cell("state").replaceChildren(state);
+  if (job.error) cell("state").appendChild(Object.assign(document.createElement("div"), { className: "error", textContent: job.error }));
+  cell("progress").replaceChildren(progressBar(job));
+  cell("eta").textContent = formatEta(job);
+  const historyKey = JSON.stringify(job.history.map((h) => [h.elapsed_s, h.psnr]));
+  if (row.dataset.historyKey !== historyKey) {
+    row.dataset.historyKey = historyKey;
+    cell("plot").replaceChildren(psnrPlot(job.history));
+  }
+  if (job.state === "succeeded" && !thumbsLoaded.has(job.id)) loadThumbnails(job, cell("thumbs").firstChild);
+  cell("actions").replaceChildren(...(job.state === "queued" || job.state === "running" ? [cancelButton(job)] : []));
+  row.dataset.state = job.state;
+}
+
+function fillSelect(select, items, label) {
+  const previous = select.value;
+  select.replaceChildren(...items.map((item) => new Option(label(item), item.id)));
+  if (items.some((item) => item.id === previous)) select.value = previous;
+}
+
+// ------------------------------------------------------------------------------------------- polling
+
+async function refreshJobs() {
+  try {
+    const jobs = await (await api("/jobs?limit=50")).json();
+    const body = $("jobs").tBodies[0];
+    const rows = jobs.map((job) => {
+      const row = jobRow(job);
+      updateRow(row, job);
+      return row;
+    });
+    body.replaceChildren(...rows);
+    $("no-jobs").hidden = jobs.length > 0;
+    const done = jobs.filter((job) => job.state === "succeeded");
+    fillSelect($("render-job"), done, (job) => `${job.id.slice(0, 8)} (scene ${job.scene_id.slice(0, 8)})`);
+  } catch (err) {
+    showMessage(err.message);
+  }
+}
+
+async function refreshScenes() {
+  try {
+    const scenes = await (await api("/scenes")).json();
+    fillSelect($("job-scene"), scenes, (s) => `${s.name} · ${s.summary.frames} frames · ${s.id.slice(0, 8)}`);
+  } catch (err) {
+    showMessage(err.message);
+  }
+}
+
+async function refreshHealth() {
+  const badge = $("health");
+  try {
+    const response = await fetch("/healthz");
+    const health = await response.json();
+    const workers = Object.entries(health.workers).map(([q, names]) => `${q}: ${names.length}`).join(", ");
+    badge.textContent = `${health.status} · workers ${workers}`;
+    badge.className = `health ${response.ok ? "ok" : "bad"}`;
+    badge.title = `database: ${health.database.detail}\nbroker: ${health.broker.detail}`;
+  } catch (err) {
+    badge.textContent = "API unreachable";
+    badge.className = "health bad";
+  }
+}
+
+// ------------------------------------------------------------------------------------------- forms
+
+$("token-form").addEventListener("submit", (event) => {
+  event.preventDefault();
+  const token = $("token").value.trim();
+  if (token) localStorage.setItem(TOKEN_KEY, token); else localStorage.removeItem(TOKEN_KEY);
+  showMessage("");
+  refreshJobs();
+  refreshScenes();
+});
+
+$("upload-form").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  const file = $("upload-file").files[0];
+  if (!file) return;
+  const form = new FormData();
+  form.append("file", file, file.name);
+  try {
+    showMessage(`Uploading ${file.name}…`, "info");
+    const scene = await (await api("/scenes", { method: "POST", body: form })).json();
+    showMessage(`Scene ${scene.id} stored: ${scene.summary.frames} frames, ` +
+      `${scene.summary.image_size.join("x")} pixels.`, "info");
+    refreshScenes();
+  } catch (err) {
+    showMessage(`Upload refused: ${err.message}`);
+  }
+});
+
+$("job-form").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  const sceneId = $("job-scene").value;
+  const body = { max_seconds: Number($("job-seconds").value), sampler: $("job-sampler").value };
+  try {
+    const job = await (await api(`/scenes/${sceneId}/jobs`, {
+      method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
+    })).json();
+    showMessage(`Job ${job.id} queued.`, "info");
+    refreshJobs();
+  } catch (err) {
+    showMessage(`Job refused: ${err.message}`);
+  }
+});
+
+$("render-form").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  let pose;
+  try {
+    pose = JSON.parse($("render-pose").value);
+  } catch (err) {
+    showMessage(`The pose is not valid JSON: ${err.message}`);
+    return;
+  }
+  const body = { job_id: $("render-job").value, transform_matrix: pose, format: "png" };
+  const width = $("render-width").value, height = $("render-height").value;
+  if (width && height) Object.assign(body, { width: Number(width), height: Number(height) });
+  const started = performance.now();
+  try {
+    const blob = await (await api("/render", {
+      method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
+    })).blob();
+    const img = $("render-image");
+    if (img.src) URL.revokeObjectURL(img.src);
+    img.src = URL.createObjectURL(blob);
+    $("render-caption").textContent = `rendered in ${Math.round(performance.now() - started)} ms`;
+    $("render-figure").hidden = false;
+    showMessage("");
+  } catch (err) {
+    showMessage(`Render refused: ${err.message}`);
+  }
+});
+
+$("token").value = savedToken();
+refreshHealth();
+refreshScenes();
+refreshJobs();
+setInterval(refreshJobs, POLL_MS);
+setInterval(refreshHealth, HEALTH_MS);

@@ -1,0 +1,310 @@
+"""Scene uploads: inspect an archive (or multipart files) before unpacking, validate, then store atomically.
+
+Order of checks, each refusing with :class:`UploadError` (an HTTP status and a one-line ``detail``):
+
+1. the archive's central directory, before anything is extracted: entry names that would escape the
+   scene directory (``..``, absolute paths, drive letters, backslashes, NUL), symlinks and other special
+   files, encrypted entries, unsupported compression or file types, duplicate names, too many files, a
+   total declared size over ``max_scene_bytes``, and compression ratios typical of zip bombs;
+2. extraction into a private staging directory under ``data_dir``, never writing more bytes than declared;
+3. every image header, before any pixel is decoded: declared width x height over ``max_image_pixels``;
+4. :func:`voxnerf.scene.inspect_scene`: the engine's own validation of transforms.json, images (sizes
+   must match the intrinsics), depth maps and the prior;
+5. only then one ``os.replace`` of the staging directory into ``data_dir/scenes/<id>``.
+
+Any failure removes the staging directory, so a refused upload leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import lzma
+import re
+import shutil
+import stat
+import tempfile
+import zipfile
+import zlib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import BinaryIO
+
+from app import jobstore
+from app.settings import Settings
+from voxnerf.errors import SceneError
+from voxnerf.image_io import image_size
+from voxnerf.scene import TRANSFORMS, inspect_scene
+
+ALLOWED_SUFFIXES = frozenset(
+    {".json", ".png", ".jpg", ".jpeg", ".npy", ".ply", ".obj", ".mtl", ".glb", ".off"}
+)
+IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg"})
+SUPPORTED_COMPRESSION = frozenset(
+    {zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA}
+)
+IGNORED_PREFIXES = ("__MACOSX/",)  # resource forks written by macOS's archiver
+IGNORED_NAMES = frozenset({".DS_Store", "Thumbs.db"})
+BOMB_MIN_BYTES = 1024 * 1024  # entries smaller than this may compress arbitrarily well
+COPY_CHUNK = 1024 * 1024
+_DRIVE = re.compile(r"^[A-Za-z]:")
+
+log = logging.getLogger(__name__)
+
+
+class UploadError(Exception):
+    """A refused upload: ``status_code`` (4xx) and a ``detail`` naming the entry and the reason."""
+
+    def __init__(self, status_code: int, detail: str) -> None:
+        self.status_code = status_code
+        self.detail = detail
+        super().__init__(detail)
+
+
+@dataclass(frozen=True)
+class StoredScene:
+    id: str
+    size_bytes: int
+    summary: dict
+
+
+def safe_relpath(name: str) -> PurePosixPath:
+    """The relative path an archive entry or uploaded part names, or UploadError if it could escape."""
+    if not name or "\x00" in name:
+        raise UploadError(422, f"entry {name!r}: empty name or NUL byte")
+    if "\\" in name:
+        raise UploadError(422, f"entry {name!r}: backslash in name (use '/' separators)")
+    if name.startswith("/") or _DRIVE.match(name):
+        raise UploadError(422, f"entry {name!r}: absolute path")
+    parts = [p for p in name.split("/") if p not in ("", ".")]
+    if ".." in parts:
+        raise UploadError(422, f"entry {name!r}: '..' would escape the scene directory")
+    if not parts:
+        raise UploadError(422, f"entry {name!r}: names no file")
+    if any(len(p.encode()) > 255 for p in parts):
+        raise UploadError(422, f"entry {name!r}: a path component is longer than 255 bytes")
+    return PurePosixPath(*parts)
+
+
+def _ignored(name: str) -> bool:
+    return name.startswith(IGNORED_PREFIXES) or PurePosixPath(name).name in IGNORED_NAMES
+
+
+def _check_suffix(path: PurePosixPath) -> None:
+    if path.suffix.lower() not in ALLOWED_SUFFIXES:
+        raise UploadError(
+            415,
+            f"entry {str(path)!r}: unsupported file type {path.suffix or '(none)'!r}; "
+            f"allowed: {', '.join(sorted(ALLOWED_SUFFIXES))}",
+        )
+
+
+def _strip_common_folder(paths: list[PurePosixPath]) -> list[PurePosixPath]:
+    """Drop one top-level folder that holds everything (``room/transforms.json`` -> ``transforms.json``)."""
+    if any(p == PurePosixPath(TRANSFORMS) for p in paths):
+        return paths
+    tops = {p.parts[0] for p in paths}
+    if len(tops) == 1 and all(len(p.parts) > 1 for p in paths):
+        return [PurePosixPath(*p.parts[1:]) for p in paths]
+    return paths
+
+
+def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfile.ZipInfo, PurePosixPath]]:
+    """Which entries to extract where; raises UploadError for anything unsafe. Reads only the directory."""
+    infos = archive.infolist()
+    if len(infos) > 2 * settings.max_files:
+        raise UploadError(
+            413, f"archive has {len(infos)} entries; at most {settings.max_files} files allowed"
+        )
+    planned: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
+    for info in infos:
+        if _ignored(info.filename):
+            continue
+        path = safe_relpath(info.filename)
+        mode = info.external_attr >> 16
+        file_type = stat.S_IFMT(mode) if info.create_system == 3 else 0
+        if file_type == stat.S_IFLNK:
+            raise UploadError(422, f"entry {info.filename!r}: symbolic links are not allowed")
+        if info.is_dir() or file_type == stat.S_IFDIR:
+            continue
+        if file_type not in (0, stat.S_IFREG):
+            raise UploadError(422, f"entry {info.filename!r}: not a regular file (mode {oct(mode)})")
+        if info.flag_bits & 0x1:
+            raise UploadError(422, f"entry {info.filename!r}: encrypted entries are not supported")
+        if info.compress_type not in SUPPORTED_COMPRESSION:
+            raise UploadError(
+                422, f"entry {info.filename!r}: unsupported compression method {info.compress_type}"
+            )
+        _check_suffix(path)
+        planned.append((info, path))
+    if len(planned) > settings.max_files:
+        raise UploadError(413, f"archive has {len(planned)} files; at most {settings.max_files} allowed")
+    declared = sum(info.file_size for info, _ in planned)
+    if declared > settings.max_scene_bytes:
+        raise UploadError(
+            413, f"archive declares {declared} bytes uncompressed; the limit is {settings.max_scene_bytes}"
+        )
+    for info, _ in planned:
+        ratio = info.file_size / max(info.compress_size, 1)
+        if info.file_size >= BOMB_MIN_BYTES and ratio > settings.max_compression_ratio:
+            raise UploadError(
+                422,
+                f"entry {info.filename!r}: compression ratio {ratio:.0f} exceeds "
+                f"{settings.max_compression_ratio:.0f} (zip bomb?)",
+            )
+    compressed = sum(info.compress_size for info, _ in planned)
+    if declared >= BOMB_MIN_BYTES and declared > settings.max_compression_ratio * max(compressed, 1):
+        raise UploadError(
+            422,
+            f"archive compression ratio {declared / max(compressed, 1):.0f} exceeds "
+            f"{settings.max_compression_ratio:.0f} (zip bomb?)",
+        )
+    targets = _strip_common_folder([path for _, path in planned])
+    seen: set[PurePosixPath] = set()
+    for target in targets:
+        if target in seen:
+            raise UploadError(422, f"entry {str(target)!r} appears twice")
+        seen.add(target)
+    return [(info, target) for (info, _), target in zip(planned, targets, strict=True)]
+
+
+def _copy_limited(src: BinaryIO, dst: Path, limit: int, name: str) -> int:
+    """Copy at most ``limit`` bytes; more means the entry lied about its size."""
+    written = 0
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        with open(dst, "xb") as out:
+            while chunk := src.read(COPY_CHUNK):
+                written += len(chunk)
+                if written > limit:
+                    raise UploadError(422, f"entry {name!r}: larger than its declared size")
+                out.write(chunk)
+    except (FileExistsError, NotADirectoryError, IsADirectoryError):
+        raise UploadError(
+            422, f"entry {name!r}: clashes with another entry (a file and a folder of one name)"
+        ) from None
+    return written
+
+
+def _extract_zip(source: BinaryIO, root: Path, settings: Settings) -> int:
+    try:
+        with zipfile.ZipFile(source) as archive:
+            plan = _plan_zip(archive, settings)
+            total = 0
+            for info, target in plan:
+                with archive.open(info) as src:
+                    total += _copy_limited(src, root / target, info.file_size, info.filename)
+    except UploadError:
+        raise
+    except (
+        zipfile.BadZipFile,
+        zlib.error,
+        lzma.LZMAError,
+        EOFError,
+        NotImplementedError,
+        RuntimeError,
+        ValueError,
+    ) as err:
+        raise UploadError(422, f"corrupt or unreadable zip archive: {err}") from None
+    return total
+
+
+def _write_parts(parts: Iterable[tuple[str, BinaryIO]], root: Path, settings: Settings) -> int:
+    paths: list[PurePosixPath] = []
+    sources: list[BinaryIO] = []
+    for name, source in parts:
+        path = safe_relpath(name)
+        _check_suffix(path)
+        paths.append(path)
+        sources.append(source)
+    if len(paths) > settings.max_files:
+        raise UploadError(413, f"{len(paths)} files uploaded; at most {settings.max_files} allowed")
+    if len(set(paths)) != len(paths):
+        raise UploadError(422, "the same file name was uploaded twice")
+    total = 0
+    for path, source in zip(paths, sources, strict=True):
+        total += _copy_limited(source, root / path, settings.max_scene_bytes - total, str(path))
+    return total
+
+
+def _check_image_headers(root: Path, settings: Settings) -> None:
+    for path in sorted(root.rglob("*")):
+        if path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file():
+            continue
+        rel = path.relative_to(root)
+        try:
+            width, height = image_size(path)
+        except SceneError as err:
+            raise UploadError(422, f"{rel}: {err.message}") from None
+        if width * height > settings.max_image_pixels:
+            raise UploadError(
+                422,
+                f"{rel}: declared image size {width}x{height} ({width * height} pixels) exceeds the "
+                f"limit of {settings.max_image_pixels} pixels",
+            )
+
+
+def _hide_staging(text: str, root: Path) -> str:
+    """A message with the private staging path cut down to a path inside the scene."""
+    for prefix in (str(root.resolve()), str(root)):
+        text = text.replace(prefix + "/", "").replace(prefix, ".")
+    return text
+
+
+def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> StoredScene:
+    """Stage a scene with ``fill(root) -> bytes written``, validate it, and move it into ``scenes_dir``.
+
+    Returns the new scene (its row added to the job store); raises UploadError leaving nothing stored.
+    """
+    settings.make_dirs()
+    staging = Path(tempfile.mkdtemp(prefix="upload-", dir=settings.staging_dir))
+    root = staging / "scene"
+    root.mkdir()
+    try:
+        size = fill(root)
+        if not (root / TRANSFORMS).is_file():
+            raise UploadError(
+                422, f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder)"
+            )
+        _check_image_headers(root, settings)
+        try:
+            summary = inspect_scene(root)
+        except SceneError as err:
+            raise UploadError(422, _hide_staging(str(err), root)) from None
+        except (
+            Exception
+        ) as err:  # a parser deep in the engine choked on hostile bytes: still the upload's fault
+            log.warning("upload %r refused by an unexpected %s", name, type(err).__name__, exc_info=True)
+            detail = _hide_staging(f"the scene could not be read: {type(err).__name__}: {err}", root)
+            raise UploadError(422, detail) from None
+        scene_id = jobstore.new_id()
+        final = settings.scenes_dir / scene_id
+        root.replace(final)
+        try:
+            jobstore.add_scene(settings, scene_id, name, summary, size)
+        except BaseException:
+            shutil.rmtree(final, ignore_errors=True)
+            raise
+        return StoredScene(scene_id, size, summary)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def store_zip(settings: Settings, name: str, source: BinaryIO) -> StoredScene:
+    """Store the scene in a zip archive (a seekable binary file)."""
+    return store_scene(settings, name, lambda root: _extract_zip(source, root, settings))
+
+
+def store_parts(settings: Settings, name: str, parts: list[tuple[str, BinaryIO]]) -> StoredScene:
+    """Store a scene uploaded as files, each named by its path inside the scene (``images/0001.png``)."""
+    return store_scene(settings, name, lambda root: _write_parts(parts, root, settings))
+
+
+def remove_scene_files(settings: Settings, scene_id: str) -> None:
+    """Delete ``scenes/<id>``: renamed into staging first, so it disappears at once even if rmtree is slow."""
+    path = settings.scenes_dir / scene_id
+    if not path.exists():
+        return
+    doomed = Path(tempfile.mkdtemp(prefix="deleted-", dir=settings.staging_dir)) / scene_id
+    path.replace(doomed)
+    shutil.rmtree(doomed.parent, ignore_errors=True)

@@ -1,0 +1,102 @@
+"""Training throughput (samples/s, rays/s) and render time, eager against torch.compile, side by side.
+
+Runs on one scene (default: the synthetic 160x120 room, generated into a temp dir), alternating the
+configurations in one process so both see the same machine load, and writes docs/performance.md.
+
+    .venv/bin/python benchmarks/throughput.py [--scene DIR] [--iters 60] [--out docs/performance.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from voxnerf.cameras import Intrinsics
+from voxnerf.config import TrainConfig
+from voxnerf.render import load_model, render
+from voxnerf.synthetic import RoomSpec, make_room_scene
+from voxnerf.trainer import train
+
+
+def _train_rate(scene: Path, run: Path, compile_step: bool, iters: int) -> dict:
+    cfg = TrainConfig(max_iters=iters, compile=compile_step, final_eval=False, eval_every_s=1e9)
+    report = train(scene, run, cfg, resume=False, progress_bar=False)
+    return report["throughput"]
+
+
+def _render_seconds(run: Path, compile_render: bool, repeats: int) -> list[float]:
+    trained = load_model(run, "cpu")
+    trained.model.config = trained.model.config.model_copy(update={"compile": compile_render})
+    intr = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
+    c2w = trained.model.transform  # a pose at the scene centre, looking along -Z
+    pose = torch.eye(4, dtype=torch.float64).numpy()
+    pose[:3, 3] = c2w.center
+    render(trained, pose, intr, ("rgb", "depth"))  # warm-up (compiles when asked)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        render(trained, pose, intr, ("rgb", "depth"))
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", type=Path)
+    parser.add_argument("--iters", type=int, default=60)
+    parser.add_argument("--repeats", type=int, default=2, help="alternating rounds per configuration")
+    parser.add_argument("--out", type=Path, default=Path("docs/performance.md"))
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = args.scene or make_room_scene(Path(tmp) / "room", RoomSpec())
+        rates: dict[str, list[dict]] = {"eager": [], "compiled": []}
+        for _ in range(args.repeats):
+            for name in rates:
+                rates[name].append(_train_rate(scene, Path(tmp) / f"run_{name}", name == "compiled", args.iters))
+        renders = {name: _render_seconds(Path(tmp) / "run_compiled", name == "compiled", args.repeats)
+                   for name in ("eager", "compiled")}
+    cfg = TrainConfig().resolved()
+    med = {k: statistics.median(r["samples_per_s"] for r in v) for k, v in rates.items()}
+    rays = {k: statistics.median(r["rays_per_s"] for r in v) for k, v in rates.items()}
+    rend = {k: min(v) for k, v in renders.items()}
+    command = "  ".join(sys.argv)
+    lines = [
+        "# Training throughput and render time (CPU)",
+        "",
+        f"Measured {time.strftime('%Y-%m-%d')} on {platform.processor() or platform.machine()}, "
+        f"{torch.get_num_threads()} torch threads, torch {torch.__version__}.",
+        "",
+        f"Command: `.venv/bin/python {command}`",
+        "",
+        f"Preset `cpu`: {cfg.rays_per_batch} rays + {cfg.smooth_patches} patches of {cfg.patch_size}x"
+        f"{cfg.patch_size} per step, {cfg.n_importance}+{cfg.n_rest} samples per ray, hash grid "
+        f"{cfg.hash_levels}x{cfg.hash_features}, 2^{cfg.hash_log2_size} entries per level. Training samples/s "
+        f"exclude the compilation of the first step; {args.iters} iterations per run, median of "
+        f"{args.repeats} alternating runs.",
+        "",
+        "| path | training samples/s | training rays/s | 640x480 render (rgb + depth) |",
+        "| --- | --- | --- | --- |",
+    ]
+    for name in ("eager", "compiled"):
+        lines.append(f"| {name} | {med[name]:,.0f} | {rays[name]:,.0f} | {rend[name]:.2f} s |")
+    lines += [
+        "",
+        f"Ratios (compiled / eager, same run): training {med['compiled'] / med['eager']:.2f}x, "
+        f"render {rend['eager'] / rend['compiled']:.2f}x faster.",
+        "",
+    ]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

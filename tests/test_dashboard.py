@@ -1,0 +1,88 @@
+"""The dashboard in a real headless browser (playwright driving Debian's /usr/bin/chromium, no download):
+with the API token entered, a training job's progress bar advances, its PSNR plot and evaluation thumbnails
+appear, and a pose of the finished job renders. A screenshot is saved under the test's temporary directory."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from service_fixtures import first_pose, start_service, zip_scene
+
+pytestmark = pytest.mark.slow
+
+CHROMIUM = Path("/usr/bin/chromium")
+TOKEN = "dash-token"
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    svc = start_service(tmp_path_factory.mktemp("dashboard"), token=TOKEN)
+    yield svc
+    svc.stop()
+
+
+@pytest.fixture
+def page(tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    if not CHROMIUM.exists():
+        pytest.skip("Debian's chromium is not installed (scripts/install.sh installs it)")
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
+        try:
+            yield browser.new_page(viewport={"width": 1400, "height": 900})
+        finally:
+            browser.close()
+
+
+def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page, small_room, tmp_path):
+    with service.client() as client:
+        scene = client.post(
+            "/scenes", files={"file": ("room.zip", zip_scene(small_room), "application/zip")}
+        ).json()
+        job = client.post(
+            f"/scenes/{scene['id']}/jobs", json={"max_seconds": 45, "compile": False, "eval_every_s": 8.0}
+        ).json()
+
+    page.goto(service.base_url + "/")
+    page.wait_for_selector("text=needs an API token")  # no token yet: the dashboard asks for it
+    page.fill("#token", TOKEN)
+    page.click("#token-form button")
+    row = f'tr[data-job-id="{job["id"]}"]'
+    bar = f"{row} [role=progressbar]"
+    page.wait_for_selector(bar, timeout=60_000)
+
+    values = []
+
+    def progress() -> int:
+        return int(page.get_attribute(bar, "aria-valuenow"))
+
+    page.wait_for_function(
+        f"() => Number(document.querySelector('{bar}').getAttribute('aria-valuenow')) > 0", timeout=240_000
+    )
+    values.append(progress())
+    page.wait_for_selector(f'{row}[data-state="succeeded"]', timeout=420_000)
+    values.append(progress())
+    assert values[0] > 0 and values[-1] == 100 and values == sorted(values)
+
+    page.wait_for_selector(f"{row} .plot polyline", timeout=30_000)
+    assert int(page.get_attribute(f"{row} .plot", "data-points")) >= 2
+    page.wait_for_function(
+        f"() => [...document.querySelectorAll('{row} .thumbs img')]"
+        ".filter(i => i.naturalWidth > 0).length >= 2",
+        timeout=60_000,
+    )
+
+    page.select_option("#render-job", job["id"])
+    page.fill("#render-pose", json.dumps(first_pose(small_room)))
+    page.click("#render-form button")
+    page.wait_for_function(
+        "() => document.getElementById('render-image').naturalWidth === 64", timeout=60_000
+    )
+    assert page.is_hidden("#message") or "refused" not in page.inner_text("#message")
+
+    shot = tmp_path / "dashboard.png"
+    page.screenshot(path=str(shot), full_page=True)
+    assert shot.stat().st_size > 10_000
+    print(f"dashboard screenshot: {shot}")

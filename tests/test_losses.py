@@ -1,0 +1,62 @@
+"""Losses: values, continuity at beta, robustness and the smoothness term."""
+
+import torch
+
+from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, log_huber
+
+
+def test_log_huber_values_and_continuity_at_beta():
+    beta = 0.1
+    r = torch.tensor([0.0, 0.05, -0.05, 0.2, 1.0])
+    expected = torch.tensor([0.0, 0.5 * 0.05**2, 0.5 * 0.05**2, beta**2 * (0.5 + torch.log(torch.tensor(2.0))),
+                             beta**2 * (0.5 + torch.log(torch.tensor(10.0)))])
+    torch.testing.assert_close(log_huber(r, beta), expected)
+    eps = 1e-4
+    below, at, above = log_huber(torch.tensor([beta - eps, beta, beta + eps], dtype=torch.float64), beta)
+    assert abs(float(below - at)) < 2 * beta * eps and abs(float(above - at)) < 2 * beta * eps
+    x = torch.tensor([beta - 1e-6, beta + 1e-6], dtype=torch.float64, requires_grad=True)
+    log_huber(x, beta).sum().backward()
+    torch.testing.assert_close(x.grad, torch.tensor([beta, beta], dtype=torch.float64), atol=1e-5, rtol=0)
+
+
+def test_log_huber_is_finite_for_extreme_residuals():
+    r = torch.tensor([1e-12, 1e-6, 1e6, 3e38, float("inf")], requires_grad=True)
+    for beta in (1e-6, 0.1, 100.0):
+        value = log_huber(r, beta)
+        assert torch.isfinite(value).all()
+        (g,) = torch.autograd.grad(value.sum(), r)
+        assert torch.isfinite(g).all()
+    # Outliers pull less than an L2 or L1 loss would: gradient beta^2 / r.
+    x = torch.tensor([10.0], requires_grad=True)
+    log_huber(x, 0.1).backward()
+    torch.testing.assert_close(x.grad, torch.tensor([0.01 / 10.0]))
+
+
+def test_depth_loss_ignores_invalid_rays():
+    pred = torch.tensor([1.0, 2.0, 3.0])
+    target = torch.tensor([1.0, float("nan"), 3.5])
+    valid = torch.isfinite(target)
+    value = depth_loss(pred, target, valid, beta=0.1)
+    expected = log_huber(torch.tensor([0.0, 0.5]), 0.1).mean()
+    torch.testing.assert_close(value, expected)
+    assert float(depth_loss(pred, target, torch.zeros(3, dtype=torch.bool), 0.1)) == 0.0
+
+
+def test_smoothness_zero_on_constant_and_positive_on_ramp():
+    flat = torch.full((2, 8, 8), 3.0)
+    mask = torch.ones(2, 8, 8, dtype=torch.bool)
+    assert float(depth_smoothness_loss(flat, mask)) == 0.0
+    ramp = torch.arange(8.0).view(1, 1, 8).expand(2, 8, 8)
+    # Scale 1: |Gx| = 1; scale 2 (2x2 averages): 2; scale 3: 4; Gy = 0.
+    torch.testing.assert_close(depth_smoothness_loss(ramp, mask, scales=3), torch.tensor(7.0))
+    # A masked-out outlier does not count.
+    spiky = flat.clone()
+    spiky[0, 4, 4] = 1e6
+    mask2 = mask.clone()
+    mask2[0, 4, 4] = False
+    assert float(depth_smoothness_loss(spiky, mask2, scales=1)) == 0.0
+
+
+def test_color_loss_is_mse():
+    a, b = torch.zeros(4, 3), torch.full((4, 3), 0.5)
+    assert float(color_loss(a, b)) == 0.25

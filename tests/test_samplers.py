@@ -1,0 +1,94 @@
+"""Samplers: counts, ordering, bounds, the VoxNeRF window and its fallback, occupancy-grid skipping."""
+
+import math
+
+import torch
+
+from voxnerf.octree import SparseVoxelOctree
+from voxnerf.samplers import OccGridSampler, OccupancyGrid, RayBundle, UniformSampler, VoxNeRFSampler
+
+
+def _rays(n: int, origin=(0.0, 0.0, 0.0), direction=(1.0, 0.0, 0.0), near=0.01, far=1.7) -> RayBundle:
+    o = torch.tensor(origin).expand(n, 3).clone()
+    d = torch.nn.functional.normalize(torch.tensor(direction), dim=0).expand(n, 3).clone()
+    return RayBundle(o, d, torch.full((n,), near), torch.full((n,), far))
+
+
+def _check_intervals(starts, ends, rays, s):
+    assert starts.shape == ends.shape == (len(rays), s)
+    assert torch.all(ends >= starts)
+    assert torch.all(starts[:, 1:] >= ends[:, :-1] - 1e-6)
+    assert torch.all(starts >= rays.near[:, None] - 1e-6) and torch.all(ends <= rays.far[:, None] + 1e-6)
+
+
+def test_uniform_sampler_covers_range():
+    rays = _rays(16)
+    starts, ends = UniformSampler(32)(rays, stratified=True)
+    _check_intervals(starts, ends, rays, 32)
+    torch.testing.assert_close(starts[:, 0], rays.near)
+    torch.testing.assert_close(ends[:, -1], rays.far)
+
+
+def _wall_octree(x: float = 0.8, leaf: float = 0.02) -> SparseVoxelOctree:
+    g = torch.linspace(-0.9, 0.9, 91)
+    yy, zz = torch.meshgrid(g, g, indexing="ij")
+    pts = torch.stack([torch.full_like(yy, x), yy, zz], -1).reshape(-1, 3)
+    return SparseVoxelOctree.from_points(pts, leaf)
+
+
+def test_voxnerf_sampler_packs_importance_samples_in_window():
+    octree = _wall_octree()
+    grid = OccupancyGrid(16)
+    sampler = VoxNeRFSampler(octree, 16, 8, OccGridSampler(grid, 24))
+    rays = _rays(256, direction=(1.0, 0.05, -0.03))
+    z, hit = sampler.first_hits(rays)
+    assert bool(hit.all())
+    starts, ends = sampler(rays, stratified=True)
+    _check_intervals(starts, ends, rays, 24)
+    t = sampler.sample_points(rays, z, stratified=True)
+    inside = ((t - z[:, None]).abs() <= sampler.half_window + 1e-5).sum(-1)
+    assert torch.all(inside >= 16), "every importance sample lies in z +- 3 sqrt(3) v"
+    mids = t
+    assert math.isclose(sampler.half_window, 3 * math.sqrt(3) * octree.leaf_size)
+    # Importance samples follow N(z, 3 v^2): their spread is about sqrt(3) v (a bit less after truncation).
+    near_z = torch.where((mids - z[:, None]).abs() <= sampler.half_window, mids - z[:, None], torch.nan)
+    std = float(torch.nanmean(near_z**2).sqrt())
+    assert 0.7 * math.sqrt(3) * octree.leaf_size < std < 1.1 * math.sqrt(3) * octree.leaf_size
+
+
+def test_voxnerf_sampler_falls_back_to_occupancy_grid_on_miss():
+    octree = _wall_octree()
+    grid = OccupancyGrid(16)
+    grid.occupied.zero_()
+    cell = grid.cell_index(torch.tensor([[-0.5, 0.0, 0.0]]))
+    grid.occupied[cell] = True
+    fallback = OccGridSampler(grid, 24)
+    sampler = VoxNeRFSampler(octree, 16, 8, fallback)
+    rays = _rays(8, direction=(-1.0, 0.0, 0.0), far=0.95)  # away from the wall: no hit
+    _, hit = sampler.first_hits(rays)
+    assert not bool(hit.any())
+    starts, ends = sampler(rays, stratified=False)
+    _check_intervals(starts, ends, rays, 24)
+    mids = 0.5 * (starts + ends)
+    in_cell = ((mids > 0.5 - 0.125) & (mids < 0.5)).float().mean()
+    assert in_cell > 0.9, "the occupancy grid's only occupied cell gets the samples"
+
+
+def test_occupancy_grid_update_tracks_density():
+    grid = OccupancyGrid(8)
+
+    def density(p):
+        return torch.where(p[:, 0] > 0.5, torch.full_like(p[:, 0], 100.0), torch.zeros_like(p[:, 0]))
+
+    for i in range(3):
+        grid.update(density, warmup=i == 0)
+    centres = torch.tensor([[0.8, 0.0, 0.0], [-0.8, 0.0, 0.0]])
+    assert grid.is_occupied(centres).tolist() == [True, False]
+
+
+def test_occgrid_sampler_uniform_when_grid_full():
+    grid = OccupancyGrid(8)
+    rays = _rays(4)
+    starts, ends = OccGridSampler(grid, 10)(rays, stratified=False)
+    widths = ends - starts
+    torch.testing.assert_close(widths[:, 1:-1], widths[:, 1:2].expand(4, 8), rtol=1e-3, atol=1e-4)

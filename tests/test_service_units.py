@@ -1,0 +1,218 @@
+"""The service's building blocks without servers: archive-name safety, render requests and their encoding,
+the atomic filesystem broker, and the job store's fencing and stale-job recovery."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import socket
+import time
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from kombu import Connection
+
+from app import jobstore
+from app.db import session_scope
+from app.models import JobRow
+from app.schemas import RenderRequest
+from app.settings import Settings
+from app.uploads import UploadError, safe_relpath
+from voxnerf.cameras import Intrinsics
+from voxnerf.image_io import decode_exr
+from worker.celery_app import create_celery
+from worker.dispatch import requeue_stale_jobs
+from worker.encoding import encode_render
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "../x.png",
+        "a/../../x.png",
+        "/etc/x.png",
+        "C:/x.png",
+        "c:x.png",
+        "a\\b.png",
+        "a\x00.png",
+        "",
+        "./",
+        "a/" + "x" * 256 + ".png",
+    ],
+)
+def test_unsafe_archive_names_are_refused(name):
+    with pytest.raises(UploadError) as info:
+        safe_relpath(name)
+    assert info.value.status_code == 422 and info.value.detail.startswith("entry ")
+
+
+def test_safe_archive_names_are_normalised():
+    assert str(safe_relpath("room/./images//a.png")) == "room/images/a.png"
+    assert str(safe_relpath("transforms.json")) == "transforms.json"
+
+
+DEFAULT = Intrinsics(fl_x=50.0, fl_y=52.0, cx=32.0, cy=24.0, width=64, height=48)
+
+
+def _request(**fields) -> RenderRequest:
+    return RenderRequest(job_id="a" * 32, transform_matrix=np.eye(4).tolist(), **fields)
+
+
+def test_render_intrinsics_default_scaled_and_explicit():
+    assert _request().intrinsics(DEFAULT) == DEFAULT
+    half = _request(width=32, height=24).intrinsics(DEFAULT)
+    assert half == Intrinsics(25.0, 26.0, 16.0, 12.0, 32, 24)
+    stretched = _request(width=128, height=48, fl_x=10.0, cy=5.0).intrinsics(DEFAULT)
+    assert stretched == Intrinsics(10.0, 52.0, 64.0, 5.0, 128, 48)
+
+
+def test_render_request_defaults_and_pose_cleanup():
+    assert _request().outputs == ["rgb"] and _request(format="exr").outputs == ["rgb", "depth", "opacity"]
+    assert _request(format="exr", outputs=["depth", "depth"]).outputs == ["depth"]
+    angle = 0.3
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    pose = np.eye(4)
+    pose[:3, :3] = rot * (1 + 1e-3)  # slightly off: re-orthonormalised, like the engine does for scenes
+    pose[:3, 3] = [1, 2, 3]
+    cleaned = np.asarray(RenderRequest(job_id="a" * 32, transform_matrix=pose.tolist()).transform_matrix)
+    np.testing.assert_allclose(cleaned[:3, :3], rot, atol=1e-9)
+    np.testing.assert_allclose(cleaned[:3, 3], [1, 2, 3])
+
+
+def test_encode_render_png_and_exr_round_trip():
+    rng = np.random.default_rng(0)
+    images = {
+        "rgb": rng.random((6, 8, 3), dtype=np.float32),
+        "depth": rng.uniform(0.5, 4.0, (6, 8)).astype(np.float32),
+        "opacity": rng.random((6, 8), dtype=np.float32),
+    }
+    rgb = iio.imread(encode_render(images, "png", ["rgb"], 0.001))
+    assert rgb.dtype == np.uint8 and rgb.shape == (6, 8, 3)
+    np.testing.assert_allclose(rgb / 255.0, images["rgb"], atol=0.5 / 255 + 1e-6)
+    depth = iio.imread(encode_render(images, "png", ["depth"], 0.001))
+    assert depth.dtype == np.uint16 and depth.shape == (6, 8)
+    np.testing.assert_allclose(depth * 0.001, images["depth"], atol=0.0005 + 1e-6)
+    alpha = iio.imread(encode_render(images, "png", ["opacity"], 0.001))
+    assert alpha.shape == (6, 8) and alpha.dtype == np.uint8
+    channels = decode_exr(encode_render(images, "exr", ["rgb", "depth", "opacity"], 0.001))
+    assert sorted(channels) == ["A", "B", "G", "R", "Z"]
+    np.testing.assert_array_equal(np.stack([channels[c] for c in "RGB"], -1), images["rgb"])
+    np.testing.assert_array_equal(channels["Z"], images["depth"])
+    np.testing.assert_array_equal(channels["A"], images["opacity"])
+    assert sorted(decode_exr(encode_render(images, "exr", ["depth"], 0.001))) == ["Z"]
+
+
+def _broker(folder) -> Connection:
+    options = {
+        "data_folder_in": str(folder / "q"),
+        "data_folder_out": str(folder / "q"),
+        "control_folder": str(folder / "c"),
+        "claimed_folder": str(folder / "claimed"),
+        "polling_interval": 0.01,
+    }
+    return Connection("filesystem://", transport="worker.broker:Transport", transport_options=options)
+
+
+def _consume(folder, out):
+    got = []
+    with _broker(folder) as conn:
+        queue = conn.SimpleQueue("jobs")
+        idle_since = time.monotonic()
+        while time.monotonic() - idle_since < 1.0:
+            try:
+                message = queue.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            got.append(message.payload["n"])
+            message.ack()
+            idle_since = time.monotonic()
+        queue.close()
+    out.put(got)
+
+
+def test_filesystem_broker_delivers_each_message_once_to_competing_consumers(tmp_path):
+    for name in ("q", "c", "claimed"):
+        (tmp_path / name).mkdir()
+    context = multiprocessing.get_context("spawn")
+    out = context.Queue()
+    consumers = [context.Process(target=_consume, args=(tmp_path, out)) for _ in range(2)]
+    for proc in consumers:
+        proc.start()
+    with _broker(tmp_path) as conn:
+        queue = conn.SimpleQueue("jobs")
+        for n in range(200):
+            queue.put({"n": n})
+        queue.close()
+    received = [n for _ in consumers for n in out.get(timeout=60)]
+    for proc in consumers:
+        proc.join(30)
+    assert sorted(received) == list(range(200))  # every message once: none lost, none twice
+    assert not [p for p in (tmp_path / "q").iterdir() if p.name.endswith(".msg")]
+    assert not list((tmp_path / "claimed").iterdir())
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:
+    s = Settings(data_dir=tmp_path / "data", stale_after_s=5.0)
+    s.make_dirs()
+    return s
+
+
+def test_claims_are_fenced_and_stale_jobs_are_requeued(settings):
+    jobstore.add_scene(settings, "a" * 32, "room", {"frames": 1}, 10)
+    job = jobstore.create_job(settings, "a" * 32, {"max_iters": 5})
+    first = jobstore.claim_job(settings, job.id, "elsewhere:1")
+    assert first.attempt == 1 and first.state == "running"
+    assert jobstore.claim_job(settings, job.id, "elsewhere:2") is None  # fresh lease: not claimable
+    assert jobstore.record_progress(
+        settings, job.id, 1, {"progress": 0.5, "history": [{"psnr": float("nan")}]}
+    )
+    assert jobstore.get_job(settings, job.id).history == [{"psnr": None}]  # NaN never reaches the store
+
+    celery = create_celery(settings)
+    assert requeue_stale_jobs(settings, celery) == []
+    jobstore.renew_lease(settings, job.id, 1)
+    with session_scope(settings) as session:  # the worker went silent 10 s ago
+        session.get(JobRow, job.id).heartbeat_at = time.time() - 10
+    assert requeue_stale_jobs(settings, celery) == [job.id]
+    assert [p for p in (settings.broker_dir / "queue").iterdir() if p.name.endswith(".train.msg")]
+    requeued = jobstore.get_job(settings, job.id)
+    assert requeued.state == "queued" and requeued.requeues == 1
+
+    second = jobstore.claim_job(settings, job.id, "here:2")
+    assert second.attempt == 2
+    assert not jobstore.record_progress(
+        settings, job.id, 1, {"progress": 0.9}
+    )  # the old worker is fenced off
+    assert not jobstore.renew_lease(settings, job.id, 1).owned
+    assert jobstore.finish_job(settings, job.id, 2, "succeeded", {"progress": 1.0})
+    assert jobstore.get_job(settings, job.id).state == "succeeded"
+
+
+def test_a_job_whose_local_worker_process_is_gone_is_stale_at_once(settings):
+    jobstore.add_scene(settings, "b" * 32, "room", {"frames": 1}, 10)
+    job = jobstore.create_job(settings, "b" * 32, {"max_iters": 5})
+    dead = multiprocessing.get_context("spawn").Process(target=time.sleep, args=(0,))
+    dead.start()
+    dead.join()
+    jobstore.claim_job(settings, job.id, f"{socket.gethostname()}:{dead.pid}")
+    assert [j.id for j in jobstore.stale_jobs(settings)] == [job.id]
+    jobstore.mark_requeued(settings, jobstore.stale_jobs(settings))
+    mine = jobstore.claim_job(settings, job.id, f"{socket.gethostname()}:{os.getpid()}")
+    assert mine.attempt == 2 and jobstore.stale_jobs(settings) == []
+
+
+def test_cancel_is_immediate_when_queued_and_flagged_when_running(settings):
+    jobstore.add_scene(settings, "c" * 32, "room", {"frames": 1}, 10)
+    queued = jobstore.create_job(settings, "c" * 32, {"max_iters": 5})
+    assert jobstore.request_cancel(settings, queued.id).state == "cancelled"
+    assert jobstore.claim_job(settings, queued.id, "w:1") is None
+    running = jobstore.create_job(settings, "c" * 32, {"max_iters": 5})
+    jobstore.claim_job(settings, running.id, "w:1")
+    flagged = jobstore.request_cancel(settings, running.id)
+    assert flagged.state == "running" and flagged.cancel_requested
+    assert jobstore.renew_lease(settings, running.id, 1).cancel_requested
+    with pytest.raises(jobstore.SceneBusy):
+        jobstore.delete_scene(settings, "c" * 32)
+    assert jobstore.get_scene(settings, "c" * 32) is not None

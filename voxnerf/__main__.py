@@ -1,0 +1,3 @@
+from voxnerf.cli import main
+
+raise SystemExit(main())

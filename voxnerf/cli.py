@@ -1,0 +1,248 @@
+"""Command line: ``voxnerf train | eval | render | synth | serve | worker``.
+
+Errors the user can fix print one line (``voxnerf: error: <file>: <key>: <message>``) and exit with 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from voxnerf.cameras import Intrinsics
+from voxnerf.errors import RunError, VoxNeRFError
+
+
+def _train(args: argparse.Namespace) -> int:
+    from voxnerf.config import TrainConfig
+    from voxnerf.trainer import train
+
+    config = TrainConfig(
+        preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
+        depth_loss=not args.no_depth_loss, downscale=args.downscale, device=args.device, seed=args.seed,
+        compile=not args.no_compile, eval_at=args.eval_at or [],
+    )
+    if config.max_seconds is None and config.max_iters is None:
+        raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
+    report = train(args.scene, args.out, config, resume=not args.restart)
+    for name, m in report.get("metrics", {}).items():
+        print(_metrics_line(name, m))
+    print(f"{report['status']}: {report['iteration']} iterations in {report['train_seconds']:.1f} s "
+          f"({report['throughput']['samples_per_s']:.0f} samples/s); report: {Path(args.out) / 'report.json'}")
+    return 0
+
+
+def _metrics_line(split: str, m: dict) -> str:
+    lp = f"{m['lpips']:.4f}" if m.get("lpips") is not None else m.get("lpips_note", "n/a")
+    return f"{split}: PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  LPIPS {lp}  ({len(m['views'])} views)"
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from voxnerf.evaluation import evaluate_views
+    from voxnerf.render import load_model
+    from voxnerf.scene import load_scene
+    from voxnerf.trainer import eval_views_of
+
+    trained = load_model(args.run, args.device)
+    scene_dir = args.scene or trained.scene_dir
+    if not scene_dir:
+        raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
+    scene = load_scene(scene_dir, downscale=trained.model.config.downscale)
+    split = args.split or ("test" if scene.splits.get("test") else next(iter(scene.eval_split_names), None))
+    if split not in scene.splits or split == "train" and not args.split:
+        raise RunError(f"{scene_dir}: no evaluation split {split!r} (have {sorted(scene.splits)})")
+    views = eval_views_of(scene, trained.model.transform, [split])
+    metrics = evaluate_views(trained.model, {split: views[split]}, trained.model.config,
+                             out_dir=Path(args.run) / "eval")[split]
+    print(_metrics_line(split, metrics))
+    if args.json:
+        from voxnerf.image_io import write_atomic
+
+        payload = {"split": split, **metrics, "iteration": trained.iteration}
+        write_atomic(Path(args.json), json.dumps(payload, indent=2).encode())
+    return 0
+
+
+def _read_pose(path: Path, default: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise RunError(f"{path}: cannot read pose JSON ({exc})") from None
+    if not isinstance(data, dict) or "transform_matrix" not in data:
+        raise RunError(f"{path}: transform_matrix: missing")
+    pose = np.asarray(data["transform_matrix"], dtype=np.float64) if _is_matrix(data["transform_matrix"]) else None
+    if pose is None or pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise RunError(f"{path}: transform_matrix: must be a finite 4x4 list of numbers")
+    return pose, intrinsics_for(data, default, str(path))
+
+
+def _is_matrix(value) -> bool:
+    return isinstance(value, list) and all(
+        isinstance(row, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in row)
+        for row in value
+    )
+
+
+def intrinsics_for(data: dict, default: Intrinsics, where: str) -> Intrinsics:
+    """Intrinsics from optional ``fl_x fl_y cx cy w h`` keys; missing ones come from ``default`` (scaled to the
+    requested size when only ``w``/``h`` are given)."""
+    for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+        value = data.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                  or not math.isfinite(value) or value <= 0):
+            raise RunError(f"{where}: {key}: must be a positive number, got {value!r}")
+    w = int(data.get("w") or default.width)
+    h = int(data.get("h") or default.height)
+    if w * h > 8192 * 8192:
+        raise RunError(f"{where}: w, h: {w}x{h} is larger than the 8192x8192 limit")
+    sx, sy = w / default.width, h / default.height
+    return Intrinsics(
+        float(data.get("fl_x") or default.fl_x * sx), float(data.get("fl_y") or default.fl_y * sy),
+        float(data.get("cx") or default.cx * sx), float(data.get("cy") or default.cy * sy), w, h,
+    )
+
+
+def _render(args: argparse.Namespace) -> int:
+    from voxnerf.image_io import encode_depth_png16, encode_exr, encode_png, write_atomic
+    from voxnerf.render import load_model, render
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".exr"):
+        raise RunError(f"{out}: output must end in .png or .exr")
+    trained = load_model(args.run, args.device)
+    pose, intr = _read_pose(Path(args.pose), trained.default_intrinsics)
+    outputs = ["rgb"] + (["depth"] if args.depth else []) + (["opacity"] if args.opacity else [])
+    images = render(trained, pose, intr, outputs)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".exr":
+        channels = {"R": images["rgb"][..., 0], "G": images["rgb"][..., 1], "B": images["rgb"][..., 2]}
+        if "depth" in images:
+            channels["Z"] = images["depth"]
+        if "opacity" in images:
+            channels["A"] = images["opacity"]
+        write_atomic(out, encode_exr(channels))
+    else:
+        write_atomic(out, encode_png(images["rgb"]))
+        if "depth" in images:
+            depth_path = out.with_name(out.stem + "_depth.png")
+            write_atomic(depth_path, encode_depth_png16(images["depth"], trained.depth_unit_scale))
+            print(f"wrote {depth_path}")
+        if "opacity" in images:
+            alpha_path = out.with_name(out.stem + "_opacity.png")
+            write_atomic(alpha_path, encode_png(np.repeat(images["opacity"][..., None], 3, axis=-1)))
+            print(f"wrote {alpha_path}")
+    print(f"wrote {out} ({intr.width}x{intr.height})")
+    return 0
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from voxnerf.synthetic import RoomSpec, make_room_scene
+
+    spec = RoomSpec(width=args.width, height=args.height, n_frames=args.frames, prior_kind=args.prior,
+                    prior_sigma=args.sigma, seed=args.seed)
+    make_room_scene(Path(args.out), spec)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from app.serve import serve
+
+    serve(args.host, args.port)
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from worker.run import run_worker
+
+    run_worker([q for q in args.queues.split(",") if q], args.concurrency)
+    return 0
+
+
+def _seconds_list(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated seconds, got {text!r}") from None
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="voxnerf", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("train", help="train a model on a scene directory")
+    p.add_argument("scene", help="scene directory (SCENE_FORMAT.md)")
+    p.add_argument("--out", required=True, help="run directory (checkpoint, report.json, eval renders)")
+    p.add_argument("--max-seconds", type=float, help="wall-clock bound of the whole command")
+    p.add_argument("--max-iters", type=int)
+    p.add_argument("--sampler", choices=["voxnerf", "occgrid", "uniform"], default="voxnerf")
+    p.add_argument("--no-depth-loss", action="store_true")
+    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
+    p.add_argument("--downscale", type=int, default=1)
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-compile", action="store_true", help="run the training step eagerly")
+    p.add_argument("--eval-at", type=_seconds_list, help="full evaluations at these training seconds, e.g. 120,300")
+    p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
+    p.set_defaults(func=_train)
+
+    p = sub.add_parser("eval", help="evaluate a run on a held-out split")
+    p.add_argument("run")
+    p.add_argument("--split", help="split name (default: test, or the first evaluation split)")
+    p.add_argument("--scene", help="scene directory (default: the one the run trained on)")
+    p.add_argument("--json", help="write the metrics here")
+    p.add_argument("--device", default="auto")
+    p.set_defaults(func=_eval)
+
+    p = sub.add_parser("render", help="render a camera pose to PNG or EXR")
+    p.add_argument("run")
+    p.add_argument("--pose", required=True, help="JSON with transform_matrix and optional fl_x fl_y cx cy w h")
+    p.add_argument("--out", required=True, help="IMG.png or IMG.exr")
+    p.add_argument("--depth", action="store_true", help="also render depth (EXR channel Z, or IMG_depth.png)")
+    p.add_argument("--opacity", action="store_true", help="also render opacity (EXR channel A)")
+    p.add_argument("--device", default="auto")
+    p.set_defaults(func=_render)
+
+    p = sub.add_parser("synth", help="generate a synthetic furnished-room scene")
+    p.add_argument("out")
+    p.add_argument("--width", type=int, default=160)
+    p.add_argument("--height", type=int, default=120)
+    p.add_argument("--frames", type=int, default=160)
+    p.add_argument("--prior", choices=["points", "mesh", "none"], default="points")
+    p.add_argument("--sigma", type=float, default=0.02)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_synth)
+
+    p = sub.add_parser("serve", help="start the REST API with an embedded worker")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.set_defaults(func=_serve)
+
+    p = sub.add_parser("worker", help="start a Celery worker")
+    p.add_argument("--queues", default="train,render")
+    p.add_argument("--concurrency", type=int, default=1)
+    p.set_defaults(func=_worker)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from pydantic import ValidationError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        print(f"voxnerf: error: {'.'.join(map(str, first['loc']))}: {first['msg']}", file=sys.stderr)
+        return 2
+    except VoxNeRFError as exc:
+        print(f"voxnerf: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("voxnerf: interrupted", file=sys.stderr)
+        return 130

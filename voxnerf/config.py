@@ -1,0 +1,101 @@
+"""Training configuration: one pydantic model, with presets for a CPU and for the paper's GPU setting."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field, field_validator
+
+Preset = Literal["cpu", "paper"]
+SamplerName = Literal["voxnerf", "occgrid", "uniform"]
+
+# Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
+# 2^19 hash tables); "cpu" keeps a 2-core CPU at a few hundred thousand samples per second.
+PRESETS: dict[str, dict] = {
+    "cpu": dict(
+        rays_per_batch=2048,
+        n_importance=16,
+        n_rest=8,
+        hash_levels=12,
+        hash_features=2,
+        hash_log2_size=17,
+        hash_max_resolution=1024,
+        hidden_dim=64,
+        lr_decay_iters=20_000,
+        eval_chunk=4096,
+    ),
+    "paper": dict(
+        rays_per_batch=4096,
+        n_importance=128,
+        n_rest=128,
+        hash_levels=16,
+        hash_features=2,
+        hash_log2_size=19,
+        hash_max_resolution=2048,
+        hidden_dim=64,
+        lr_decay_iters=30_000,
+        eval_chunk=32_768,
+    ),
+}
+
+
+class TrainConfig(BaseModel):
+    """Everything a training run depends on; stored in the checkpoint and in report.json."""
+
+    model_config = {"extra": "forbid"}
+
+    preset: Preset = "cpu"
+    sampler: SamplerName = "voxnerf"
+    max_seconds: float | None = Field(default=None, gt=0, description="wall-clock bound of the whole command")
+    max_iters: int | None = Field(default=None, gt=0)
+    depth_loss: bool = True
+    downscale: int = Field(default=1, ge=1, le=16)
+    device: str = "auto"
+    seed: int = 0
+    compile: bool = True
+
+    # Preset-dependent fields: None means "take the preset's value" (see resolved()).
+    rays_per_batch: int | None = Field(default=None, gt=0)
+    n_importance: int | None = Field(default=None, ge=1)
+    n_rest: int | None = Field(default=None, ge=1)
+    hash_levels: int | None = Field(default=None, ge=1, le=32)
+    hash_features: int | None = Field(default=None, ge=1, le=8)
+    hash_log2_size: int | None = Field(default=None, ge=10, le=24)
+    hash_max_resolution: int | None = Field(default=None, ge=16)
+    hidden_dim: int | None = Field(default=None, ge=8)
+    lr_decay_iters: int | None = Field(default=None, gt=0)
+    eval_chunk: int | None = Field(default=None, gt=0)
+
+    lr: float = Field(default=1e-2, gt=0)
+    lambda_depth: float = Field(default=1.0, ge=0, description="lambda_d of the paper's total loss")
+    lambda_smooth: float = Field(
+        default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
+    )
+    depth_beta: float = Field(default=0.1, gt=0, description="log-Huber beta, scene units (paper: 0.1)")
+    smooth_patches: int = Field(default=8, ge=0, description="s x s patches per batch for the smoothness term")
+    patch_size: int = Field(default=8, ge=2)
+    smooth_scales: int = Field(default=3, ge=1)
+    occgrid_resolution: int = Field(default=64, ge=8)
+    occgrid_update_every: int = Field(default=32, ge=1)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    eval_every_s: float = Field(default=60.0, gt=0, description="training seconds between progress evaluations")
+    eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
+    eval_at: list[float] = Field(default_factory=list, description="extra full evaluations at these seconds")
+    checkpoint_every_s: float = Field(default=60.0, gt=0)
+    final_eval: bool = True
+
+    @field_validator("device")
+    @classmethod
+    def _device(cls, value: str) -> str:
+        if value not in ("auto", "cpu") and not value.startswith("cuda"):
+            raise ValueError("device must be auto, cpu or cuda[:N]")
+        return value
+
+    def resolved(self) -> TrainConfig:
+        """A copy with every preset-dependent field filled in."""
+        values = {k: v for k, v in PRESETS[self.preset].items() if getattr(self, k) is None}
+        return self.model_copy(update=values)
+
+    @property
+    def samples_per_ray(self) -> int:
+        return int(self.n_importance) + int(self.n_rest)

@@ -1,0 +1,406 @@
+"""Sparse Voxel Octree over the geometry prior (paper III-B) and exact first-hit ray casting.
+
+Layout (like kaolin's SPC): level ``l`` (0 = root, ``levels`` = leaves) stores the sorted unique 63-bit
+Morton codes of its occupied nodes. Traversal tables derived from them give, per internal node, the index
+of each child in the next level (or -1) and the node's mid-planes, so descending needs no searches.
+
+Geometry: the root cube has its min corner at ``origin`` and side ``leaf_size * 2**levels``; leaf
+``(i, j, k)`` spans ``[origin + i * leaf_size, origin + (i + 1) * leaf_size]`` per axis, each plane computed
+in float32 as ``origin + integer * leaf_size``, so an independent slab test reproduces the traversal bit for
+bit. A ray hits a leaf when their intersection inside ``[t_min, t_max]`` has positive length. A zero direction
+component counts as +1e-30: a ray lying exactly in a voxel plane belongs to the voxel on the plane's + side.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+MAX_LEVELS = 21  # 21 bits per axis fit a 63-bit Morton code in an int64
+
+# (shift, mask) steps that spread the low 21 bits of x to every third bit (bit b -> bit 3b).
+_SPREAD_STEPS = (
+    (32, 0x001F00000000FFFF),
+    (16, 0x001F0000FF0000FF),
+    (8, 0x100F00F00F00F00F),
+    (4, 0x10C30C30C30C30C3),
+    (2, 0x1249249249249249),
+)
+_AXIS_BITS_MASK = 0x1249249249249249
+_LOW21_MASK = (1 << MAX_LEVELS) - 1
+
+
+def _spread_bits(x: Tensor) -> Tensor:
+    x = x & _LOW21_MASK
+    for shift, mask in _SPREAD_STEPS:
+        x = (x | (x << shift)) & mask
+    return x
+
+
+def _compact_bits(x: Tensor) -> Tensor:
+    x = x & _AXIS_BITS_MASK
+    masks = [m for _, m in _SPREAD_STEPS[:-1]][::-1] + [_LOW21_MASK]
+    shifts = [s for s, _ in _SPREAD_STEPS][::-1]
+    for shift, mask in zip(shifts, masks, strict=True):
+        x = (x ^ (x >> shift)) & mask
+    return x
+
+
+def morton_encode(ijk: Tensor) -> Tensor:
+    """Interleave integer coordinates [N, 3] (each in [0, 2**21)) into int64 Morton codes [N].
+
+    Bit ``3b + a`` of the code is bit ``b`` of axis ``a`` (x in the lowest bit), so ``code >> 3`` is the
+    parent's code and ``code & 7`` the child slot ``x | y << 1 | z << 2``.
+    """
+    ijk = ijk.to(torch.int64)
+    return _spread_bits(ijk[:, 0]) | (_spread_bits(ijk[:, 1]) << 1) | (_spread_bits(ijk[:, 2]) << 2)
+
+
+def morton_decode(codes: Tensor) -> Tensor:
+    """Inverse of :func:`morton_encode`: int64 codes [N] -> int64 coordinates [N, 3]."""
+    codes = codes.to(torch.int64)
+    return torch.stack([_compact_bits(codes), _compact_bits(codes >> 1), _compact_bits(codes >> 2)], dim=1)
+
+
+@dataclass
+class _TraversalTables:
+    """Per internal level ``l`` (0..L-1), derived from the codes:
+
+    - ``child_index[l]`` int32 [8 * n_l]: entry ``node * 8 + slot`` is the index in ``codes[l + 1]`` of child
+      ``slot`` (``x | y << 1 | z << 2``) of node ``node``, or -1 when that child is empty;
+    - ``planes[l]`` float32 [3, n_l]: each node's mid-planes, ``origin + (2 * ijk + 1) * half_side``.
+    """
+
+    child_index: list[Tensor]
+    planes: list[Tensor]
+
+    @staticmethod
+    def build(codes: list[Tensor], origin: Tensor, leaf_size: float) -> _TraversalTables:
+        levels = len(codes) - 1
+        v = torch.tensor(leaf_size, dtype=torch.float32, device=origin.device)
+        child_index, planes = [], []
+        for level in range(levels):
+            children = codes[level + 1]
+            parent = torch.searchsorted(codes[level], children >> 3)
+            table = torch.full((codes[level].numel() * 8,), -1, dtype=torch.int32, device=children.device)
+            index = torch.arange(children.numel(), dtype=torch.int32, device=children.device)
+            table[parent * 8 + (children & 7)] = index
+            child_index.append(table)
+            mid = (morton_decode(codes[level]).T.to(torch.float32) * 2 + 1) * float(2 ** (levels - level - 1))
+            planes.append(mid * v + origin[:, None])
+        return _TraversalTables(child_index, planes)
+
+    def to(self, device: torch.device) -> _TraversalTables:
+        return _TraversalTables([t.to(device) for t in self.child_index], [p.to(device) for p in self.planes])
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in self.child_index + self.planes)
+
+
+@dataclass
+class SparseVoxelOctree:
+    """Occupied nodes of an octree, level by level, as sorted Morton codes.
+
+    Attributes:
+        codes: ``levels + 1`` sorted unique int64 tensors; ``codes[0] == [0]`` is the root, ``codes[-1]`` the
+            occupied leaves (integer leaf coordinates in [0, 2**levels)).
+        origin: [3] float32, min corner of the root cube (units of the input points).
+        leaf_size: side of a leaf voxel (same units).
+        levels: depth of the leaves (1..21).
+        leaf_size_requested: the ``leaf_size`` asked for; larger ``leaf_size`` means depth was clamped.
+    """
+
+    codes: list[Tensor]
+    origin: Tensor
+    leaf_size: float
+    levels: int
+    leaf_size_requested: float
+    _tables: _TraversalTables = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if len(self.codes) != self.levels + 1:
+            raise ValueError(f"expected {self.levels + 1} code levels, got {len(self.codes)}")
+        self._tables = _TraversalTables.build(self.codes, self.origin, self.leaf_size)
+
+    @property
+    def root_size(self) -> float:
+        return self.leaf_size * 2**self.levels
+
+    @property
+    def device(self) -> torch.device:
+        return self.origin.device
+
+    @classmethod
+    def from_points(
+        cls, points: Tensor, leaf_size: float, *, max_levels: int = MAX_LEVELS
+    ) -> SparseVoxelOctree:
+        """Voxelise points [N, 3] with leaves of side ``leaf_size`` (paper: v = max sigma).
+
+        The root's min corner is the points' min corner minus ``leaf_size / 2``; ``levels`` is the smallest
+        depth whose root covers the points, clamped to [1, max_levels]. When clamped, the leaf grows to
+        ``extent / 2**max_levels`` (recorded against ``leaf_size_requested``).
+        """
+        if points.dim() != 2 or points.shape[1] != 3 or points.shape[0] == 0:
+            raise ValueError(f"points must be a non-empty [N, 3] tensor, got shape {tuple(points.shape)}")
+        if not bool(torch.isfinite(points).all()):
+            raise ValueError("points contain NaN or inf")
+        if not (math.isfinite(leaf_size) and leaf_size > 0):
+            raise ValueError(f"leaf_size must be positive and finite, got {leaf_size}")
+        if not 1 <= max_levels <= MAX_LEVELS:
+            raise ValueError(f"max_levels must be in [1, {MAX_LEVELS}], got {max_levels}")
+        points = points.to(torch.float32)
+        lo = points.amin(0).double()
+        span = float((points.amax(0).double() - lo).max())
+        levels = max(1, math.ceil(math.log2(span / leaf_size + 1.0)))  # root side >= span + one leaf
+        leaf = leaf_size
+        if levels > max_levels:
+            levels = max_levels
+            leaf = span / (2**max_levels - 1) * (1 + 1e-6)
+        origin = (lo - 0.5 * leaf).to(torch.float32)
+        ijk = torch.floor((points - origin) / leaf).clamp_(0, 2**levels - 1).to(torch.int64)
+        codes = [torch.unique(morton_encode(ijk))]
+        for _ in range(levels):
+            codes.append(torch.unique_consecutive(codes[-1] >> 3))
+        return cls(codes[::-1], origin, float(leaf), levels, float(leaf_size))
+
+    def state_dict(self) -> dict:
+        """What :meth:`from_state_dict` restores: codes and scalars (traversal tables are derived)."""
+        return {
+            "codes": list(self.codes),
+            "origin": self.origin,
+            "leaf_size": self.leaf_size,
+            "levels": self.levels,
+            "leaf_size_requested": self.leaf_size_requested,
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> SparseVoxelOctree:
+        return cls(
+            [c.to(torch.int64) for c in state["codes"]],
+            state["origin"].to(torch.float32),
+            float(state["leaf_size"]),
+            int(state["levels"]),
+            float(state["leaf_size_requested"]),
+        )
+
+    def to(self, device: torch.device | str) -> SparseVoxelOctree:
+        """A copy on ``device`` (traversal tables moved, not rebuilt)."""
+        moved = copy.copy(self)
+        moved.codes = [c.to(device) for c in self.codes]
+        moved.origin = self.origin.to(device)
+        moved._tables = self._tables.to(torch.device(device))
+        return moved
+
+    def summary(self) -> dict:
+        """JSON-able description: depth, leaf size, root cube, occupied nodes per level, memory in bytes."""
+        return {
+            "levels": self.levels,
+            "leaf_size": self.leaf_size,
+            "leaf_size_requested": self.leaf_size_requested,
+            "depth_clamped": self.leaf_size != self.leaf_size_requested,
+            "root_origin": [float(x) for x in self.origin.tolist()],
+            "root_size": self.root_size,
+            "nodes_per_level": [int(c.numel()) for c in self.codes],
+            "memory_bytes": int(sum(c.numel() * c.element_size() for c in self.codes)),
+            "traversal_table_bytes": self._tables.nbytes(),
+        }
+
+    def leaf_ijk(self, points: Tensor) -> Tensor:
+        """Integer leaf coordinates [N, 3] (int64, may lie outside [0, 2**levels)) of points [N, 3]."""
+        origin = self.origin.to(points.device)
+        return torch.floor((points.to(torch.float32) - origin) / self.leaf_size).to(torch.int64)
+
+    def leaf_occupied(self, points: Tensor) -> Tensor:
+        """Whether each point [N, 3] lies in an occupied leaf -> bool [N]."""
+        ijk = self.leaf_ijk(points)
+        inside = ((ijk >= 0) & (ijk < 2**self.levels)).all(dim=1)
+        leaves = self.codes[-1].to(points.device)
+        codes = morton_encode(ijk.clamp(0, 2**self.levels - 1))
+        pos = torch.searchsorted(leaves, codes).clamp_(max=leaves.numel() - 1)
+        return inside & (leaves[pos] == codes)
+
+    def first_hit(
+        self,
+        origins: Tensor,
+        dirs: Tensor,
+        t_min: Tensor | float,
+        t_max: Tensor | float,
+        *,
+        chunk: int | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Distance to the first occupied leaf along each ray (exact).
+
+        Args:
+            origins, dirs: [N, 3] float on any device; dirs non-zero (``t`` is in units of ``|dir|``). A zero
+                direction component counts as +1e-30, so a ray lying in a voxel plane belongs to the voxel on
+                the plane's + side.
+            t_min, t_max: [N] or scalars; only the part of the ray in [t_min, t_max] counts.
+            chunk: most (ray, node) candidates expanded at once, bounding temporaries to about ``chunk * 200``
+                bytes (default 2**17 on CPU, 2**21 on GPU).
+        Returns:
+            t_hit [N] float32: ``max(entry, t_min)`` of the first hit leaf, ``t_max`` where there is none;
+            hit [N] bool.
+
+        Method (like kaolin's SPC ray tracing): a frontier of every (ray, occupied node) pair whose segment
+        has positive length descends level by level. A node's segment is split at its three mid-planes into
+        at most 4 consecutive child segments; occupied children with positive length join the next frontier.
+        Leaf candidates are reduced to the smallest entry per ray. Frontiers larger than ``chunk`` are halved
+        and descended one after the other, so memory stays bounded whatever the rays.
+        """
+        if origins.dim() != 2 or origins.shape[1] != 3 or dirs.shape != origins.shape:
+            shapes = f"{tuple(origins.shape)} and {tuple(dirs.shape)}"
+            raise ValueError(f"origins and dirs must both be [N, 3], got {shapes}")
+        device = origins.device
+        n = origins.shape[0]
+        tables = self._tables if device == self.device else self._tables.to(device)
+        origin = self.origin.to(device)
+        v = torch.tensor(self.leaf_size, dtype=torch.float32, device=device)
+        o = origins.to(torch.float32)
+        d = dirs.to(torch.float32)
+        d = torch.where(d.abs() < _TINY_DIR, torch.full_like(d, _TINY_DIR), d)
+        t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
+        t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
+
+        # Root segment: slab test against [origin, origin + 2**L * v].
+        lo = origin + 0.0 * v
+        hi = origin + float(2**self.levels) * v
+        ta, tb = (lo - o) / d, (hi - o) / d
+        t0 = torch.maximum(torch.minimum(ta, tb).amax(1), t_min)
+        t1 = torch.minimum(torch.maximum(ta, tb).amin(1), t_max)
+        rays = _Rays(
+            torch.cat([o, d], dim=1).T.contiguous(),
+            ((d < 0).int() << torch.arange(3, dtype=torch.int32, device=device)).sum(1, dtype=torch.int32),
+        )
+        best = torch.full((n,), float("inf"), device=device)
+        ray = torch.nonzero(t0 < t1).squeeze(1)
+        root = _Frontier(
+            ray,
+            torch.zeros(ray.numel(), dtype=torch.int32, device=device),
+            torch.stack([t0.index_select(0, ray), t1.index_select(0, ray)]),
+        )
+        if chunk is None:
+            chunk = _DEFAULT_CHUNK if device.type == "cpu" else _DEFAULT_CHUNK_GPU
+        # On CPU, torch's intra-op threads leave cores idle on these gathers: give each core its own rays.
+        workers = min(torch.get_num_threads(), _MAX_WORKERS) if device.type == "cpu" else 1
+        if workers > 1 and ray.numel() >= 2 * _MIN_RAYS_PER_PART:
+            size = max(_MIN_RAYS_PER_PART, -(-ray.numel() // (4 * workers)))  # 4 parts per worker: balance
+            parts = [root.slice(i, i + size) for i in range(0, ray.numel(), size)]
+            with ThreadPoolExecutor(workers) as pool:
+                list(pool.map(lambda part: self._descend(part, rays, tables, best, chunk), parts))
+        else:
+            self._descend(root, rays, tables, best, chunk)
+        hit = torch.isfinite(best)
+        return torch.where(hit, best, t_max), hit
+
+    def _descend(
+        self, root: _Frontier, rays: _Rays, tables: _TraversalTables, best: Tensor, chunk: int
+    ) -> None:
+        """Descend ``root`` (level-0 candidates) to the leaves, lowering ``best`` [N] to each ray's hit."""
+        stack = [(0, root)]
+        while stack:
+            level, frontier = stack.pop()
+            if frontier.ray.numel() > chunk:
+                stack.extend((level, part) for part in frontier.halves())
+                continue
+            if frontier.ray.numel() == 0:
+                continue
+            planes, child_index = tables.planes[level], tables.child_index[level]
+            child, bounds, valid = _split_segments(frontier, rays, planes, child_index)
+            if level == self.levels - 1:
+                nearest = torch.where(valid, bounds[:4], float("inf")).amin(0)
+                best.scatter_reduce_(0, frontier.ray, nearest, "amin")
+                continue
+            stack.append((level + 1, _children(frontier, child, bounds, valid)))
+
+
+_DEFAULT_CHUNK = 1 << 17  # candidates per expansion on CPU: tensors stay cache-sized
+_DEFAULT_CHUNK_GPU = 1 << 21  # ~400 MB of temporaries; large enough to keep the GPU busy
+_MIN_RAYS_PER_PART = 16384
+_MAX_WORKERS = 4  # more Python threads contend for the GIL and oversubscribe the intra-op pool
+_TINY_DIR = 1e-30  # stands in for zero direction components: no 0/0 in the slab tests
+
+
+@dataclass
+class _Rays:
+    """Ray data for traversal: origins and dirs as rows [6, N] and the child slot each ray enters first
+    (the octant opposite its direction) [N] int32."""
+
+    origin_dir: Tensor
+    first_slot: Tensor
+
+
+@dataclass
+class _Frontier:
+    """(ray, node) candidates at one level: ray index [M] int64, node index [M] int32 in that level's codes,
+    and the ray's segment inside the node, ``bounds`` [2, M] = (t0, t1)."""
+
+    ray: Tensor
+    node: Tensor
+    bounds: Tensor
+
+    def slice(self, start: int, stop: int) -> _Frontier:
+        return _Frontier(self.ray[start:stop], self.node[start:stop], self.bounds[:, start:stop])
+
+    def halves(self) -> tuple[_Frontier, _Frontier]:
+        m = self.ray.numel() // 2
+        return self.slice(m, None), self.slice(0, m)
+
+
+def _split_segments(
+    f: _Frontier, rays: _Rays, planes: Tensor, child_index: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Split each candidate's segment [t0, t1] at the node's mid-planes into 4 consecutive child segments.
+
+    Returns for the 4 children: node index in the next level [4, M] int32 (-1 if unoccupied), segment
+    bounds [5, M] (child k spans ``bounds[k]..bounds[k + 1]``) and valid [4, M]: the child is occupied and
+    its segment has positive length.
+    """
+    m = f.ray.numel()
+    device = f.ray.device
+    od = rays.origin_dir.index_select(1, f.ray)
+    tm = planes.index_select(1, f.node)
+    tm -= od[:3]
+    tm /= od[3:]  # [3, M] mid-plane crossing times
+    x, y, z = tm.unbind(0)
+    bounds = torch.empty(5, m, device=device)
+    bounds[0], bounds[4] = f.bounds[0], f.bounds[1]
+    lo_xy, hi_xy = torch.minimum(x, y), torch.maximum(x, y)
+    torch.minimum(lo_xy, z, out=bounds[1])
+    torch.maximum(lo_xy, torch.minimum(hi_xy, z), out=bounds[2])
+    torch.maximum(hi_xy, z, out=bounds[3])
+    torch.clamp(bounds[1:4], bounds[:1], bounds[4:], out=bounds[1:4])
+    # Lookup keys node * 8 + slot of the 4 children. The ray starts in the octant opposite its direction,
+    # then flips the earliest-crossed axis, then all but the latest, then all three. Ties (ordered z < y < x
+    # here) give zero-length segments, so any consistent order does.
+    xy, yz, xz = (x < y).view(torch.uint8), (y < z).view(torch.uint8), (x < z).view(torch.uint8)
+    first_x, first_y = xy & xz, yz & ~xy
+    last_x, last_y = ~(xy | xz) & 1, xy & ~yz
+    key = torch.empty(4, m, dtype=torch.int32, device=device)
+    torch.add(f.node * 8, rays.first_slot.index_select(0, f.ray), out=key[0])
+    torch.bitwise_xor(key[0], first_x | (first_y << 1) | ((first_x | first_y) ^ 1) << 2, out=key[1])
+    torch.bitwise_xor(key[0], 7, out=key[3])
+    torch.bitwise_xor(key[3], last_x | (last_y << 1) | ((last_x | last_y) ^ 1) << 2, out=key[2])
+    child = child_index.index_select(0, key.view(-1)).view(4, m)
+    valid = (child >= 0) & (bounds[:4] < bounds[1:])
+    return child, bounds, valid
+
+
+def _children(f: _Frontier, child: Tensor, bounds: Tensor, valid: Tensor) -> _Frontier:
+    """The next level's frontier: the valid children, in the order of ``valid.flatten()``."""
+    m = f.ray.numel()
+    idx = torch.nonzero(valid.view(-1)).squeeze(1)  # ascending: child 0 of all parents, then child 1...
+    row_starts = torch.searchsorted(idx, torch.arange(m, 4 * m, m, device=idx.device)).tolist()
+    parent = idx.clone()
+    for start in row_starts:
+        parent[start:] -= m  # parent = idx - k * m in row k, without an integer division
+    flat = bounds.view(-1)
+    segment = torch.empty(2, idx.numel(), device=flat.device)
+    torch.index_select(flat, 0, idx, out=segment[0])
+    torch.index_select(flat, 0, idx + m, out=segment[1])
+    node = child.view(-1).index_select(0, idx)
+    return _Frontier(f.ray.index_select(0, parent), node, segment)

@@ -1,0 +1,57 @@
+"""Pseudo ground-truth depth from the geometry prior: the distance along a ray to the prior's surface.
+
+A mesh prior is ray-cast exactly (open3d's Embree-backed ``RaycastingScene``); a point-cloud prior has no
+surface, so its octree's first occupied leaf stands in for it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from voxnerf.octree import SparseVoxelOctree
+from voxnerf.prior import GeometryPrior
+
+
+class PriorDepthRenderer:
+    """Distances to the prior along rays, in the units of the prior (the caller's normalised frame)."""
+
+    def __init__(self, prior: GeometryPrior, svo: SparseVoxelOctree) -> None:
+        """``prior`` and ``svo`` must be in the same frame as the rays later passed in."""
+        self.svo = svo
+        self._scene = None
+        if prior.kind == "mesh" and prior.mesh is not None:
+            import open3d as o3d  # imported where used: only mesh priors are ray-cast with it
+
+            self._scene = o3d.t.geometry.RaycastingScene()
+            self._scene.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(prior.mesh.vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(prior.mesh.faces, dtype=np.uint32)),
+            )
+
+    def ray_distance(
+        self, origins: Tensor, dirs: Tensor, t_min: Tensor | float, t_max: Tensor | float
+    ) -> tuple[Tensor, Tensor]:
+        """First surface hit along each ray.
+
+        Args:
+            origins, dirs: [N, 3] float (``t`` is in units of ``|dir|``), any device.
+            t_min, t_max: [N] or scalars.
+        Returns:
+            t [N] float32 (``t_max`` where invalid) and valid [N] bool: a hit exists and lies in
+            [t_min, t_max]. Both on the inputs' device.
+        """
+        n = origins.shape[0]
+        device = origins.device
+        t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
+        t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
+        if self._scene is None:
+            return self.svo.first_hit(origins, dirs, t_min, t_max)
+        import open3d as o3d
+
+        rays = torch.cat([origins, dirs], dim=1).to(device="cpu", dtype=torch.float32).contiguous()
+        result = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays.numpy()))
+        t = torch.from_numpy(result["t_hit"].numpy()).to(device)
+        valid = torch.isfinite(t) & (t >= t_min) & (t <= t_max)
+        return torch.where(valid, t, t_max), valid

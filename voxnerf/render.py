@@ -1,0 +1,128 @@
+"""Rendering API: load a trained run and render any camera pose, chunked so memory stays bounded."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from voxnerf.cameras import Intrinsics, image_rays
+from voxnerf.devices import resolve_device
+from voxnerf.errors import RunError
+from voxnerf.model import VoxNeRFModel
+
+CHECKPOINT = "checkpoint.pt"
+OUTPUTS = ("rgb", "depth", "opacity")
+
+
+@dataclass
+class TrainedModel:
+    """A model loaded for rendering, with the scene's default camera and depth unit."""
+
+    model: VoxNeRFModel
+    default_intrinsics: Intrinsics
+    depth_unit_scale: float
+    iteration: int
+    scene_dir: str | None = None
+
+
+def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
+    """Load ``run_dir/checkpoint.pt`` for rendering. Raises RunError when it is missing or unreadable."""
+    path = Path(run_dir) / CHECKPOINT
+    if not path.is_file():
+        raise RunError(f"{path}: no checkpoint (has the run trained yet?)")
+    dev = resolve_device(device)
+    try:
+        state = torch.load(path, map_location=dev, weights_only=False)
+        model = VoxNeRFModel.from_state_dict(state["model"], dev)
+    except (OSError, RuntimeError, KeyError, ValueError) as exc:
+        raise RunError(f"{path}: unreadable checkpoint ({exc})") from None
+    model.field.eval()
+    return TrainedModel(
+        model,
+        Intrinsics(**state["default_intrinsics"]),
+        float(state["depth_unit_scale"]),
+        int(state["iteration"]),
+        state.get("scene_dir"),
+    )
+
+
+@torch.no_grad()
+def render_normalized(
+    model: VoxNeRFModel,
+    c2w: Tensor,
+    intrinsics: Intrinsics,
+    outputs: Sequence[str] = OUTPUTS,
+    chunk: int | None = None,
+) -> dict[str, Tensor]:
+    """Render one view whose pose is already in normalised units.
+
+    Args:
+        c2w: [4, 4] camera-to-world (OpenGL axes), normalised units.
+        outputs: subset of ("rgb", "depth", "opacity"); "depth" is z-depth in normalised units.
+        chunk: rays per forward pass (default: the config's eval_chunk).
+    Returns:
+        the requested outputs, rgb [H, W, 3] and depth/opacity [H, W], float32 on the model's device.
+    """
+    unknown = set(outputs) - set(OUTPUTS)
+    if unknown:
+        raise RunError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
+    chunk = chunk or int(model.config.eval_chunk)
+    origins, dirs, z_per_t = image_rays(c2w.to(model.device, torch.float32), intrinsics)
+    n = origins.shape[0]
+    compiled = bool(model.config.compile)
+    if compiled and n % chunk:  # pad with copies of the last ray so every chunk has the compiled shape
+        pad = chunk - n % chunk
+        origins = torch.cat([origins, origins[-1:].expand(pad, 3)])
+        dirs = torch.cat([dirs, dirs[-1:].expand(pad, 3)])
+    sampler = model.sampler()
+    parts: dict[str, list[Tensor]] = {name: [] for name in outputs}
+    for i in range(0, n, chunk):
+        rays = model.ray_bundle(origins[i : i + chunk], dirs[i : i + chunk])
+        out = model.render_rays(rays, sampler, compiled=compiled)
+        if "rgb" in parts:
+            parts["rgb"].append(out["rgb"])
+        if "depth" in parts:
+            parts["depth"].append(out["depth"])
+        if "opacity" in parts:
+            parts["opacity"].append(out["opacity"])
+    h, w = intrinsics.height, intrinsics.width
+    result = {}
+    for name, values in parts.items():
+        tensor = torch.cat(values)[:n]
+        if name == "depth":
+            tensor = tensor * z_per_t
+        result[name] = tensor.view(h, w, 3) if name == "rgb" else tensor.view(h, w)
+    return result
+
+
+def render(
+    trained: TrainedModel,
+    c2w: np.ndarray | Tensor,
+    intrinsics: Intrinsics | None = None,
+    outputs: Sequence[str] = OUTPUTS,
+) -> dict[str, np.ndarray]:
+    """Render a pose given in scene units.
+
+    Args:
+        c2w: [4, 4] camera-to-world, OpenGL axes (as in transforms.json), scene units.
+        intrinsics: default: the scene's first training camera at the trained resolution.
+        outputs: subset of ("rgb", "depth", "opacity"); only these are computed.
+    Returns:
+        rgb float32 [H, W, 3] in [0, 1] (linear as trained), depth float32 [H, W] z-depth in scene units,
+        opacity float32 [H, W].
+    """
+    pose = np.asarray(c2w.detach().cpu() if isinstance(c2w, Tensor) else c2w, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise RunError(f"pose must be a finite 4x4 matrix, got shape {list(pose.shape)}")
+    model = trained.model
+    pose_n = torch.from_numpy(model.transform.c2w_to_normalized(pose)).float()
+    out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics, outputs)
+    result = {name: value.float().cpu().numpy() for name, value in out.items()}
+    if "depth" in result:
+        result["depth"] = result["depth"] / model.transform.scale
+    return result

@@ -1,0 +1,219 @@
+"""Ray samplers behind one interface: ``sampler(rays, stratified) -> (t_starts, t_ends)``, each [R, S].
+
+Every sampler returns the same number ``S`` of sorted, non-overlapping intervals per ray inside
+``[near, far]`` (dense packing keeps shapes static, which lets the training step compile once).
+
+- :class:`UniformSampler`: NeRF's stratified uniform samples.
+- :class:`OccGridSampler`: instant-ngp / nerfacc occupancy grid with empty-space skipping; the grid is
+  updated from the field's density. The fixed budget of samples is spread over the occupied cells a ray
+  crosses (inverse transform sampling of the ray's occupancy), so empty space gets almost none.
+- :class:`VoxNeRFSampler` (paper III-C): ``n_importance`` samples from ``N(z, 3 v^2)`` truncated to
+  ``z +- 3 sqrt(3) v`` around the first occupied octree leaf ``z``, ``n_rest`` uniform on the rest of
+  ``[near, far]``; rays that hit no leaf fall back to the occupancy grid.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from voxnerf.octree import SparseVoxelOctree
+
+# Gaussian CDF at -3 and +3 standard deviations: the importance window of the paper.
+_PHI_LO = 0.5 * math.erfc(3.0 / math.sqrt(2.0))
+_PHI_HI = 1.0 - _PHI_LO
+
+
+@dataclass
+class RayBundle:
+    """Rays in normalised units. origins, dirs (unit) [R, 3]; near, far [R].
+
+    ``hit_t``/``hit`` [R] optionally carry precomputed octree first hits (the trainer caches them per pixel).
+    """
+
+    origins: Tensor
+    dirs: Tensor
+    near: Tensor
+    far: Tensor
+    hit_t: Tensor | None = None
+    hit: Tensor | None = None
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+
+def intervals_from_points(t: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
+    """Sorted sample distances [R, S] -> intervals [R, S] split at the midpoints between samples, the first
+    opening at ``near`` and the last closing at ``far`` [R] (so the intervals tile the whole ray)."""
+    mids = 0.5 * (t[:, 1:] + t[:, :-1])
+    starts = torch.cat([near[:, None], mids], dim=1)
+    ends = torch.cat([mids, far[:, None]], dim=1)
+    return starts, ends
+
+
+def _stratified_unit(n_rays: int, n: int, stratified: bool, device: torch.device) -> Tensor:
+    """[R, n] sorted numbers in (0, 1): bin centres, or one uniform draw per bin when stratified."""
+    offset = torch.rand(n_rays, n, device=device) if stratified else torch.full((n_rays, n), 0.5, device=device)
+    return (torch.arange(n, device=device, dtype=torch.float32) + offset) / n
+
+
+class UniformSampler:
+    """``n_samples`` stratified uniform samples on [near, far]."""
+
+    def __init__(self, n_samples: int) -> None:
+        self.n_samples = n_samples
+
+    def __call__(self, rays: RayBundle, stratified: bool) -> tuple[Tensor, Tensor]:
+        u = _stratified_unit(len(rays), self.n_samples, stratified, rays.origins.device)
+        t = rays.near[:, None] + u * (rays.far - rays.near)[:, None]
+        return intervals_from_points(t, rays.near, rays.far)
+
+
+class OccupancyGrid(nn.Module):
+    """A ``res^3`` binary occupancy grid over the canonical box ``[-1, 1]^3``, kept from an EMA of density.
+
+    Update rule (nerfacc's): evaluate density at a jittered point of every cell (during warm-up) or of a
+    random quarter of the cells plus the occupied ones, ``ema = max(decay * ema, density)``, occupied where
+    ``ema * cell_size > threshold`` or above the mean (whichever is lower).
+    """
+
+    def __init__(self, resolution: int = 64, threshold: float = 0.01, decay: float = 0.95) -> None:
+        super().__init__()
+        self.resolution, self.threshold, self.decay = resolution, threshold, decay
+        n = resolution**3
+        self.register_buffer("density_ema", torch.full((n,), float("inf")))
+        self.register_buffer("occupied", torch.ones(n, dtype=torch.bool))
+        self.register_buffer("updates", torch.zeros((), dtype=torch.int64))
+
+    @property
+    def cell_size(self) -> float:
+        return 2.0 / self.resolution
+
+    def cell_index(self, points: Tensor) -> Tensor:
+        """[N, 3] normalised points -> [N] flat cell index (points outside are clamped to the border)."""
+        ijk = ((points + 1.0) * (0.5 * self.resolution)).floor().long().clamp(0, self.resolution - 1)
+        return (ijk[:, 0] * self.resolution + ijk[:, 1]) * self.resolution + ijk[:, 2]
+
+    def is_occupied(self, points: Tensor) -> Tensor:
+        """[N, 3] -> [N] bool; points outside the box are empty."""
+        inside = (points.abs() <= 1.0).all(-1)
+        return self.occupied[self.cell_index(points)] & inside
+
+    @torch.no_grad()
+    def seed_from_points(self, points: Tensor, dilation: int = 1) -> None:
+        """Start from the cells holding ``points`` [N, 3] (a prior), dilated by ``dilation`` cells."""
+        grid = torch.zeros(self.resolution**3, device=points.device)
+        grid[self.cell_index(points)] = 1.0
+        grid = grid.view(1, 1, *(self.resolution,) * 3)
+        grid = nn.functional.max_pool3d(grid, 2 * dilation + 1, stride=1, padding=dilation).reshape(-1)
+        seeded = grid > 0
+        self.occupied.copy_(seeded)
+        self.density_ema.copy_(torch.where(seeded, self.threshold / self.cell_size * 10, 0.0))
+
+    @torch.no_grad()
+    def update(self, density_fn: Callable[[Tensor], Tensor], warmup: bool, batch: int = 65_536) -> None:
+        """Refresh the EMA from ``density_fn`` ([N, 3] -> [N] densities) and re-threshold."""
+        n = self.resolution**3
+        device = self.density_ema.device
+        if warmup:
+            cells = torch.arange(n, device=device)
+        else:
+            random_cells = torch.randint(0, n, (n // 4,), device=device)
+            cells = torch.cat([random_cells, self.occupied.nonzero().squeeze(-1)])
+        r = self.resolution
+        ijk = torch.stack([cells // (r * r), (cells // r) % r, cells % r], dim=-1)
+        points = (ijk + torch.rand(ijk.shape, device=device)) * self.cell_size - 1.0
+        density = torch.cat([density_fn(points[i : i + batch]) for i in range(0, len(points), batch)])
+        density = torch.nan_to_num(density.float(), nan=0.0, posinf=1e10)
+        ema = self.density_ema.clone()
+        ema = torch.where(torch.isinf(ema), torch.zeros_like(ema), ema)
+        ema[cells] = torch.maximum(ema[cells] * self.decay, density)
+        self.density_ema.copy_(ema)
+        limit = min(self.threshold / self.cell_size, float(ema.mean()))
+        self.occupied.copy_(ema > limit)
+        self.updates += 1
+
+
+class OccGridSampler:
+    """Empty-space skipping with an :class:`OccupancyGrid` and a fixed number of samples per ray.
+
+    The ray is marched at ``n_march`` points; the samples follow the piecewise-constant density
+    ``occupied + floor`` (``floor`` keeps rays through empty space sampled uniformly).
+    """
+
+    def __init__(self, grid: OccupancyGrid, n_samples: int, n_march: int = 128, floor: float = 1e-3) -> None:
+        self.grid, self.n_samples, self.n_march, self.floor = grid, n_samples, n_march, floor
+
+    def __call__(self, rays: RayBundle, stratified: bool) -> tuple[Tensor, Tensor]:
+        r, m, device = len(rays), self.n_march, rays.origins.device
+        edges = torch.linspace(0.0, 1.0, m + 1, device=device)
+        span = (rays.far - rays.near)[:, None]
+        centers = rays.near[:, None] + 0.5 * (edges[1:] + edges[:-1]) * span  # [R, M]
+        points = rays.origins[:, None, :] + centers[..., None] * rays.dirs[:, None, :]
+        occ = self.grid.is_occupied(points.reshape(-1, 3)).view(r, m).float()
+        pdf = occ + self.floor
+        cdf = torch.cat([torch.zeros(r, 1, device=device), torch.cumsum(pdf, -1)], dim=-1)
+        cdf = cdf / cdf[:, -1:]
+        u = _stratified_unit(r, self.n_samples, stratified, device)
+        idx = torch.searchsorted(cdf, u, right=True).clamp(1, m)
+        c0, c1 = cdf.gather(1, idx - 1), cdf.gather(1, idx)
+        e0, e1 = edges[idx - 1], edges[idx]
+        frac = ((u - c0) / (c1 - c0).clamp_min(1e-12)).clamp(0.0, 1.0)
+        t = rays.near[:, None] + (e0 + frac * (e1 - e0)) * span
+        return intervals_from_points(t, rays.near, rays.far)
+
+
+class VoxNeRFSampler:
+    """The paper's surface-guided sampler (III-C) on a :class:`SparseVoxelOctree`."""
+
+    def __init__(
+        self, octree: SparseVoxelOctree, n_importance: int, n_rest: int, fallback: OccGridSampler
+    ) -> None:
+        self.octree, self.n_importance, self.n_rest, self.fallback = octree, n_importance, n_rest, fallback
+        if fallback.n_samples != n_importance + n_rest:
+            raise ValueError("the fallback sampler must give n_importance + n_rest samples")
+
+    @property
+    def half_window(self) -> float:
+        """3 * sqrt(3) * v: half the importance window (normalised units)."""
+        return 3.0 * math.sqrt(3.0) * self.octree.leaf_size
+
+    def first_hits(self, rays: RayBundle) -> tuple[Tensor, Tensor]:
+        if rays.hit_t is not None and rays.hit is not None:
+            return rays.hit_t, rays.hit
+        return self.octree.first_hit(rays.origins, rays.dirs, rays.near, rays.far)
+
+    def sample_points(self, rays: RayBundle, z: Tensor, stratified: bool) -> Tensor:
+        """Sorted sample distances [R, n_importance + n_rest] around first hits ``z`` [R]."""
+        device, r = rays.origins.device, len(rays)
+        std = math.sqrt(3.0) * self.octree.leaf_size
+        half = self.half_window
+        # Truncated normal by inverse CDF of stratified quantiles in [Phi(-3), Phi(3)].
+        u = _stratified_unit(r, self.n_importance, stratified, device)
+        q = torch.special.ndtri(_PHI_LO + u * (_PHI_HI - _PHI_LO))
+        t_imp = z[:, None] + std * q
+        # Uniform on [near, z - half] U [z + half, far].
+        before = (z - half - rays.near).clamp_min(0.0)
+        after = (rays.far - (z + half)).clamp_min(0.0)
+        s = _stratified_unit(r, self.n_rest, stratified, device) * (before + after)[:, None]
+        t_rest = torch.where(
+            s < before[:, None], rays.near[:, None] + s, (z + half)[:, None] + (s - before[:, None])
+        )
+        t = torch.cat([t_imp, t_rest], dim=1)
+        t = torch.minimum(torch.maximum(t, rays.near[:, None]), rays.far[:, None])
+        return torch.sort(t, dim=1).values
+
+    def __call__(self, rays: RayBundle, stratified: bool) -> tuple[Tensor, Tensor]:
+        z, hit = self.first_hits(rays)
+        starts, ends = intervals_from_points(self.sample_points(rays, z, stratified), rays.near, rays.far)
+        if bool((~hit).any()):
+            miss = ~hit
+            sub = RayBundle(rays.origins[miss], rays.dirs[miss], rays.near[miss], rays.far[miss])
+            fs, fe = self.fallback(sub, stratified)
+            starts = starts.index_put((miss,), fs)
+            ends = ends.index_put((miss,), fe)
+        return starts, ends

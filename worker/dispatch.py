@@ -1,0 +1,41 @@
+"""Publishing work to the queues (used by the API): training jobs, render requests, stale-job recovery.
+
+Only task names cross this boundary, so publishing never imports the engine.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from celery import Celery
+
+from app import jobstore
+from app.settings import Settings
+from worker.celery_app import RENDER_TASK, TRAIN_TASK
+
+log = logging.getLogger(__name__)
+
+
+def send_train(app: Celery, job_id: str) -> None:
+    """Queue the training of ``job_id`` (its row must exist). Raises kombu errors if the broker is down."""
+    app.send_task(TRAIN_TASK, args=[job_id])
+
+
+def send_render(app: Celery, request_id: str, job_id: str, request: dict, expires_s: float) -> None:
+    """Queue one render; a worker that gets it after ``expires_s`` drops it (the caller has given up)."""
+    app.send_task(RENDER_TASK, args=[request_id, job_id, request], expires=expires_s)
+
+
+def requeue_stale_jobs(settings: Settings, app: Celery) -> list[str]:
+    """Requeue running jobs whose worker died; the next worker resumes each from its checkpoint.
+
+    The message is published before the row goes back to ``queued``: if publishing fails the job stays
+    stale and the next sweep tries again; a duplicate message is harmless because claims are fenced.
+    """
+    requeued = []
+    for job in jobstore.stale_jobs(settings):
+        send_train(app, job.id)
+        requeued += jobstore.mark_requeued(settings, [job])
+    if requeued:
+        log.warning("requeued %d job(s) whose worker stopped: %s", len(requeued), ", ".join(requeued))
+    return requeued
