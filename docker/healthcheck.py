@@ -1,0 +1,65 @@
+"""Container health checks: ``python healthcheck.py api [--url URL]`` or ``python healthcheck.py worker``.
+
+Exit status 0 when healthy, 1 otherwise (the reason on stderr).
+
+* ``api``: ``GET /healthz`` of this container answers, with 200 or with 503, and its database check is ok.
+  A 503 that only reports a missing broker or missing workers still counts as healthy: the API process
+  works and says what is missing; the workers have their own health checks.
+* ``worker``: a Celery ``ping`` broadcast over the configured broker gets a reply from a worker node on this
+  container's host name (node names end in ``@<hostname>``, see ``worker.run.worker_name``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import sys
+import urllib.error
+import urllib.request
+
+
+def check_api(url: str, timeout_s: float) -> str | None:
+    """None when ``url`` (the /healthz endpoint) answers 200 or 503 with ``database.ok``; else the reason."""
+    try:
+        with urllib.request.urlopen(url, timeout=timeout_s) as response:
+            body = json.load(response)
+    except urllib.error.HTTPError as err:
+        if err.code != 503:
+            return f"{url} answered HTTP {err.code}"
+        body = json.load(err)
+    except (OSError, ValueError) as err:
+        return f"{url}: {err}"
+    database = body.get("database") or {}
+    if not database.get("ok"):
+        return f"{url}: database not ok: {database.get('detail')}"
+    return None
+
+
+def check_worker(timeout_s: float) -> str | None:
+    """None when a Celery worker on this host answers ``ping`` within ``timeout_s``; else the reason."""
+    from worker.celery_app import celery_app
+
+    host = socket.gethostname()
+    replies = celery_app.control.ping(timeout=timeout_s)
+    names = sorted(name for reply in replies for name in reply)
+    if any(name.endswith(f"@{host}") for name in names):
+        return None
+    return f"no worker on host {host} answered ping (replies from: {names or 'none'})"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description="VoxNeRF container health check")
+    parser.add_argument("role", choices=["api", "worker"])
+    parser.add_argument("--url", default="http://127.0.0.1:8000/healthz", help="api: the /healthz URL")
+    parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for an answer")
+    args = parser.parse_args()
+    problem = check_api(args.url, args.timeout) if args.role == "api" else check_worker(args.timeout)
+    if problem:
+        print(problem, file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
