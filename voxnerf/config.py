@@ -71,7 +71,9 @@ class TrainConfig(BaseModel):
     lambda_smooth: float = Field(
         default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
     )
-    depth_beta: float = Field(default=0.1, gt=0, description="log-Huber beta, scene units (paper: 0.1)")
+    depth_beta: float | None = Field(
+        default=None, gt=0, description="log-Huber beta in scene units; default 5 x the prior's sigma (paper: 0.1 m)"
+    )
     smooth_patches: int = Field(default=8, ge=0, description="s x s patches per batch for the smoothness term")
     patch_size: int = Field(default=8, ge=2)
     smooth_scales: int = Field(default=3, ge=1)

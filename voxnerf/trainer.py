@@ -37,6 +37,9 @@ from voxnerf.scene import Scene, SceneTransform, load_scene
 
 REPORT = "report.json"
 DEFAULT_EVAL_SECONDS_PER_RAY = 1.5e-5
+MIN_PRIOR_COVERAGE = 0.05  # below this fraction of training pixels seeing the prior, the report warns
+PAPER_BETA = 0.1  # the paper's log-Huber beta, metres
+DEPTH_BETA_PER_SIGMA = 5.0  # default beta = 5 sigma: the paper's 0.1 m for its 2 cm priors, in any unit
 ProgressCallback = Callable[[dict], None]
 
 
@@ -190,13 +193,14 @@ def _sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, g
     return img, py, px
 
 
-def _make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, n_patch_rays: int, patch: int):
+def _make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_rays: int, patch: int):
     """The differentiable part of a step (field, rendering, losses) as one function of fixed-shape tensors.
 
-    The depth terms compare depths in scene units (``beta`` = ``cfg.depth_beta`` scene units, as the paper
-    states it in metres), so their weight against the colour term does not depend on the normalisation.
+    ``beta`` is in scene units. The depth terms compare depths in units of ``beta / 0.1``: for the paper's
+    beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
+    so lambda_d keeps its meaning whatever the scene's units and normalisation.
     """
-    lam, beta, to_scene = cfg.lambda_depth, cfg.depth_beta, 1.0 / model.transform.scale
+    lam, to_units = cfg.lambda_depth, PAPER_BETA / (beta * model.transform.scale)
 
     def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok):
         out = model.render_samples(origins, dirs, starts, ends)
@@ -204,8 +208,8 @@ def _make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, n_patch_rays: int, patc
         total = lc
         ld = lreg = torch.zeros((), device=origins.device)
         if target_t is not None:
-            depth = out["depth"] * to_scene
-            ld = depth_loss(depth, target_t * to_scene, target_ok, beta)
+            depth = out["depth"] * to_units
+            ld = depth_loss(depth, target_t * to_units, target_ok, PAPER_BETA)
             if n_patch_rays:
                 d = depth[-n_patch_rays:].view(-1, patch, patch)
                 m = target_ok[-n_patch_rays:].view(-1, patch, patch)
@@ -338,6 +342,11 @@ def train(
             pixels, model, lambda rays: renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
         )
         valid = float(torch.isfinite(pixels.pseudo_t).float().mean())
+        if valid < MIN_PRIOR_COVERAGE:
+            report.setdefault("warnings", []).append(
+                f"{scene.prior_path.name}: only {valid:.1%} of training pixels see the prior; check its units, "
+                "placement and prior_sigma"
+            )
         stage("pseudo_depth", True, f"depth loss: prior ray-cast for every training pixel ({valid:.1%} valid)", t0)
     else:
         why = "depth loss disabled" if not cfg.depth_loss else "no prior to render depth from"
@@ -356,7 +365,9 @@ def train(
     use_patches = use_depth and cfg.smooth_patches > 0 and cfg.lambda_smooth > 0
     patch = min(cfg.patch_size, pixels.shape[1], pixels.shape[2])
     n_patch_rays = cfg.smooth_patches * patch * patch if use_patches else 0
-    loss_fn = _make_loss_fn(model, cfg, n_patch_rays, patch)
+    beta = cfg.depth_beta or (DEPTH_BETA_PER_SIGMA * prior.sigma if prior is not None else PAPER_BETA)
+    report["depth_beta"] = beta if use_depth else None
+    loss_fn = _make_loss_fn(model, cfg, beta, n_patch_rays, patch)
     step_fn = loss_fn
     t0 = time.perf_counter()
     if cfg.compile:
@@ -434,8 +445,8 @@ def train(
             last_loss = float(total.detach())
             if not math.isfinite(last_loss):
                 raise TrainingDiverged(
-                    f"loss became {last_loss} at iteration {iteration} (colour {float(lc):.4g}, "
-                    f"depth {float(ld):.4g}, smoothness {float(lreg):.4g})"
+                    f"loss became {last_loss} at iteration {iteration} (colour {float(lc.detach()):.4g}, "
+                    f"depth {float(ld.detach()):.4g}, smoothness {float(lreg.detach()):.4g})"
                 )
             optimizer.step()
             iteration += 1
