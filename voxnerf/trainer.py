@@ -7,9 +7,9 @@ history, final metrics) and ``run_dir/eval/<split>/<frame>.png``.
 
 from __future__ import annotations
 
+import io
 import json
 import math
-import os
 import random
 import sys
 import time
@@ -26,6 +26,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.devices import resolve_device
 from voxnerf.errors import TrainingDiverged
 from voxnerf.evaluation import EvalView, evaluate_views
+from voxnerf.image_io import write_atomic
 from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree
@@ -221,15 +222,13 @@ def _make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ra
 
 
 def _save_atomic_torch(obj: dict, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    write_atomic(path, buffer.getvalue())
 
 
 def _write_json_atomic(obj: dict, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=float))
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(obj, indent=2, default=float).encode())
 
 
 def _params_finite(model: VoxNeRFModel) -> bool:
