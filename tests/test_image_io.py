@@ -128,6 +128,15 @@ def test_read_depth_npy_float_metres(tmp_path: Path) -> None:
     assert read_depth(tmp_path / "d1.npy", 1.0).shape == (2, 2)
 
 
+def test_read_depth_beyond_float32_range_is_invalid_not_inf(tmp_path: Path) -> None:
+    iio.imwrite(tmp_path / "d.png", np.array([[1, 0]], dtype=np.uint16))
+    depth = read_depth(tmp_path / "d.png", unit_scale=1e300)
+    assert np.isnan(depth).all()
+    np.save(tmp_path / "d.npy", np.array([[1e300, 2.0]]))
+    depth = read_depth(tmp_path / "d.npy", unit_scale=1.0)
+    assert np.isnan(depth[0, 0]) and depth[0, 1] == 2.0
+
+
 def test_read_depth_refuses_bad_files(tmp_path: Path) -> None:
     np.save(tmp_path / "int.npy", np.ones((3, 3), dtype=np.int32))
     np.save(tmp_path / "rgb.npy", np.ones((3, 3, 3), dtype=np.float32))

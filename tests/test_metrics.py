@@ -34,6 +34,7 @@ from voxnerf.metrics import (
     lpips_weights_path,
     psnr,
     ssim,
+    ssim_window,
 )
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
@@ -84,22 +85,20 @@ def test_metrics_refuse_nan_and_mismatched_shapes() -> None:
             metric(bad, image)
         with pytest.raises(ValueError, match="equal shape"):
             metric(image, image[:8])
-    with pytest.raises(ValueError, match="at least 11x11"):
-        ssim(image[:10], image[:10])
 
 
 # --- SSIM ---------------------------------------------------------------------------------------------
 
 
-def _ssim_reference(a: np.ndarray, b: np.ndarray) -> float:
-    """Wang et al. 2004 SSIM in float64: 11x11 Gaussian (sigma 1.5) window, valid region, mean over channels."""
-    offsets = np.arange(11) - 5
-    g = np.exp(-(offsets**2) / (2 * 1.5**2))
+def _ssim_reference(a: np.ndarray, b: np.ndarray, side: int = 11, sigma: float = 1.5) -> float:
+    """Wang et al. 2004 SSIM in float64: side x side Gaussian window, valid region, mean over channels."""
+    offsets = np.arange(side) - side // 2
+    g = np.exp(-(offsets**2) / (2 * sigma**2))
     window = np.outer(g, g) / np.outer(g, g).sum()
     c1, c2 = 0.01**2, 0.03**2
 
     def local_mean(x: np.ndarray) -> np.ndarray:
-        return np.einsum("ijkl,kl->ij", sliding_window_view(x, (11, 11)), window)
+        return np.einsum("ijkl,kl->ij", sliding_window_view(x, (side, side)), window)
 
     maps = []
     for c in range(a.shape[2]):
@@ -122,6 +121,21 @@ def test_ssim_matches_numpy_reference(seed: int) -> None:
         assert ssim(pred, gt) == pytest.approx(expected, abs=1e-4)
         assert ssim(pred.float(), gt.float()) == pytest.approx(expected, abs=1e-4)
     assert ssim(gt, gt) == pytest.approx(1.0, abs=1e-9)
+
+
+@pytest.mark.parametrize(("height", "width", "side"), [(10, 10, 9), (5, 40, 5), (8, 3, 3), (2, 9, 1), (1, 1, 1)])
+def test_ssim_shrinks_its_window_on_images_smaller_than_11_pixels(height: int, width: int, side: int) -> None:
+    assert ssim_window(height, width) == (side, pytest.approx(1.5 * side / 11))
+    gen = torch.Generator().manual_seed(height * 100 + width)
+    gt = torch.rand(height, width, 3, generator=gen, dtype=torch.float64)
+    noisy = (gt + 0.2 * torch.randn(gt.shape, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    expected = _ssim_reference(noisy.numpy(), gt.numpy(), side, 1.5 * side / 11)
+    assert math.isfinite(expected) and expected < 0.99
+    assert ssim(noisy, gt) == pytest.approx(expected, abs=1e-6)
+    assert ssim(gt, gt) == pytest.approx(1.0, abs=1e-9)
+    scores = evaluate_images([noisy.float()], [gt.float()], None)  # what a tiny scene's final evaluation runs
+    assert scores["ssim"] == [pytest.approx(expected, abs=1e-4)]
+    assert ssim_window(11, 500) == (11, 1.5)
 
 
 # --- LPIPS: independent numpy forward pass in the checkpoint's own layout ---------------------------

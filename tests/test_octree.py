@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf.octree import SparseVoxelOctree, morton_decode, morton_encode
+from voxnerf.octree import SparseVoxelOctree, coverage_octree, morton_decode, morton_encode
 
 TINY = np.float32(1e-30)  # the octree's stand-in for zero direction components
 
@@ -258,3 +258,44 @@ def test_first_hit_on_cuda_matches_cpu():
     assert t_gpu.is_cuda and h_gpu.is_cuda
     assert torch.equal(t_gpu.cpu(), t_cpu) and torch.equal(h_gpu.cpu(), h_cpu)
     assert torch.equal(svo.to("cuda").leaf_occupied(points.cuda()).cpu(), svo.leaf_occupied(points))
+
+
+def test_leaf_means_are_the_mean_of_each_leafs_points():
+    rng = np.random.default_rng(5)
+    pts = torch.from_numpy(rng.uniform(0, 1, (5000, 3))).float()
+    svo = SparseVoxelOctree.from_points(pts, 0.1)
+    means = svo.leaf_means(pts)
+    ijk = svo.leaf_ijk(pts).numpy()
+    for key in {tuple(k) for k in ijk[:50]}:
+        members = (ijk == key).all(axis=1)
+        (pos,), found = svo.leaf_index(pts[members][:1])
+        assert found.item()
+        np.testing.assert_allclose(means[pos].numpy(), pts[members].numpy().mean(0), atol=1e-6)
+    values, found = svo.lookup_leaf(means, pts)
+    assert found.all()
+    # every mean lies inside the leaf that holds its points
+    assert (svo.leaf_ijk(values) == svo.leaf_ijk(pts)).all()
+
+
+def _plane_rays(n: int, seed: int):
+    gen = torch.Generator().manual_seed(seed)
+    origins = torch.cat([torch.rand(n, 2, generator=gen) * 1.6 - 0.8, torch.ones(n, 1)], 1)
+    tilt = (torch.rand(n, 2, generator=gen) - 0.5) * 0.2  # every ray meets the plane inside its 2 x 2 extent
+    dirs = torch.nn.functional.normalize(torch.cat([tilt, -torch.ones(n, 1)], 1))
+    return origins, dirs, torch.zeros(n), torch.full((n,), 3.0)
+
+
+@pytest.mark.parametrize("points_per_sigma2", [0.5, 20.0])
+def test_coverage_octree_grows_the_leaf_only_for_sparse_priors(points_per_sigma2):
+    sigma = 0.02
+    n = int(points_per_sigma2 * 4 / sigma**2)  # a 2 x 2 plane with noise sigma
+    rng = np.random.default_rng(6)
+    plane = np.c_[rng.uniform(-1, 1, (n, 2)), rng.normal(0, sigma, n)]
+    svo, misses = coverage_octree(torch.from_numpy(plane).float(), sigma, *_plane_rays(4000, 7))
+    assert set(misses) == {"1", "1.5", "2", "3"}
+    chosen = svo.leaf_size_requested / sigma
+    assert misses[f"{chosen:g}"] <= min(misses.values()) + 0.01
+    if points_per_sigma2 < 1:  # rays slip through sigma leaves: a larger leaf is chosen
+        assert misses["1"] > 0.05 and chosen > 1
+    else:  # dense: the paper's leaf
+        assert misses["1"] < 0.01 and chosen == 1

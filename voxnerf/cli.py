@@ -25,6 +25,8 @@ def _train(args: argparse.Namespace) -> int:
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
         depth_loss=not args.no_depth_loss, downscale=args.downscale, device=args.device, seed=args.seed,
         compile=not args.no_compile, eval_at=args.eval_at or [],
+        **({"eval_every_s": args.eval_every} if args.eval_every else {}),
+        **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
     )
     if config.max_seconds is None and config.max_iters is None:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
@@ -171,6 +173,16 @@ def _seconds_list(text: str) -> list[float]:
     return values
 
 
+def _sample_counts(text: str) -> tuple[int, int]:
+    try:
+        n_imp, n_rest = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N_IMP,N_REST (two integers), got {text!r}") from None
+    if n_imp < 1 or n_rest < 1:
+        raise argparse.ArgumentTypeError(f"sample counts must be positive, got {text!r}")
+    return n_imp, n_rest
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="voxnerf", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -187,7 +199,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-compile", action="store_true", help="run the training step eagerly")
-    p.add_argument("--eval-at", type=_seconds_list, help="full evaluations at these training seconds, e.g. 120,300")
+    p.add_argument("--eval-at", type=_seconds_list,
+                   help="full evaluations at these training seconds, e.g. 120,300 (for benchmarks: their time is "
+                   "not charged to --max-seconds)")
+    p.add_argument("--eval-every", type=float, metavar="SECONDS",
+                   help="training seconds between progress evaluations of a few views (default 60)")
+    p.add_argument("--samples", type=_sample_counts, metavar="N_IMP,N_REST",
+                   help="samples per ray near the surface and on the rest of the ray (default: the preset's)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     p.set_defaults(func=_train)
 

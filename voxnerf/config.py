@@ -8,6 +8,7 @@ from pydantic import BaseModel, Field, field_validator
 
 Preset = Literal["cpu", "paper"]
 SamplerName = Literal["voxnerf", "occgrid", "uniform"]
+MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
 # 2^19 hash tables); "cpu" keeps a 2-core CPU at a few hundred thousand samples per second.
@@ -40,9 +41,13 @@ PRESETS: dict[str, dict] = {
 
 
 class TrainConfig(BaseModel):
-    """Everything a training run depends on; stored in the checkpoint and in report.json."""
+    """Everything a training run depends on; stored in the checkpoint and in report.json.
 
-    model_config = {"extra": "forbid"}
+    Unknown keys, NaN and infinities in any number, and a learning rate outside (0, 1] are refused with a
+    pydantic ``ValidationError`` naming the field.
+    """
+
+    model_config = {"extra": "forbid", "allow_inf_nan": False}
 
     preset: Preset = "cpu"
     sampler: SamplerName = "voxnerf"
@@ -66,7 +71,7 @@ class TrainConfig(BaseModel):
     lr_decay_iters: int | None = Field(default=None, gt=0)
     eval_chunk: int | None = Field(default=None, gt=0)
 
-    lr: float = Field(default=1e-2, gt=0)
+    lr: float = Field(default=1e-2, description="Adam learning rate, in (0, 1]")
     lambda_depth: float = Field(default=1.0, ge=0, description="lambda_d of the paper's total loss")
     lambda_smooth: float = Field(
         default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
@@ -77,12 +82,19 @@ class TrainConfig(BaseModel):
     smooth_patches: int = Field(default=8, ge=0, description="s x s patches per batch for the smoothness term")
     patch_size: int = Field(default=8, ge=2)
     smooth_scales: int = Field(default=3, ge=1)
+    octree_leaf: Literal["coverage", "sigma"] = Field(
+        default="coverage",
+        description="sampler octree leaf: 'sigma' (the paper) or, for point-cloud priors, the smallest multiple "
+        "of sigma (1-3) that the training rays do not slip through (mesh priors always use sigma)",
+    )
     occgrid_resolution: int = Field(default=64, ge=8)
     occgrid_update_every: int = Field(default=32, ge=1)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     eval_every_s: float = Field(default=60.0, gt=0, description="training seconds between progress evaluations")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
-    eval_at: list[float] = Field(default_factory=list, description="extra full evaluations at these seconds")
+    eval_at: list[float] = Field(
+        default_factory=list, description="full evaluations at these training seconds (not charged to max_seconds)"
+    )
     checkpoint_every_s: float = Field(default=60.0, gt=0)
     final_eval: bool = True
 
@@ -91,6 +103,15 @@ class TrainConfig(BaseModel):
     def _device(cls, value: str) -> str:
         if value not in ("auto", "cpu") and not value.startswith("cuda"):
             raise ValueError("device must be auto, cpu or cuda[:N]")
+        return value
+
+    @field_validator("lr")
+    @classmethod
+    def _learning_rate(cls, value: float) -> float:
+        if not 0 < value <= MAX_LR:
+            raise ValueError(
+                f"learning rate must be in (0, {MAX_LR:g}] (VoxNeRF trains at about 1e-2), got {value!r}"
+            )
         return value
 
     def resolved(self) -> TrainConfig:

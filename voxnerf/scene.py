@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,6 +28,8 @@ DEFAULT_PRIOR_NAME = "prior.ply"
 # A rotation whose columns deviate from orthonormal by less than this is re-orthonormalised with a warning;
 # more is refused.
 ROTATION_TOLERANCE = 0.05
+# Names of eval_splits: they become folder names of evaluation renders (``eval/<split>/``) and URL segments.
+SPLIT_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
 
 
 @dataclass
@@ -137,8 +140,9 @@ def _as_finite(value) -> float | None:
 
 
 def _clip(text: str) -> str:
-    """``text`` on one line and at most about 80 characters (hostile input can hold anything)."""
-    text = text.replace("\n", " ").replace("\r", " ")
+    """``text`` on one line, at most about 80 characters, and encodable as UTF-8 (hostile input can hold
+    anything, lone surrogates from ``\\udc80`` JSON escapes included: those become ``\\udc80`` again)."""
+    text = text.replace("\n", " ").replace("\r", " ").encode("utf-8", "backslashreplace").decode("utf-8")
     return text if len(text) <= 80 else f"{text[:60]}... ({len(text)} characters)"
 
 
@@ -265,12 +269,17 @@ def _read_splits(meta: dict, names: list[str], path: Path) -> dict[str, list[int
     eval_splits = meta.get("eval_splits")
     if eval_splits is not None and not isinstance(eval_splits, dict):
         raise _fail(path, "must be an object mapping split names to lists of file_path", "eval_splits")
-    extra = {
-        str(name): lookup(f"eval_splits.{name}", files) for name, files in (eval_splits or {}).items()
-    }
-    for name in extra:
+    for name in eval_splits or {}:
         if name in ("train", "val", "test"):
             raise _fail(path, f"split name {name!r} is reserved", f"eval_splits.{name}")
+        if not SPLIT_NAME.fullmatch(name):  # it names a folder of evaluation renders
+            raise _fail(
+                path,
+                f"split name {_short_repr(name)}: use 1 to 64 letters, digits, '_', '-' or '.', not starting "
+                "with '.'",
+                "eval_splits",
+            )
+    extra = {name: lookup(f"eval_splits.{name}", files) for name, files in (eval_splits or {}).items()}
     if not named and not extra:
         test = list(range(0, len(names), 8))
         splits["train"] = [i for i in range(len(names)) if i % 8 != 0]
