@@ -3,7 +3,7 @@
 Jobs move ``queued -> running -> succeeded | failed | cancelled``. A worker *claims* a job (the row's
 ``attempt`` goes up by one) and then writes progress, renews its lease (``heartbeat_at``) and finishes the
 job only while the row still carries that attempt. A running job whose lease is older than
-``stale_after_s``, or whose worker process on this host is gone, is *stale*: :func:`requeue_stale` puts it
+``stale_after_s``, or whose worker process on this host is gone, is *stale*: :func:`mark_requeued` puts it
 back to ``queued`` so that the next worker resumes it from its checkpoint.
 """
 
@@ -196,31 +196,41 @@ def is_stale(job: JobRow, settings: Settings, now: float) -> bool:
     return host == socket.gethostname() and pid.isdigit() and not _pid_alive(int(pid))
 
 
+CLAIM_TRIES = 3  # a claim re-reads the row when another writer changed it between its read and its update
+
+
 def claim_job(settings: Settings, job_id: str, worker: str) -> JobRow | None:
     """Take a queued (or stale running) job for ``worker``; None when it is not there to take.
 
-    Returns the row as claimed; its ``attempt`` is the fencing token for every later write.
+    Returns the row as claimed; its ``attempt`` is the fencing token for every later write. Taking over a
+    stale running job counts as a requeue, as :func:`mark_requeued` does, so ``requeues`` says how often the
+    job was taken from a dead worker whichever of the sweep and the next worker comes first. When the row
+    changes under the claim (the sweep moved it to ``queued`` meanwhile) the claim reads it again.
     """
-    now = time.time()
-    job = get_job(settings, job_id)
-    if job is None or job.state not in ACTIVE_STATES:
-        return None
-    if job.state == "running" and not is_stale(job, settings, now):
-        return None
-    with session_scope(settings) as session:
-        claimed = session.execute(
-            update(JobRow)
-            .where(JobRow.id == job_id, JobRow.attempt == job.attempt, JobRow.state == job.state)
-            .values(
-                state="running",
-                attempt=job.attempt + 1,
-                worker=worker,
-                heartbeat_at=now,
-                started_at=job.started_at or now,
-                stage="starting",
-            )
-        ).rowcount
-    return get_job(settings, job_id) if claimed else None
+    for _ in range(CLAIM_TRIES):
+        now = time.time()
+        job = get_job(settings, job_id)
+        if job is None or job.state not in ACTIVE_STATES:
+            return None
+        if job.state == "running" and not is_stale(job, settings, now):
+            return None
+        with session_scope(settings) as session:
+            claimed = session.execute(
+                update(JobRow)
+                .where(JobRow.id == job_id, JobRow.attempt == job.attempt, JobRow.state == job.state)
+                .values(
+                    state="running",
+                    attempt=job.attempt + 1,
+                    requeues=job.requeues + int(job.state == "running"),
+                    worker=worker,
+                    heartbeat_at=now,
+                    started_at=job.started_at or now,
+                    stage="starting",
+                )
+            ).rowcount
+        if claimed:
+            return get_job(settings, job_id)
+    return None
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
-from app import db
+from app import db, storage
 from app.body_limit import BodyLimitMiddleware
 from app.deps import require_token
 from app.jobstore import json_safe
@@ -54,6 +54,7 @@ async def _sweep_forever(app: FastAPI) -> None:
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     settings.make_dirs()
+    await run_in_threadpool(storage.check_store, settings)  # a bad store URL or credentials stop start-up
     db.get_engine(settings)
     sweeper = asyncio.create_task(_sweep_forever(app))  # its first round is the startup recovery
     try:
@@ -84,6 +85,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.celery = create_celery(settings)
+    app.state.render_slots = render.RenderSlots(settings.max_concurrent_renders)
     app.add_middleware(
         BodyLimitMiddleware,
         limit_for=lambda method, path: (

@@ -3,14 +3,18 @@
 Embedded default (no server to run): the job store is SQLite under ``data_dir`` and the Celery broker is
 kombu's filesystem transport in ``data_dir/broker``. Setting ``VOXNERF_BROKER_URL=redis://host:6379/0``
 switches the broker to Redis; ``VOXNERF_DATABASE_URL`` points the job store at PostgreSQL (or another
-SQLAlchemy URL). Scene files, runs and render results always live under ``data_dir``, which every API and
-worker process must share (the same directory, or a shared filesystem when they run on several machines).
+SQLAlchemy URL). Without ``storage_url``, scene files and runs live under ``data_dir``, which every API and
+worker process must then share (the same directory, or a shared filesystem when they run on several
+machines). With ``storage_url`` set (an object store such as ``s3://bucket/prefix``, see :mod:`app.storage`)
+the store holds them and each process's ``data_dir`` is only a local cache; render results then travel
+through Redis, so no directory needs to be shared at all.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -21,7 +25,8 @@ MiB = 1024 * 1024
 class Settings(BaseSettings):
     """Service settings; each field is read from ``VOXNERF_<FIELD NAME IN CAPITALS>``."""
 
-    model_config = SettingsConfigDict(env_prefix="VOXNERF_", extra="ignore")
+    # An empty variable means unset (compose files pass optional settings as ${VAR:-}).
+    model_config = SettingsConfigDict(env_prefix="VOXNERF_", extra="ignore", env_ignore_empty=True)
 
     data_dir: Path = Field(default=Path("data"), description="scenes, runs, broker queue and SQLite database")
     database_url: str | None = Field(
@@ -55,16 +60,46 @@ class Settings(BaseSettings):
         default=120.0, gt=0, description="POST /render waits this long for a worker"
     )
     render_cache_size: int = Field(default=2, ge=1, description="loaded models each render process keeps")
+    max_concurrent_renders: int = Field(
+        default=8,
+        ge=1,
+        le=32,
+        description="POST /render requests one API process serves at once; more are answered 429 with "
+        "Retry-After (each one in progress holds one of the API's 40 worker threads)",
+    )
     device: str = Field(default="auto", description="torch device of the workers: auto, cpu or cuda[:N]")
 
     progress_interval_s: float = Field(default=1.0, ge=0, description="least time between progress writes")
     heartbeat_s: float = Field(default=2.0, gt=0, description="how often a training task renews its lease")
+    checkpoint_every_s: float = Field(
+        default=60.0,
+        gt=0,
+        description="wall-clock seconds between a training job's checkpoints: about the most work a killed "
+        "worker loses",
+    )
     stale_after_s: float = Field(
         default=60.0, gt=0, description="a running job whose lease is this old is requeued (its worker died)"
     )
     sweep_interval_s: float = Field(default=10.0, gt=0, description="how often the API looks for stale jobs")
     health_timeout_s: float = Field(
         default=1.0, gt=0, description="how long /healthz waits for worker replies"
+    )
+
+    storage_url: str | None = Field(
+        default=None,
+        description="object store for scenes and runs (any fsspec URL, e.g. s3://bucket/prefix); each "
+        "process then keeps only a local cache under data_dir. Unset: data_dir alone holds them",
+    )
+    storage_endpoint_url: str | None = Field(
+        default=None, description="S3-compatible endpoint of an s3:// store (MinIO, Ceph...); default AWS"
+    )
+    storage_key: SecretStr | None = Field(default=None, description="access key id of an s3:// store")
+    storage_secret: SecretStr | None = Field(default=None, description="secret access key of an s3:// store")
+    storage_options: dict[str, Any] = Field(
+        default_factory=dict, description="further fsspec options of the store, as a JSON object"
+    )
+    storage_sync_interval_s: float = Field(
+        default=10.0, gt=0, description="how often a training worker uploads a newly saved checkpoint"
     )
 
     @field_validator("data_dir")

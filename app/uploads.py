@@ -7,18 +7,22 @@ Order of checks, each refusing with :class:`UploadError` (an HTTP status and a o
    files, encrypted entries, unsupported compression or file types, duplicate names, too many files, a
    total declared size over ``max_scene_bytes``, and compression ratios typical of zip bombs;
 2. extraction into a private staging directory under ``data_dir``, never writing more bytes than declared;
-3. every image header, before any pixel is decoded: declared width x height over ``max_image_pixels``;
+3. every image and ``.npy`` header, before any pixel is decoded: declared width x height over
+   ``max_image_pixels``;
 4. :func:`voxnerf.scene.inspect_scene`: the engine's own validation of transforms.json, images (sizes
    must match the intrinsics), depth maps and the prior;
-5. only then one ``os.replace`` of the staging directory into ``data_dir/scenes/<id>``.
+5. only then one ``os.replace`` of the staging directory into ``data_dir/scenes/<id>``, and, when
+   ``storage_url`` is set, its upload to the object store (:func:`app.storage.publish_scene`).
 
 Any failure removes the staging directory, so a refused upload leaves nothing behind.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import lzma
+import math
 import re
 import shutil
 import stat
@@ -30,7 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-from app import jobstore
+import numpy as np
+
+from app import jobstore, storage
 from app.settings import Settings
 from voxnerf.errors import SceneError
 from voxnerf.image_io import image_size
@@ -47,7 +53,13 @@ IGNORED_PREFIXES = ("__MACOSX/",)  # resource forks written by macOS's archiver
 IGNORED_NAMES = frozenset({".DS_Store", "Thumbs.db"})
 BOMB_MIN_BYTES = 1024 * 1024  # entries smaller than this may compress arbitrarily well
 COPY_CHUNK = 1024 * 1024
+MAX_PATH_BYTES = 1024  # a relative path inside a scene; with the staging prefix well under Linux's PATH_MAX
+MAX_PATH_DEPTH = 32  # folders in such a path
 _DRIVE = re.compile(r"^[A-Za-z]:")
+NPY_HEADER_READERS = {
+    (1, 0): np.lib.format.read_array_header_1_0,
+    (2, 0): np.lib.format.read_array_header_2_0,
+}
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +69,9 @@ class UploadError(Exception):
 
     def __init__(self, status_code: int, detail: str) -> None:
         self.status_code = status_code
-        self.detail = detail
-        super().__init__(detail)
+        # a name echoed from hostile input may hold lone surrogates, which no JSON response can encode
+        self.detail = detail.encode("utf-8", "backslashreplace").decode("utf-8")
+        super().__init__(self.detail)
 
 
 @dataclass(frozen=True)
@@ -71,19 +84,31 @@ class StoredScene:
 def safe_relpath(name: str) -> PurePosixPath:
     """The relative path an archive entry or uploaded part names, or UploadError if it could escape."""
     if not name or "\x00" in name:
-        raise UploadError(422, f"entry {name!r}: empty name or NUL byte")
+        raise UploadError(422, f"entry {_clip(name)}: empty name or NUL byte")
     if "\\" in name:
-        raise UploadError(422, f"entry {name!r}: backslash in name (use '/' separators)")
+        raise UploadError(422, f"entry {_clip(name)}: backslash in name (use '/' separators)")
     if name.startswith("/") or _DRIVE.match(name):
-        raise UploadError(422, f"entry {name!r}: absolute path")
+        raise UploadError(422, f"entry {_clip(name)}: absolute path")
     parts = [p for p in name.split("/") if p not in ("", ".")]
     if ".." in parts:
-        raise UploadError(422, f"entry {name!r}: '..' would escape the scene directory")
+        raise UploadError(422, f"entry {_clip(name)}: '..' would escape the scene directory")
     if not parts:
-        raise UploadError(422, f"entry {name!r}: names no file")
+        raise UploadError(422, f"entry {_clip(name)}: names no file")
     if any(len(p.encode()) > 255 for p in parts):
-        raise UploadError(422, f"entry {name!r}: a path component is longer than 255 bytes")
+        raise UploadError(422, f"entry {_clip(name)}: a path component is longer than 255 bytes")
+    if len(parts) > MAX_PATH_DEPTH or len("/".join(parts).encode()) > MAX_PATH_BYTES:
+        raise UploadError(
+            422,
+            f"entry {_clip(name)}: path deeper than {MAX_PATH_DEPTH} folders or longer than "
+            f"{MAX_PATH_BYTES} bytes",
+        )
     return PurePosixPath(*parts)
+
+
+def _clip(name: str) -> str:
+    """``repr(name)``, shortened when long (a hostile name can be megabytes)."""
+    text = repr(name)
+    return text if len(text) <= 100 else f"{text[:80]}...' ({len(name)} characters)"
 
 
 def _ignored(name: str) -> bool:
@@ -94,7 +119,7 @@ def _check_suffix(path: PurePosixPath) -> None:
     if path.suffix.lower() not in ALLOWED_SUFFIXES:
         raise UploadError(
             415,
-            f"entry {str(path)!r}: unsupported file type {path.suffix or '(none)'!r}; "
+            f"entry {_clip(str(path))}: unsupported file type {path.suffix or '(none)'!r}; "
             f"allowed: {', '.join(sorted(ALLOWED_SUFFIXES))}",
         )
 
@@ -124,16 +149,16 @@ def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfil
         mode = info.external_attr >> 16
         file_type = stat.S_IFMT(mode) if info.create_system == 3 else 0
         if file_type == stat.S_IFLNK:
-            raise UploadError(422, f"entry {info.filename!r}: symbolic links are not allowed")
+            raise UploadError(422, f"entry {_clip(info.filename)}: symbolic links are not allowed")
         if info.is_dir() or file_type == stat.S_IFDIR:
             continue
         if file_type not in (0, stat.S_IFREG):
-            raise UploadError(422, f"entry {info.filename!r}: not a regular file (mode {oct(mode)})")
+            raise UploadError(422, f"entry {_clip(info.filename)}: not a regular file (mode {oct(mode)})")
         if info.flag_bits & 0x1:
-            raise UploadError(422, f"entry {info.filename!r}: encrypted entries are not supported")
+            raise UploadError(422, f"entry {_clip(info.filename)}: encrypted entries are not supported")
         if info.compress_type not in SUPPORTED_COMPRESSION:
             raise UploadError(
-                422, f"entry {info.filename!r}: unsupported compression method {info.compress_type}"
+                422, f"entry {_clip(info.filename)}: unsupported compression method {info.compress_type}"
             )
         _check_suffix(path)
         planned.append((info, path))
@@ -149,7 +174,7 @@ def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfil
         if info.file_size >= BOMB_MIN_BYTES and ratio > settings.max_compression_ratio:
             raise UploadError(
                 422,
-                f"entry {info.filename!r}: compression ratio {ratio:.0f} exceeds "
+                f"entry {_clip(info.filename)}: compression ratio {ratio:.0f} exceeds "
                 f"{settings.max_compression_ratio:.0f} (zip bomb?)",
             )
     compressed = sum(info.compress_size for info, _ in planned)
@@ -163,9 +188,17 @@ def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfil
     seen: set[PurePosixPath] = set()
     for target in targets:
         if target in seen:
-            raise UploadError(422, f"entry {str(target)!r} appears twice")
+            raise UploadError(422, f"entry {_clip(str(target))} appears twice")
         seen.add(target)
     return [(info, target) for (info, _), target in zip(planned, targets, strict=True)]
+
+
+def _read_chunk(src: BinaryIO, name: str) -> bytes:
+    """The next chunk of an entry; a decompressor choking on corrupt data (bz2 raises OSError) is a 422."""
+    try:
+        return src.read(COPY_CHUNK)
+    except OSError as err:
+        raise UploadError(422, f"entry {_clip(name)}: corrupt compressed data ({err})") from None
 
 
 def _copy_limited(src: BinaryIO, dst: Path, limit: int, name: str) -> int:
@@ -174,14 +207,20 @@ def _copy_limited(src: BinaryIO, dst: Path, limit: int, name: str) -> int:
     try:
         dst.parent.mkdir(parents=True, exist_ok=True)
         with open(dst, "xb") as out:
-            while chunk := src.read(COPY_CHUNK):
+            while chunk := _read_chunk(src, name):
                 written += len(chunk)
                 if written > limit:
-                    raise UploadError(422, f"entry {name!r}: larger than its declared size")
+                    raise UploadError(422, f"entry {_clip(name)}: larger than its declared size")
                 out.write(chunk)
     except (FileExistsError, NotADirectoryError, IsADirectoryError):
         raise UploadError(
-            422, f"entry {name!r}: clashes with another entry (a file and a folder of one name)"
+            422, f"entry {_clip(name)}: clashes with another entry (a file and a folder of one name)"
+        ) from None
+    except OSError as err:
+        if err.errno not in (errno.ENAMETOOLONG, errno.EILSEQ):
+            raise  # disk full, permissions: the server's problem, not the upload's
+        raise UploadError(
+            422, f"entry {_clip(name)}: the file system refuses this name ({err.strerror})"
         ) from None
     return written
 
@@ -227,13 +266,31 @@ def _write_parts(parts: Iterable[tuple[str, BinaryIO]], root: Path, settings: Se
     return total
 
 
-def _check_image_headers(root: Path, settings: Settings) -> None:
+def _npy_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` a depth ``.npy`` declares (``[H, W]`` or ``[H, W, C]``; elements past H x W are
+    folded into the width), from its header alone: ``np.load`` would allocate the whole array first."""
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            if version not in NPY_HEADER_READERS:
+                raise SceneError(path, f".npy format version {version} is not supported (1.0 or 2.0)")
+            shape, _, _ = NPY_HEADER_READERS[version](f)
+    except (ValueError, OSError, EOFError) as err:
+        raise SceneError(path, f"cannot read .npy header: {err}") from None
+    if len(shape) < 2:
+        raise SceneError(path, f"depth .npy must have shape [H, W], got {list(shape)}")
+    return math.prod(shape[1:]), shape[0]
+
+
+def _check_declared_sizes(root: Path, settings: Settings) -> None:
+    """Every image and .npy header, before anything is decoded: width x height within the limit."""
     for path in sorted(root.rglob("*")):
-        if path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file():
+        suffix = path.suffix.lower()
+        if suffix not in IMAGE_SUFFIXES | {".npy"} or not path.is_file():
             continue
         rel = path.relative_to(root)
         try:
-            width, height = image_size(path)
+            width, height = _npy_size(path) if suffix == ".npy" else image_size(path)
         except SceneError as err:
             raise UploadError(422, f"{rel}: {err.message}") from None
         if width * height > settings.max_image_pixels:
@@ -251,6 +308,17 @@ def _hide_staging(text: str, root: Path) -> str:
     return text
 
 
+def _publish(settings: Settings, scene_id: str) -> None:
+    """Copy the stored scene to the object store, if one is configured; 503 when the store fails."""
+    try:
+        storage.publish_scene(settings, scene_id)
+    except Exception as err:
+        log.error("scene %s: upload to the object store failed", scene_id, exc_info=True)
+        raise UploadError(
+            503, f"the scene could not be copied to the object store ({type(err).__name__}: {err}); try again"
+        ) from None
+
+
 def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> StoredScene:
     """Stage a scene with ``fill(root) -> bytes written``, validate it, and move it into ``scenes_dir``.
 
@@ -266,7 +334,7 @@ def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> S
             raise UploadError(
                 422, f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder)"
             )
-        _check_image_headers(root, settings)
+        _check_declared_sizes(root, settings)
         try:
             summary = inspect_scene(root)
         except SceneError as err:
@@ -281,6 +349,7 @@ def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> S
         final = settings.scenes_dir / scene_id
         root.replace(final)
         try:
+            _publish(settings, scene_id)
             jobstore.add_scene(settings, scene_id, name, summary, size)
         except BaseException:
             shutil.rmtree(final, ignore_errors=True)

@@ -72,49 +72,71 @@ def stop_process(proc: subprocess.Popen, grace_s: float = 10.0, kill: bool = Fal
 
 @dataclass
 class RedisServer:
-    proc: subprocess.Popen
-    url: str
+    """A redis-server on a fixed loopback port and directory, so that it can be stopped and started again.
 
-    def stop(self) -> None:
-        stop_process(self.proc)
+    With ``appendonly`` every write goes to the append-only file in ``work_dir`` (fsync every second, as in
+    docker-compose.yml) and a restarted server reloads it; without it nothing is persisted.
+    """
 
+    work_dir: Path
+    port: int
+    appendonly: bool = False
+    proc: subprocess.Popen | None = None
 
-def start_redis(work_dir: Path) -> RedisServer:
-    """A throw-away redis-server on a free loopback port, persisting nothing, its files in ``work_dir``."""
-    if shutil.which("redis-server") is None:
-        raise RuntimeError("redis-server is not installed (scripts/install.sh installs it)")
-    work_dir.mkdir(parents=True, exist_ok=True)
-    port = free_port()
-    proc = _start(
-        [
-            "redis-server",
-            "--bind",
-            "127.0.0.1",
-            "--port",
-            str(port),
-            "--dir",
-            str(work_dir),
-            "--save",
-            "",
-            "--appendonly",
-            "no",
-            "--protected-mode",
-            "yes",
-        ],
-        work_dir / "redis.log",
-        dict(os.environ),
-    )
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
 
-    def ping() -> bool:
+    def ping(self) -> bool:
         try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.5) as sock:
+            with socket.create_connection(("127.0.0.1", self.port), timeout=0.5) as sock:
                 sock.sendall(b"PING\r\n")
                 return sock.recv(16).startswith(b"+PONG")
         except OSError:
             return False
 
-    wait_for(ping, 20, "redis-server to answer PING")
-    return RedisServer(proc, f"redis://127.0.0.1:{port}/0")
+    def start(self) -> None:
+        """Start the server (again) on the same port and directory; waits until it answers PING."""
+        if self.proc is not None and self.proc.poll() is None:
+            raise RuntimeError(f"redis-server on port {self.port} is already running")
+        self.proc = _start(
+            [
+                "redis-server",
+                "--bind",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--dir",
+                str(self.work_dir),
+                "--save",
+                "",
+                "--appendonly",
+                "yes" if self.appendonly else "no",
+                "--appendfsync",
+                "everysec",
+                "--protected-mode",
+                "yes",
+            ],
+            self.work_dir / "redis.log",
+            dict(os.environ),
+        )
+        wait_for(self.ping, 20, f"redis-server on port {self.port} to answer PING")
+
+    def stop(self) -> None:
+        """SIGTERM: redis-server flushes its append-only file and exits (``SHUTDOWN``)."""
+        if self.proc is not None:
+            stop_process(self.proc)
+            self.proc = None
+
+
+def start_redis(work_dir: Path, appendonly: bool = False) -> RedisServer:
+    """A redis-server on a free loopback port with its files in ``work_dir`` (see :class:`RedisServer`)."""
+    if shutil.which("redis-server") is None:
+        raise RuntimeError("redis-server is not installed (scripts/install.sh installs it)")
+    work_dir.mkdir(parents=True, exist_ok=True)
+    server = RedisServer(work_dir, free_port(), appendonly)
+    server.start()
+    return server
 
 
 @dataclass
@@ -159,12 +181,21 @@ class Service:
             self.env,
         )
 
-    def start_worker(self, queue: str) -> None:
-        self.procs[queue] = _start(
+    def start_worker(self, queue: str, name: str | None = None) -> None:
+        """A worker process (concurrency 1) on ``queue``, known as ``name`` (default: the queue's name) in
+        ``procs`` and logging to ``worker-<name>.log``."""
+        name = name or queue
+        self.procs[name] = _start(
             [PYTHON, "-m", "worker", "--queues", queue, "--concurrency", "1"],
-            self.root / f"worker-{queue}.log",
+            self.root / f"worker-{name}.log",
             self.env,
         )
+
+    def restart_api(self) -> None:
+        """Stop the API process (SIGTERM, as a deployment would) and start it again on the same port."""
+        stop_process(self.procs.pop("api"))
+        self.start_api()
+        wait_for(self.answers, 60, "the restarted API to answer")
 
     def kill(self, name: str) -> None:
         """SIGKILL a process group at once (a crash, not a shutdown)."""

@@ -2,8 +2,8 @@
 
 Embedded default: ``broker_url = "filesystem://"`` served by :mod:`worker.broker` in ``<data_dir>/broker``,
 which works across processes on one host with no server. ``VOXNERF_BROKER_URL=redis://...`` selects Redis.
-No Celery result backend is used: job state lives in the job store and render results come back as files
-in ``<data_dir>/render-results`` (see :mod:`worker.render_results`), the same in both modes.
+No Celery result backend is used: job state lives in the job store and render results come back through
+Redis, or as files in ``<data_dir>/render-results`` in embedded mode (see :mod:`worker.render_results`).
 """
 
 from __future__ import annotations

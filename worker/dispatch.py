@@ -30,7 +30,9 @@ def requeue_stale_jobs(settings: Settings, app: Celery) -> list[str]:
     """Requeue running jobs whose worker died; the next worker resumes each from its checkpoint.
 
     The message is published before the row goes back to ``queued``: if publishing fails the job stays
-    stale and the next sweep tries again; a duplicate message is harmless because claims are fenced.
+    stale and the next sweep tries again. A worker may get the message before the row is marked; it then
+    takes the stale job over itself (see :func:`app.jobstore.claim_job`). A duplicate message is harmless
+    because claims are fenced.
     """
     requeued = []
     for job in jobstore.stale_jobs(settings):

@@ -6,6 +6,7 @@ import logging
 import os
 import socket
 
+from app import storage
 from app.settings import get_settings
 from worker.celery_app import RENDER_QUEUE, TRAIN_QUEUE, celery_app
 
@@ -29,6 +30,7 @@ def run_worker(queues: list[str], concurrency: int) -> None:
         raise ValueError(f"concurrency must be >= 1, got {concurrency}")
     settings = get_settings()
     settings.make_dirs()
+    storage.check_store(settings)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     celery_app.worker_main(
         [

@@ -5,6 +5,10 @@ Training: the task claims the job in the job store (fenced by its attempt number
 writes progress at most every ``progress_interval_s``, and renews its lease every ``heartbeat_s`` from a
 side thread that also picks up cancellation. ``acks_late`` + ``reject_on_worker_lost`` give the message
 back to the broker if the process dies; the job store's stale-job sweep covers the rest.
+
+With an object store (``VOXNERF_STORAGE_URL``, :mod:`app.storage`) the scene and the run's last uploaded
+checkpoint are fetched into this machine's cache first, and the run is uploaded after every checkpoint and
+at the end; a render fetches the run's checkpoint when the cache lacks it.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from celery.signals import worker_ready
 
-from app import jobstore
+from app import jobstore, storage
 from app.schemas import RenderRequest
 from app.settings import get_settings
 from voxnerf.config import TrainConfig
@@ -28,7 +32,7 @@ from voxnerf.trainer import train
 from worker.celery_app import RENDER_TASK, TRAIN_TASK, celery_app
 from worker.dispatch import requeue_stale_jobs
 from worker.encoding import encode_render
-from worker.render_results import RenderOutcome, write_outcome
+from worker.render_results import RenderOutcome, deliver_outcome
 
 log = logging.getLogger(__name__)
 
@@ -116,19 +120,24 @@ def train_job(job_id: str) -> None:
     if job.cancel_requested:
         jobstore.finish_job(settings, job_id, job.attempt, "cancelled", {"stage": "cancelled"})
         return
-    config = TrainConfig(**job.options, device=settings.device)
+    config = TrainConfig(
+        **job.options, device=settings.device, checkpoint_every_s=settings.checkpoint_every_s
+    )
     writer = ProgressWriter(job_id, job.attempt, settings.progress_interval_s)
     with Lease(job_id, job.attempt) as lease:
         try:
-            report = train(
-                settings.scenes_dir / job.scene_id,
-                settings.runs_dir / job_id,
-                config,
-                on_progress=writer,
-                should_stop=lease.should_stop,
-                resume=True,
-                progress_bar=False,
-            )
+            scene_dir = storage.ensure_scene(settings, job.scene_id)
+            run_dir = storage.ensure_run(settings, job_id)
+            with storage.RunPublisher(settings, job_id, run_dir):
+                report = train(
+                    scene_dir,
+                    run_dir,
+                    config,
+                    on_progress=writer,
+                    should_stop=lease.should_stop,
+                    resume=True,
+                    progress_bar=False,
+                )
         except VoxNeRFError as err:
             log.warning("job %s failed: %s", job_id, err)
             jobstore.finish_job(
@@ -200,8 +209,8 @@ def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:
     """Render ``request`` with job ``job_id``'s model (loaded through the cache)."""
     settings = get_settings()
     try:
-        trained = _models.get(settings.runs_dir / job_id, settings.device)
-    except RunError as err:
+        trained = _models.get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
+    except (RunError, storage.StorageError) as err:
         return RenderOutcome(409, detail=f"job {job_id} cannot be rendered: {err}")
     intrinsics = request.intrinsics(trained.default_intrinsics)
     if intrinsics.width * intrinsics.height > settings.max_render_pixels:
@@ -214,13 +223,13 @@ def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:
 
 @celery_app.task(name=RENDER_TASK)
 def render_pose(request_id: str, job_id: str, request: dict) -> None:
-    """Render one request and leave its outcome in ``render-results`` for the API."""
+    """Render one request and hand its outcome to the waiting API (:mod:`worker.render_results`)."""
     try:
         outcome = render_outcome(job_id, RenderRequest.model_validate(request))
     except Exception as err:
         log.exception("render %s of job %s failed", request_id, job_id)
         outcome = RenderOutcome(500, detail=f"render failed: {type(err).__name__}: {err}")
-    write_outcome(get_settings().render_results_dir, request_id, outcome)
+    deliver_outcome(get_settings(), request_id, outcome)
 
 
 @worker_ready.connect

@@ -8,14 +8,16 @@ from urllib.parse import quote
 from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import FileResponse
 
-from app import jobstore
+from app import jobstore, storage
 from app.deps import JobId, SettingsDep
+from app.models import JobRow
 from app.schemas import EvalRender, JobOut
 from app.settings import Settings
 
 router = APIRouter(tags=["jobs"])
 
 EVAL_DIR = "eval"  # the trainer writes <run_dir>/eval/<split>/<view name>.png
+NAME_MAX_BYTES = 255
 
 
 def _job_or_404(settings: Settings, job_id: str):
@@ -49,14 +51,20 @@ def cancel_job(job_id: JobId, settings: SettingsDep) -> JobOut:
     return JobOut.from_row(job)
 
 
-def _eval_root(settings: Settings, job_id: str) -> Path:
-    return settings.runs_dir / job_id / EVAL_DIR
+def _eval_root(settings: Settings, job: JobRow) -> Path:
+    """Where job ``job``'s evaluation renders are; a succeeded job's run is fetched from the store first when
+    this process's cache lacks it (a no-op without ``storage_url``)."""
+    if job.state != "succeeded":
+        return settings.runs_dir / job.id / EVAL_DIR
+    try:
+        return storage.ensure_run(settings, job.id, refresh=False) / EVAL_DIR
+    except storage.StorageError as err:
+        raise HTTPException(503, f"the run of job {job.id} cannot be fetched from the store: {err}") from None
 
 
 @router.get("/jobs/{job_id}/renders", response_model=list[EvalRender], summary="Evaluation renders of a job")
 def list_renders(job_id: JobId, settings: SettingsDep) -> list[EvalRender]:
-    _job_or_404(settings, job_id)
-    root = _eval_root(settings, job_id)
+    root = _eval_root(settings, _job_or_404(settings, job_id))
     if not root.is_dir():
         return []
     return [
@@ -71,7 +79,14 @@ def list_renders(job_id: JobId, settings: SettingsDep) -> list[EvalRender]:
 
 
 def _plain_name(value: str) -> bool:
-    return bool(value) and value not in (".", "..") and not any(c in value for c in "/\\\x00")
+    """One file name: not empty, no dot entry, no separator or NUL, at most 255 bytes (the usual NAME_MAX,
+    so an overlong segment is a 404 rather than an ENAMETOOLONG from the filesystem)."""
+    return (
+        bool(value)
+        and len(value.encode()) <= NAME_MAX_BYTES
+        and value not in (".", "..")
+        and not any(c in value for c in "/\\\x00")
+    )
 
 
 @router.get(
@@ -81,10 +96,10 @@ def _plain_name(value: str) -> bool:
     summary="Download one evaluation render (PNG)",
 )
 def get_render(job_id: JobId, split: str, filename: str, settings: SettingsDep) -> FileResponse:
-    _job_or_404(settings, job_id)
+    job = _job_or_404(settings, job_id)
     if not (_plain_name(split) and _plain_name(filename) and filename.endswith(".png")):
         raise HTTPException(404, "no such render")
-    root = _eval_root(settings, job_id).resolve()
+    root = _eval_root(settings, job).resolve()
     path = (root / split / filename).resolve()
     if not path.is_relative_to(root) or not path.is_file():
         raise HTTPException(404, "no such render")

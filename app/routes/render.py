@@ -1,33 +1,65 @@
-"""``POST /render``: render a pose of a finished job on a render worker and answer the image bytes."""
+"""``POST /render``: render a pose of a finished job on a render worker and answer the image bytes.
+
+Each API process serves at most ``max_concurrent_renders`` renders at once. The limit is taken on the event
+loop before a worker thread is used, so a burst above it is answered 429 at once (with ``Retry-After``)
+instead of queueing threads that each wait up to ``render_timeout_s`` for a render worker.
+"""
 
 from __future__ import annotations
 
 import logging
 
-from fastapi import APIRouter, HTTPException, Response
+from celery import Celery
+from fastapi import APIRouter, HTTPException, Request, Response
+from fastapi.concurrency import run_in_threadpool
 from kombu.exceptions import KombuError
+from redis import RedisError
 
 from app import jobstore
 from app.deps import CeleryDep, SettingsDep
 from app.schemas import MEDIA_TYPES, RenderRequest
+from app.settings import Settings
 from worker.dispatch import send_render
-from worker.render_results import wait_outcome
+from worker.render_results import receive_outcome
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["render"])
 
+RETRY_AFTER_S = 1  # what a refused client is told to wait: about one render of a small image
 
-@router.post(
-    "/render",
-    response_class=Response,
-    responses={
-        200: {"content": {media: {} for media in MEDIA_TYPES.values()}, "description": "the image"},
-        409: {"description": "the job has not succeeded"},
-        504: {"description": "no render worker answered in time"},
-    },
-    summary="Render a camera pose of a succeeded job to PNG or EXR",
-)
-def render(body: RenderRequest, settings: SettingsDep, celery: CeleryDep) -> Response:
+
+class RenderSlots:
+    """A non-blocking counter of renders in progress, used only from the event loop (no lock needed)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.in_use = 0
+
+    def try_acquire(self) -> bool:
+        if self.in_use >= self.limit:
+            return False
+        self.in_use += 1
+        return True
+
+    def release(self) -> None:
+        self.in_use -= 1
+
+
+def _queue_unavailable(err: Exception) -> HTTPException:
+    """503 with Retry-After: the broker (or Redis, which carries the outcome back) cannot be reached."""
+    return HTTPException(
+        503,
+        f"the render queue is unavailable ({err}); try again later",
+        headers={"Retry-After": str(RETRY_AFTER_S)},
+    )
+
+
+def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response:
+    """The blocking part (job store, broker, waiting for the worker's outcome); runs in a worker thread.
+
+    The outcome comes back through Redis (BLPOP) or, with the embedded broker, as files in
+    ``data_dir/render-results``; see :mod:`worker.render_results`.
+    """
     job = jobstore.get_job(settings, body.job_id)
     if job is None:
         raise HTTPException(404, f"no job {body.job_id}")
@@ -42,8 +74,11 @@ def render(body: RenderRequest, settings: SettingsDep, celery: CeleryDep) -> Res
     try:
         send_render(celery, request_id, body.job_id, body.model_dump(), settings.render_timeout_s)
     except (KombuError, OSError) as err:
-        raise HTTPException(503, f"the render queue is unavailable ({err}); try again later") from None
-    outcome = wait_outcome(settings.render_results_dir, request_id, settings.render_timeout_s)
+        raise _queue_unavailable(err) from None
+    try:
+        outcome = receive_outcome(settings, request_id, settings.render_timeout_s)
+    except RedisError as err:
+        raise _queue_unavailable(err) from None
     if outcome is None:
         raise HTTPException(504, f"no render worker answered within {settings.render_timeout_s:g} s")
     if outcome.status != 200:
@@ -53,3 +88,32 @@ def render(body: RenderRequest, settings: SettingsDep, celery: CeleryDep) -> Res
         media_type=outcome.media_type,
         headers={"Content-Disposition": f'inline; filename="{body.job_id}.{body.format}"'},
     )
+
+
+@router.post(
+    "/render",
+    response_class=Response,
+    responses={
+        200: {"content": {media: {} for media in MEDIA_TYPES.values()}, "description": "the image"},
+        409: {"description": "the job has not succeeded"},
+        429: {"description": "max_concurrent_renders renders are in progress; retry after Retry-After"},
+        503: {"description": "the broker is unreachable"},
+        504: {"description": "no render worker answered in time"},
+    },
+    summary="Render a camera pose of a succeeded job to PNG or EXR",
+)
+async def render(
+    body: RenderRequest, request: Request, settings: SettingsDep, celery: CeleryDep
+) -> Response:
+    slots: RenderSlots = request.app.state.render_slots
+    if not slots.try_acquire():
+        raise HTTPException(
+            429,
+            f"{slots.limit} renders are already in progress on this API process "
+            f"(VOXNERF_MAX_CONCURRENT_RENDERS); retry in {RETRY_AFTER_S} s",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        )
+    try:
+        return await run_in_threadpool(_render, body, settings, celery)
+    finally:
+        slots.release()

@@ -10,7 +10,7 @@ from kombu.exceptions import KombuError
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
-from app import jobstore, uploads
+from app import jobstore, storage, uploads
 from app.deps import CeleryDep, SceneId, SettingsDep
 from app.schemas import JobOptions, JobOut, SceneOut
 from voxnerf.config import TrainConfig
@@ -112,6 +112,10 @@ def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
     if not deleted:
         raise HTTPException(404, f"no scene {scene_id}")
     uploads.remove_scene_files(settings, scene_id)
+    try:
+        storage.delete_scene(settings, scene_id)
+    except Exception:  # the scene is gone for the service; its unreferenced copy in the store is only waste
+        log.error("scene %s: deleting its copy in the object store failed", scene_id, exc_info=True)
     return Response(status_code=204)
 
 
