@@ -83,7 +83,6 @@ def test_error_vs_runtime_quick(room: Path, tmp_path: Path) -> None:
     results = json.loads((out / "results.json").read_text())
     assert [r["name"] for r in results] == configs
     assert all("--no-compile" in r["command"] for r in results)
-    pytest.importorskip("matplotlib")
     assert (out / "psnr_vs_time.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
