@@ -291,6 +291,13 @@ def zip_scene(
     return buffer.getvalue()
 
 
+def upload_scene(client: httpx.Client, scene_dir: Path) -> dict:
+    """POST ``scene_dir`` as a .zip to /scenes; the created scene's JSON (asserts 201)."""
+    response = client.post("/scenes", files={"file": ("room.zip", zip_scene(scene_dir), "application/zip")})
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
 def first_pose(scene_dir: Path, split_key: str = "test_filenames") -> list[list[float]]:
     """The transform_matrix of the first frame of a split (a pose the model has not trained on)."""
     meta = json.loads((scene_dir / "transforms.json").read_text())

@@ -26,7 +26,15 @@ import imageio.v3 as iio
 import pytest
 import redis as redis_client
 import torch
-from service_fixtures import RedisServer, Service, first_pose, start_redis, start_service, wait_for, zip_scene
+from service_fixtures import (
+    RedisServer,
+    Service,
+    first_pose,
+    start_redis,
+    start_service,
+    upload_scene,
+    wait_for,
+)
 
 from app import jobstore
 from app.db import session_scope
@@ -77,9 +85,7 @@ def client(service) -> httpx.Client:
 
 @pytest.fixture(scope="module")
 def scene(client, small_room) -> dict:
-    response = client.post("/scenes", files={"file": ("room.zip", zip_scene(small_room), "application/zip")})
-    assert response.status_code == 201, response.text
-    return response.json()
+    return upload_scene(client, small_room)
 
 
 @pytest.fixture(scope="module")

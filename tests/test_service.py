@@ -14,7 +14,7 @@ import time
 import imageio.v3 as iio
 import numpy as np
 import pytest
-from service_fixtures import Service, first_pose, start_redis, start_service, wait_for, zip_scene
+from service_fixtures import Service, first_pose, start_redis, start_service, upload_scene, wait_for, zip_scene
 
 from voxnerf.image_io import decode_exr
 
@@ -53,9 +53,7 @@ def client(service):
 
 @pytest.fixture(scope="module")
 def scene(client, small_room) -> dict:
-    response = client.post("/scenes", files={"file": ("room.zip", zip_scene(small_room), "application/zip")})
-    assert response.status_code == 201, response.text
-    return response.json()
+    return upload_scene(client, small_room)
 
 
 def _job(client, job_id: str) -> dict:
