@@ -145,6 +145,12 @@ def write_csv(rows: list[dict], path: Path) -> None:
     write_text(path, text.getvalue())
 
 
+def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """A markdown table's lines: the header cells, the separator, then one line per row of cells."""
+    lines = ["| " + " | ".join(header) + " |", "| --- " * len(header) + "|"]
+    return lines + ["| " + " | ".join(row) + " |" for row in rows]
+
+
 def write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (temporary file in the same directory, then rename)."""
     write_atomic(path, text.encode())

@@ -26,6 +26,7 @@ from error_vs_runtime import (
     eval_splits,
     final_psnr,
     make_scene,
+    markdown_table,
     run_training,
     write_csv,
     write_text,
@@ -129,18 +130,14 @@ def main(argv: list[str] | None = None) -> int:
         )
     splits = eval_splits(results[0])
     write_csv(rows, args.out / "prior_noise.csv")
-    lines = [
-        "| true noise (m) | stated sigma (m) | stated / true | "
-        + " | ".join(f"PSNR {s}" for s in splits)
-        + " | iterations |",
-        "| --- " * (4 + len(splits)) + "|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['true_noise_m']:g} | {r['stated_sigma_m']:.4g} | {r['stated_factor']:.3g} | "
-            + " | ".join(f"{r[f'psnr_{s}']:.2f}" for s in splits)
-            + f" | {r['iterations']} |"
-        )
+    lines = markdown_table(
+        ["true noise (m)", "stated sigma (m)", "stated / true", *(f"PSNR {s}" for s in splits), "iterations"],
+        [
+            [f"{r['true_noise_m']:g}", f"{r['stated_sigma_m']:.4g}", f"{r['stated_factor']:.3g}",
+             *(f"{r[f'psnr_{s}']:.2f}" for s in splits), str(r["iterations"])]
+            for r in rows
+        ],
+    )
     lines += [
         "",
         f"Final PSNR (dB) of runs with --max-seconds {args.budget:g} each (voxnerf sampler, depth loss; "

@@ -23,6 +23,7 @@ from error_vs_runtime import (
     eval_splits,
     final_psnr,
     make_scene,
+    markdown_table,
     run_training,
     write_csv,
     write_text,
@@ -75,18 +76,15 @@ def cheapest_keeping_quality(rows: list[dict], splits: list[str]) -> dict | None
 
 
 def markdown(rows: list[dict], splits: list[str], budget: float, commands: list[str]) -> str:
-    lines = [
-        "| N_imp | N_rest | samples/ray | "
-        + " | ".join(f"PSNR {s}" for s in splits)
-        + " | iterations | rays/s | samples/s |",
-        "| --- " * (6 + len(splits)) + "|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['n_importance']} | {r['n_rest']} | {r['samples_per_ray']} | "
-            + " | ".join(f"{r[f'psnr_{s}']:.2f}" for s in splits)
-            + f" | {r['iterations']} | {r['rays_per_s']:,.0f} | {r['samples_per_s']:,.0f} |"
-        )
+    lines = markdown_table(
+        ["N_imp", "N_rest", "samples/ray", *(f"PSNR {s}" for s in splits), "iterations", "rays/s", "samples/s"],
+        [
+            [str(r["n_importance"]), str(r["n_rest"]), str(r["samples_per_ray"]),
+             *(f"{r[f'psnr_{s}']:.2f}" for s in splits), str(r["iterations"]), f"{r['rays_per_s']:,.0f}",
+             f"{r['samples_per_s']:,.0f}"]
+            for r in rows
+        ],
+    )
     pick = cheapest_keeping_quality(rows, splits)
     lines += [
         "",
