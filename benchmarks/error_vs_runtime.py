@@ -125,6 +125,42 @@ def run_training(
     }
 
 
+def peer_result(name: str, peer_out: Path) -> dict:
+    """A peer's run (``benchmarks/peer/``: ``timeline.csv``, ``run.json`` and the ``evaluations.csv`` written by
+    ``score_renders.py``) in :func:`run_training`'s shape, so it joins the table, ratios and plot."""
+    needed = [peer_out / f for f in ("evaluations.csv", "timeline.csv", "run.json")]
+    missing = [str(p) for p in needed if not p.is_file()]
+    if missing:
+        raise SceneError(peer_out, f"peer results incomplete, missing {missing} (run nerfacto_run.py, then "
+                         "score_renders.py)")
+    with open(needed[0], newline="") as f:
+        rows = list(csv.DictReader(f))
+    with open(needed[1], newline="") as f:
+        rays_at = {float(r["seconds"]): int(r["rays_seen"]) for r in csv.DictReader(f)}
+    run = json.loads(needed[2].read_text())
+    history: dict[float, dict] = {}
+    for r in rows:
+        t = float(r["elapsed_s"])
+        entry = history.setdefault(t, {"elapsed_s": t, "iteration": int(r["iteration"]), "psnr": {}, "ssim": {},
+                                       "full": True, "rays_seen": rays_at.get(t)})
+        entry["psnr"][r["split"]] = float(r["psnr"])
+        entry["ssim"][r["split"]] = float(r["ssim"])
+    entries = [history[t] for t in sorted(history)]
+    train_s = float(run["train_s"])
+    rays = max(rays_at.values(), default=0)
+    return {
+        "name": name,
+        "command": run.get("command", f"benchmarks/peer/nerfacto_run.py (see {needed[2]})"),
+        "scene": run.get("scene"),
+        "wall_s": train_s,
+        "report": {
+            "history": entries,
+            "iteration": int(run["iterations"]),
+            "throughput": {"rays_per_s": rays / train_s if train_s > 0 else 0.0, "samples_per_s": 0.0},
+        },
+    }
+
+
 def final_psnr(result: dict) -> dict[str, float]:
     """Final PSNR per evaluation split of a run (dB)."""
     return {split: m["psnr"] for split, m in result["report"].get("metrics", {}).items()}
@@ -337,8 +373,23 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="smoke run: tiny room, voxnerf/occgrid/uniform, 5 steps each, --no-compile",
     )
+    parser.add_argument(
+        "--peer",
+        action="append",
+        default=[],
+        metavar="NAME=DIR",
+        help="add a peer's scored results (benchmarks/peer/: nerfacto_run.py then score_renders.py) to the "
+        "table and plot; repeatable",
+    )
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
+    peers = [p.split("=", 1) for p in args.peer]
+    if any(len(p) != 2 or not p[0] for p in peers):
+        parser.error("--peer takes NAME=DIR")
+    try:  # read before the long training runs, so a wrong directory fails at once
+        peer_results = [peer_result(name, Path(path)) for name, path in peers]
+    except SceneError as err:
+        parser.error(str(err))
     if args.quick:
         args.budget, args.eval_at = QUICK_BUDGET, "3"
     default = "voxnerf,occgrid,uniform" if args.quick else ",".join(CONFIGS)
@@ -366,6 +417,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         for name in names
     ]
+    results += peer_results
     write_text(
         args.out / "results.json",
         json.dumps(

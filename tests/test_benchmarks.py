@@ -145,3 +145,50 @@ def test_generated_prior_configs_need_ground_truth(room: Path, tmp_path: Path, c
     with pytest.raises(SystemExit):
         error_vs_runtime.main(["--scene", str(room), "--configs", "voxnerf,nerfacto", "--out", str(tmp_path)])
     assert "unknown configs ['nerfacto']" in capsys.readouterr().err
+
+
+def _fake_peer_run(scene_dir: Path, out: Path) -> None:
+    """A peer's output as benchmarks/peer/nerfacto_run.py writes it: renders at two times (flat grey, then the
+    held-out images themselves), timeline.csv and run.json."""
+    import numpy as np
+
+    from voxnerf.image_io import encode_png, read_rgb, write_atomic
+    from voxnerf.scene import load_scene
+
+    scene = load_scene(scene_dir, load_images=False)
+    for t in ("30", "60"):
+        for split in scene.eval_split_names:
+            for index in scene.splits[split]:
+                frame = scene.frames[index]
+                gt = read_rgb(frame.image_path) / 255.0
+                image = np.full_like(gt, 0.5) if t == "30" else gt
+                path = out / "renders" / f"{t}s" / split / f"{Path(frame.file_path).stem}.png"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_atomic(path, encode_png(image))
+    (out / "timeline.csv").write_text("eval_at_s,seconds,iteration,rays_seen\n30,31.5,2,8192\n60,62.0,4,16384\n")
+    (out / "run.json").write_text(json.dumps({"command": "nerfacto_run.py ...", "scene": str(scene_dir),
+                                              "train_s": 62.0, "iterations": 4}))
+
+
+def test_peer_results_join_the_table(room: Path, tmp_path: Path) -> None:
+    score_renders = importlib.import_module("peer.score_renders")
+    peer = tmp_path / "peer"
+    _fake_peer_run(room, peer)
+    assert score_renders.main([str(room), "--out", str(peer)]) == 0
+    rows = _read_csv(peer / "evaluations.csv")
+    late = {r["split"]: float(r["psnr"]) for r in rows if r["elapsed_s"] == "62.0"}
+    early = {r["split"]: float(r["psnr"]) for r in rows if r["elapsed_s"] == "31.5"}
+    assert set(late) == set(early) == {"interpolation", "extrapolation", "test"}
+    assert all(late[s] > 60 and 5 < early[s] < 25 for s in late)  # exact images score ~inf (capped), grey low
+
+    out = tmp_path / "evr"
+    with pytest.raises(SystemExit):  # a wrong peer directory fails before any training
+        error_vs_runtime.main(["--quick", "--scene", str(room), "--configs", "occgrid", "--out", str(out),
+                               "--peer", f"nerfacto={tmp_path / 'missing'}"])
+    assert not (out / "runs").exists()
+    assert error_vs_runtime.main(["--quick", "--scene", str(room), "--configs", "occgrid", "--out", str(out),
+                                  "--peer", f"nerfacto={peer}"]) == 0
+    table = (out / "table.md").read_text()
+    assert "| nerfacto |" in table and "| occgrid |" in table
+    assert {r["config"] for r in _read_csv(out / "evaluations.csv")} == {"occgrid", "nerfacto"}
+    assert [r["name"] for r in json.loads((out / "results.json").read_text())] == ["occgrid", "nerfacto"]

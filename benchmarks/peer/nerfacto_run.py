@@ -33,6 +33,7 @@ import csv
 import io
 import json
 import os
+import shlex
 import sys
 import tempfile
 import time
@@ -250,6 +251,7 @@ def train(scene: Path, budget: float, eval_at: list[float], out: Path, rays_per_
             write_csv(timeline, out / "timeline.csv")
             print(f"t={t:g}s: clock {clock:.1f} s, iteration {step}, loss {float(loss):.4f}", flush=True)
     run = {
+        "command": shlex.join([sys.executable, *sys.argv]),
         "scene": str(scene.resolve()),
         "budget_s": budget,
         "nerfstudio_config": "nerfacto (method_configs), changed: device cpu, mixed precision off, "
