@@ -11,12 +11,14 @@ SamplerName = Literal["voxnerf", "occgrid", "uniform"]
 MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
-# 2^19 hash tables); "cpu" keeps a 2-core CPU at a few hundred thousand samples per second.
+# 2^19 hash tables); "cpu" keeps a 2-core CPU at a few hundred thousand samples per second, with 8 + 4 samples
+# per ray: the samples-per-ray sweep (benchmarks/samples_sweep.py, docs/benchmarks.md) found 16 + 8 3.8 dB
+# worse at 120 s on the room (fewer steps in the same time) and 4 + 2 tied with 8 + 4 within noise.
 PRESETS: dict[str, dict] = {
     "cpu": dict(
         rays_per_batch=2048,
-        n_importance=16,
-        n_rest=8,
+        n_importance=8,
+        n_rest=4,
         hash_levels=12,
         hash_features=2,
         hash_log2_size=17,
