@@ -72,6 +72,8 @@ QUICK_TRAIN_ARGS = ("--no-compile", "--downscale", "2", "--max-iters", "5")
 QUICK_BUDGET = 60.0
 QUICK_SAMPLES = ("--samples", "4,2")
 SPLITS = ("interpolation", "extrapolation", "test")
+PROGRESS_VIEWS = 4
+"""Views per split in the trainer's progress evaluations (TrainConfig.eval_views' default)."""
 
 
 # ----------------------------------------------------------------------------------- shared with sweeps
@@ -156,7 +158,7 @@ def peer_result(name: str, peer_out: Path) -> dict:
         "report": {
             "history": entries,
             "iteration": int(run["iterations"]),
-            "throughput": {"rays_per_s": rays / train_s if train_s > 0 else 0.0, "samples_per_s": 0.0},
+            "throughput": {"rays_per_s": rays / train_s if train_s > 0 else 0.0, "samples_per_s": None},
         },
     }
 
@@ -232,6 +234,15 @@ def evaluations(result: dict) -> list[dict]:
 def progress_curve(result: dict, split: str) -> list[tuple[float, float]]:
     """(training seconds, PSNR dB) of every evaluation of ``split`` (progress, full and final), in order."""
     return [(e["elapsed_s"], e["psnr"][split]) for e in result["report"]["history"] if split in e["psnr"]]
+
+
+def full_curve(result: dict, split: str) -> list[tuple[float, float]]:
+    """(training seconds, PSNR dB) of the full evaluations of ``split`` (every view: ``--eval-at`` and final)."""
+    return [
+        (e["elapsed_s"], e["psnr"][split])
+        for e in result["report"]["history"]
+        if split in e["psnr"] and (e.get("full") or e.get("final"))
+    ]
 
 
 def time_to_psnr(curve: list[tuple[float, float]], target: float) -> float | None:
@@ -315,7 +326,8 @@ def write_outputs(results: list[dict], out: Path, eval_at: list[float]) -> str:
         rate = res["report"].get("throughput", {})
         lines.append(
             f"| {res['name']} | " + " | ".join(cells) + f" | {res['report'].get('iteration', 0)} | "
-            f"{rate.get('rays_per_s', 0.0):,.0f} | {rate.get('samples_per_s', 0.0):,.0f} |"
+            f"{rate.get('rays_per_s', 0.0):,.0f} | "
+            + (f"{rate['samples_per_s']:,.0f} |" if rate.get("samples_per_s") else "- |")
         )
     lines += [
         "",
@@ -343,9 +355,11 @@ def _plot(results: list[dict], splits: list[str], path: Path) -> None:
     fig, axes = plt.subplots(1, len(splits), figsize=(6 * len(splits), 4), squeeze=False)
     for ax, split in zip(axes[0], splits, strict=True):
         for res in results:
-            curve = progress_curve(res, split)
-            ax.plot([t for t, _ in curve], [p for _, p in curve], marker=".", label=res["name"])
-        ax.set_title(split)
+            full = full_curve(res, split)
+            (line,) = ax.plot([t for t, _ in full], [p for _, p in full], marker="o", label=res["name"])
+            quick = [(t, p) for t, p in progress_curve(res, split) if (t, p) not in full]
+            ax.plot([t for t, _ in quick], [p for _, p in quick], "x", color=line.get_color(), alpha=0.4)
+        ax.set_title(f"{split} (o: all views, x: {PROGRESS_VIEWS}-view progress evaluations)")
         ax.set_xlabel("training seconds")
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)
