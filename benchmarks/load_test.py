@@ -34,12 +34,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))  # the process helpers the service tests use
 
+from docs_section import replace_section  # noqa: E402
 from service_fixtures import first_pose, start_redis, start_service, wait_for, zip_scene  # noqa: E402
 
 from voxnerf.synthetic import RoomSpec, make_room_scene  # noqa: E402
 
 DOC = REPO / "docs" / "scale.md"
-BEGIN, END = "<!-- load-test:begin -->", "<!-- load-test:end -->"
+SECTION = "load-test"  # the marked section of DOC that --write-docs replaces
 TRAIN = {"max_iters": 8, "compile": False}  # the load does not depend on how well the model fits
 
 
@@ -138,7 +139,6 @@ def markdown(results: dict, command: str) -> str:
         width=110,
     )
     lines = [
-        BEGIN,
         setting,
         "",
         "```",
@@ -165,7 +165,7 @@ def markdown(results: dict, command: str) -> str:
         "answer. Latency percentiles are over the successful requests only; 429 p50 is how fast a refusal "
         "comes. A client that gets 429 waits `Retry-After` (1 s) before its next request."
     )
-    lines += ["", textwrap.fill(note, width=110), END]
+    lines += ["", textwrap.fill(note, width=110)]
     return "\n".join(lines)
 
 
@@ -263,9 +263,7 @@ def main() -> None:
     print(text)
     problems = check(results, args.limit)
     if args.write_docs:
-        doc = DOC.read_text()
-        start, end = doc.index(BEGIN), doc.index(END) + len(END)
-        DOC.write_text(doc[:start] + text + doc[end:])
+        replace_section(DOC, SECTION, text)
     if problems:
         print("contract violated:", *problems, sep="\n  ", file=sys.stderr)
         sys.exit(1)

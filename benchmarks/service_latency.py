@@ -25,12 +25,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))  # the process helpers the service tests use
 
+from docs_section import replace_section  # noqa: E402
 from service_fixtures import first_pose, start_redis, start_service, wait_for, zip_scene  # noqa: E402
 
 from voxnerf.synthetic import RoomSpec, make_room_scene  # noqa: E402
 
 DOC = REPO / "docs" / "service.md"
-BEGIN, END = "<!-- service-latency:begin -->", "<!-- service-latency:end -->"
+SECTION = "service-latency"  # the marked section of DOC that --write-docs replaces
 TRAIN = {"max_iters": 8, "compile": False}  # latency does not depend on how well the model fits
 
 
@@ -122,7 +123,6 @@ def run_mode(mode: str, root: Path, data_dir: Path, scene_dir: Path, args, state
 def markdown(results: dict, command: str) -> str:
     env = results["environment"]
     lines = [
-        BEGIN,
         f"Measured {env['date']} on {env['machine']} ({env['cpus']} CPUs, load average {env['load']} "
         "at start), "
         f"one render worker and one train worker (idle), loopback HTTP. Command:",
@@ -148,7 +148,6 @@ def markdown(results: dict, command: str) -> str:
         f"{results['embedded']['render_8x6_png']['n']} timed 8x6 renders per mode, each after one warm-up "
         f"render; {results['embedded']['job_submission']['n']} jobs per submission loop. An 8x6 render "
         "costs the engine almost nothing: its latency is the service's own (HTTP, queue, result file).",
-        END,
     ]
     return "\n".join(lines)
 
@@ -182,9 +181,7 @@ def main() -> None:
     text = markdown(results, command.strip())
     print(text)
     if args.write_docs:
-        doc = DOC.read_text()
-        start, end = doc.index(BEGIN), doc.index(END) + len(END)
-        DOC.write_text(doc[:start] + text + doc[end:])
+        replace_section(DOC, SECTION, text)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """Training throughput (samples/s, rays/s) and render time, eager against torch.compile, side by side.
 
 Runs on one scene (default: the synthetic 160x120 room, generated into a temp dir), alternating the
-configurations in one process so both see the same machine load, and writes docs/performance.md.
+configurations in one process so both see the same machine load, and replaces the marked ``throughput``
+section of docs/performance.md (``--out`` another page holding the same markers).
 
     .venv/bin/python benchmarks/throughput.py [--scene DIR] [--iters 60] [--out docs/performance.md]
 """
@@ -17,6 +18,7 @@ import time
 from pathlib import Path
 
 import torch
+from docs_section import replace_section
 
 from voxnerf.cameras import Intrinsics
 from voxnerf.config import TrainConfig
@@ -52,7 +54,9 @@ def main() -> int:
     parser.add_argument("--scene", type=Path)
     parser.add_argument("--iters", type=int, default=60)
     parser.add_argument("--repeats", type=int, default=2, help="alternating rounds per configuration")
-    parser.add_argument("--out", type=Path, default=Path("docs/performance.md"))
+    parser.add_argument(
+        "--out", type=Path, default=Path("docs/performance.md"), help="page with the throughput section to replace"
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         scene = args.scene or make_room_scene(Path(tmp) / "room", RoomSpec())
@@ -66,10 +70,8 @@ def main() -> int:
     med = {k: statistics.median(r["samples_per_s"] for r in v) for k, v in rates.items()}
     rays = {k: statistics.median(r["rays_per_s"] for r in v) for k, v in rates.items()}
     rend = {k: min(v) for k, v in renders.items()}
-    command = "  ".join(sys.argv)
+    command = " ".join(sys.argv)
     lines = [
-        "# Training throughput and render time (CPU)",
-        "",
         f"Measured {time.strftime('%Y-%m-%d')} on {platform.processor() or platform.machine()}, "
         f"{torch.get_num_threads()} torch threads, torch {torch.__version__}.",
         "",
@@ -92,8 +94,7 @@ def main() -> int:
         f"render {rend['eager'] / rend['compiled']:.2f}x faster.",
         "",
     ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines))
+    replace_section(args.out, "throughput", "\n".join(lines))
     print("\n".join(lines))
     return 0
 

@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 error_vs_runtime = importlib.import_module("error_vs_runtime")
 samples_sweep = importlib.import_module("samples_sweep")
 prior_noise_sweep = importlib.import_module("prior_noise_sweep")
+docs_section = importlib.import_module("docs_section")
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -192,3 +193,14 @@ def test_peer_results_join_the_table(room: Path, tmp_path: Path) -> None:
     assert "| nerfacto |" in table and "| occgrid |" in table
     assert {r["config"] for r in _read_csv(out / "evaluations.csv")} == {"occgrid", "nerfacto"}
     assert [r["name"] for r in json.loads((out / "results.json").read_text())] == ["occgrid", "nerfacto"]
+
+
+def test_docs_section_replaces_only_its_marked_text(tmp_path):
+    page = tmp_path / "page.md"
+    begin, end = docs_section.markers("throughput")
+    page.write_text(f"# Title\n\n{begin}\nold table\n{end}\n\nhand-written notes\n")
+    docs_section.replace_section(page, "throughput", "new table\n")
+    assert page.read_text() == f"# Title\n\n{begin}\nnew table\n{end}\n\nhand-written notes\n"
+    with pytest.raises(ValueError, match="page.md.*load-test:begin"):
+        docs_section.replace_section(page, "load-test", "x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["page.md"]

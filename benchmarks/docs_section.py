@@ -1,0 +1,24 @@
+"""Replace a benchmark's generated section of a page in ``docs/``, leaving the hand-written text around it."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def markers(name: str) -> tuple[str, str]:
+    """The HTML comments that open and close section ``name`` in a markdown page."""
+    return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+
+
+def replace_section(page: Path, name: str, text: str) -> None:
+    """Put ``text`` between ``page``'s markers of section ``name`` (markers kept), through a temp file and a
+    rename. ValueError naming the page and the marker when either marker is missing or out of order."""
+    begin, end = markers(name)
+    doc = page.read_text()
+    start, stop = doc.find(begin), doc.find(end)
+    if start < 0 or stop < start:
+        raise ValueError(f"{page}: no '{begin}' ... '{end}' section to replace")
+    tmp = page.with_name(f".{page.name}.tmp")
+    tmp.write_text(doc[: start + len(begin)] + "\n" + text.strip("\n") + "\n" + doc[stop:])
+    os.replace(tmp, page)
