@@ -8,9 +8,9 @@
 #
 # --quick: every script's CI-sized smoke mode on the tiny room (the peer, if installed, trains 30 s): checks
 # this script end to end in a few minutes, not quality.
-# BUDGET (default 300) is the wall-clock budget of each error-against-run-time configuration and of the peer;
-# SWEEP_BUDGET (default 120) that of each sweep run. The peer needs its own venv (about 8 GB):
-# benchmarks/peer/install_nerfstudio.sh; without it the peer steps are skipped, and the script says so.
+# BUDGET (default 300) is the wall-clock budget of each error-against-run-time configuration, of the peer and
+# of each prior-noise setting; SWEEP_BUDGET (default 120) that of each samples-per-ray pair. The peer needs its
+# own venv (about 8 GB): benchmarks/peer/install_nerfstudio.sh; without it the peer steps are skipped, and the script says so.
 # PEER_VENV overrides its place (default /work/peer/venv).
 set -euo pipefail
 QUICK=()
@@ -20,7 +20,7 @@ if [ "${1:-}" = "--quick" ]; then
 fi
 OUT=${1:?usage: benchmarks/run_all.sh OUT [BUDGET] [SWEEP_BUDGET]}
 BUDGET=${2:-$([ ${#QUICK[@]} -gt 0 ] && echo 30 || echo 300)}
-SWEEP_BUDGET=${3:-120}
+SWEEP_BUDGET=${3:-$([ ${#QUICK[@]} -gt 0 ] && echo 30 || echo 120)}
 PEER_VENV=${PEER_VENV:-/work/peer/venv}
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 PY="$ROOT/.venv/bin/python"
@@ -54,13 +54,16 @@ EVAL_AT=$("$PY" -c "import sys; b = float(sys.argv[1]); print(','.join(f'{t:g}' 
 log "samples per ray, budget $SWEEP_BUDGET s per pair"
 "$PY" benchmarks/samples_sweep.py --scene "$SCENE" --budget "$SWEEP_BUDGET" "${QUICK[@]}" --out "$OUT/samples"
 
-log "prior noise, budget $SWEEP_BUDGET s per setting"
-"$PY" benchmarks/prior_noise_sweep.py --scene "$SCENE" --budget "$SWEEP_BUDGET" "${QUICK[@]}" --out "$OUT/noise"
+log "prior noise, budget $BUDGET s per setting"
+"$PY" benchmarks/prior_noise_sweep.py --scene "$SCENE" --budget "$BUDGET" "${QUICK[@]}" --out "$OUT/noise"
 
 if [ ${#PEER[@]} -gt 0 ]; then
+    # Rays per voxnerf step (random rays + smoothness patches) as the voxnerf configuration's run reported them.
+    STEP_RAYS=$("$PY" -c "import json, sys; print(json.load(open(sys.argv[1]))['throughput']['rays_per_step'])" \
+        "$OUT/evr/runs/voxnerf/report.json")
     ITERS=$("$PY" -c "import csv, math, sys; row = list(csv.DictReader(open(sys.argv[1])))[-1]; \
-print(math.ceil(int(row['rays_seen']) / int(sys.argv[2])))" "$OUT/nerfacto/timeline.csv" 2560)
-    log "voxnerf at the peer's rays seen: $ITERS steps of 2560 rays"
+print(math.ceil(int(row['rays_seen']) / int(sys.argv[2])))" "$OUT/nerfacto/timeline.csv" "$STEP_RAYS")
+    log "voxnerf at the peer's rays seen: $ITERS steps of $STEP_RAYS rays"
     "$PY" -m voxnerf train "$SCENE" --out "$OUT/equal_rays" --max-iters "$ITERS" --restart \
         $([ ${#QUICK[@]} -gt 0 ] && echo --no-compile)
 fi

@@ -36,6 +36,12 @@ def test_report_lists_stages_and_history(trained_run):
     assert stages["compile"]["ran"]
     assert report["history"] and all("psnr" in h and "elapsed_s" in h for h in report["history"])
     assert set(report["metrics"]) == {"interpolation", "extrapolation"}  # test_filenames == interpolation
+    # the final evaluation also scores the progress evaluations' views, so one curve can run through both
+    final = report["history"][-1]
+    assert final["final"] and set(final["progress_psnr"]) == set(final["psnr"])
+    assert all(np.isfinite(v) for v in final["progress_psnr"].values())
+    # 1024 random rays + the smoothness term's 8 patches of 8 x 8 pixels per step
+    assert report["throughput"]["rays_per_step"] == 1024 + 8 * 8 * 8
 
 
 def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_run, small_room):

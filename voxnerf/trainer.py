@@ -518,6 +518,7 @@ def train(
         history.entries.append({
             "elapsed_s": round(train_seconds, 3), "wall_s": round(budget.wall, 3), "iteration": iteration,
             "loss": last_loss, "final": True, "psnr": {k: v["psnr"] for k, v in metrics.items()},
+            "progress_psnr": _progress_views_psnr(metrics, eval_views, cfg.eval_views),
         })
         report["metrics"] = metrics
         stage("final_eval", True, f"all views of splits {sorted(eval_views)}", t0)
@@ -536,10 +537,11 @@ def train(
 def _throughput(cfg: TrainConfig, iterations: int, stages: list[Stage], patches: bool, patch_rays: int) -> dict:
     train = next((s.seconds for s in stages if s.name == "train"), 0.0)
     compile_s = next((s.seconds for s in stages if s.name == "compile" and s.ran), 0.0)
-    rays = (int(cfg.rays_per_batch) + (patch_rays if patches else 0)) * iterations
+    rays_per_step = int(cfg.rays_per_batch) + (patch_rays if patches else 0)
+    rays = rays_per_step * iterations
     seconds = max(train - compile_s, 1e-9)
-    return {"rays_per_s": rays / seconds, "samples_per_s": rays * cfg.samples_per_ray / seconds,
-            "seconds_excluding_compile": seconds}
+    return {"rays_per_step": rays_per_step, "rays_per_s": rays / seconds,
+            "samples_per_s": rays * cfg.samples_per_ray / seconds, "seconds_excluding_compile": seconds}
 
 
 def eval_views_of(scene: Scene, transform: SceneTransform, names: list[str] | None = None) -> dict[str, list[EvalView]]:
@@ -587,8 +589,19 @@ def _progress_eval(
     if full:
         entry["full"] = True
         entry["ssim"] = {k: m["ssim"] for k, m in metrics.items()}
+        entry["progress_psnr"] = _progress_views_psnr(metrics, views, cfg.eval_views)
     history.entries.append(entry)
     return spent, spent / max(rays, 1)
+
+
+def _progress_views_psnr(metrics: dict, views: dict[str, list[EvalView]], n: int) -> dict[str, float]:
+    """Mean PSNR (dB) per split over the views a progress evaluation uses, from a full evaluation's per-view
+    ``metrics``: so that one curve over the same views runs through progress and full evaluations alike."""
+    out = {}
+    for split, m in metrics.items():
+        psnr = {v["name"]: v["psnr"] for v in m["views"]}
+        out[split] = float(np.mean([psnr[v.name] for v in _spread(views[split], n)]))
+    return out
 
 
 def _spread(views: list, n: int) -> list:
