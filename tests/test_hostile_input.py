@@ -205,7 +205,9 @@ def check_outcome(root: Path, call) -> str:
 def test_fuzzed_transforms_only_ever_raise_scene_error(arena):
     root, outcomes = arena["root"], []
 
-    @settings(max_examples=150, deadline=None, database=None,
+    # derandomize: the same 150 documents every run, so the outcome counts below cannot flake (a random draw
+    # once produced 150 refusals and no accepted document)
+    @settings(max_examples=150, deadline=None, database=None, derandomize=True,
               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
     @given(mutated_documents(arena["document"], arena["outside"]))
     def run(data: bytes) -> None:
@@ -215,7 +217,8 @@ def test_fuzzed_transforms_only_ever_raise_scene_error(arena):
 
     run()
     # The fuzzer must reach both outcomes, or it tests nothing.
-    assert outcomes.count("refused") > 20 and outcomes.count("ok") > 0, outcomes.count("ok")
+    refused, ok = outcomes.count("refused"), outcomes.count("ok")
+    assert refused > 20 and ok > 0, (refused, ok)
 
 
 @pytest.mark.parametrize(
