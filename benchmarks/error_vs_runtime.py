@@ -31,6 +31,7 @@ import shlex
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -183,6 +184,31 @@ def write_csv(rows: list[dict], path: Path) -> None:
     write_text(path, text.getvalue())
 
 
+def write_results_json(results: list[dict], path: Path, report_keys: tuple[str, ...]) -> None:
+    """``results`` of :func:`run_training` as JSON (atomic), each report cut down to ``report_keys``."""
+    slim = [
+        {k: v for k, v in r.items() if k != "report"} | {key: r["report"].get(key) for key in report_keys}
+        for r in results
+    ]
+    write_text(path, json.dumps(slim, indent=2))
+
+
+RESULT_REPORT_KEYS = ("history", "metrics", "throughput")
+"""What ``results.json`` keeps of each run's report: enough to rewrite the table, CSV and plot."""
+
+
+def read_results_json(path: Path) -> list[dict]:
+    """Runs from a ``results.json`` of this script, each with its report rebuilt from ``RESULT_REPORT_KEYS``."""
+    runs = json.loads(path.read_text())
+    results = []
+    for r in runs:  # KeyError for a run without its name or history
+        report = {k: r[k] for k in RESULT_REPORT_KEYS if r.get(k) is not None} | {"history": r["history"]}
+        report["iteration"] = r["history"][-1]["iteration"] if r["history"] else 0
+        results.append({"name": r["name"]} | {k: v for k, v in r.items() if k not in RESULT_REPORT_KEYS}
+                       | {"report": report})
+    return results
+
+
 def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
     """A markdown table's lines: the header cells, the separator, then one line per row of cells."""
     lines = ["| " + " | ".join(header) + " |", "| --- " * len(header) + "|"]
@@ -232,8 +258,15 @@ def evaluations(result: dict) -> list[dict]:
 
 
 def progress_curve(result: dict, split: str) -> list[tuple[float, float]]:
-    """(training seconds, PSNR dB) of every evaluation of ``split`` (progress, full and final), in order."""
-    return [(e["elapsed_s"], e["psnr"][split]) for e in result["report"]["history"] if split in e["psnr"]]
+    """(training seconds, PSNR dB) over the trainer's progress views of ``split`` (the same few views each
+    time): its progress evaluations, and the full ones through their ``progress_psnr``, in order."""
+    curve = []
+    for e in result["report"]["history"]:
+        full = e.get("full") or e.get("final")
+        psnr = (e.get("progress_psnr") or {}).get(split) if full else e["psnr"].get(split)
+        if psnr is not None:
+            curve.append((e["elapsed_s"], psnr))
+    return curve
 
 
 def full_curve(result: dict, split: str) -> list[tuple[float, float]]:
@@ -255,33 +288,62 @@ def time_to_psnr(curve: list[tuple[float, float]], target: float) -> float | Non
     return None
 
 
+def _ratio_cell(t: float, t_base: float, at_first: bool, base_at_first: bool) -> str:
+    """``"<t> s, <ratio>x"``; a time met at a run's first evaluation is only an upper bound, so it is marked
+    ≤ and the ratio becomes a lower (config's) or upper (baseline's) bound, or unknown when both are."""
+    ratio = t_base / max(t, 1e-9)
+    time = f"≤{t:.0f} s" if at_first else f"{t:.0f} s"
+    if at_first and base_at_first:
+        return f"{time}, -"
+    return f"{time}, {'≥' if at_first else '≤' if base_at_first else ''}{ratio:.2f}x"
+
+
+def ratio_curves(results: list[dict]) -> tuple[str, Callable[[dict, str], list[tuple[float, float]]]]:
+    """The evaluations every time-to-PSNR curve uses, one set of views for all runs (PSNR is not comparable
+    across view sets): the progress evaluations, finer in time, when every baseline that ran has at least two of
+    them, else the full evaluations. ``(description, curve function)``."""
+    baselines = [r for r in results if r["name"] in BASELINES]
+    if baselines and all(len(progress_curve(r, s)) >= 2 for r in baselines for s in final_psnr(r)):
+        return f"the {PROGRESS_VIEWS}-view progress evaluations", progress_curve
+    return "the full evaluations (all views)", full_curve
+
+
 def ratio_table(results: list[dict], splits: list[str]) -> list[str]:
     """Markdown lines: for each baseline and split, the time every configuration takes to reach the baseline's
     best PSNR minus ``TARGET_MARGIN_DB`` and the ratio ``t_baseline / t_config`` (> 1: faster than the
-    baseline)."""
+    baseline), on the curves of :func:`ratio_curves`."""
     by_name = {r["name"]: r for r in results}
+    views, curve_of = ratio_curves(results)
     columns = []
     for base in (b for b in BASELINES if b in by_name):
         for split in splits:
-            curve = progress_curve(by_name[base], split)
+            curve = curve_of(by_name[base], split)
             if curve:
                 target = max(p for _, p in curve) - TARGET_MARGIN_DB
-                columns.append((base, split, target, time_to_psnr(curve, target)))
+                columns.append((base, split, target, time_to_psnr(curve, target), curve[0][1] >= target))
     if not columns:
         return ["No time-to-PSNR ratios: neither occgrid nor uniform ran."]
     lines = [
         f"Time-to-PSNR ratios against {' and '.join(b for b in BASELINES if b in by_name)}: seconds to "
         f"reach the baseline's best PSNR minus {TARGET_MARGIN_DB} dB, and t(baseline) / t(config) "
-        "(> 1: sooner than the baseline).",
+        f"(> 1: sooner than the baseline), on {views}, linearly interpolated. ≤ before a time: the target was "
+        "met at the run's first evaluation, so the time is an upper bound and the ratio a bound (≥ or ≤), or "
+        "unknown (-) when both met it there.",
         "",
-        "| config | " + " | ".join(f"vs {b}, {s} ({t:.2f} dB)" for b, s, t, _ in columns) + " |",
+        "| config | " + " | ".join(f"vs {b}, {s} ({t:.2f} dB)" for b, s, t, _, _ in columns) + " |",
         "| --- " * (1 + len(columns)) + "|",
     ]
     for res in results:
         cells = []
-        for _, split, target, t_base in columns:
-            t = time_to_psnr(progress_curve(res, split), target)
-            cells.append("not reached" if t is None else f"{t:.0f} s, {t_base / max(t, 1e-9):.2f}x")
+        for _, split, target, t_base, base_at_first in columns:
+            curve = curve_of(res, split)
+            t = time_to_psnr(curve, target)
+            if not curve:
+                cells.append("-")
+            elif t is None:
+                cells.append("not reached")
+            else:
+                cells.append(_ratio_cell(t, t_base, curve[0][1] >= target, base_at_first))
         lines.append(f"| {res['name']} | " + " | ".join(cells) + " |")
     return lines
 
@@ -357,7 +419,8 @@ def _plot(results: list[dict], splits: list[str], path: Path) -> None:
         for res in results:
             full = full_curve(res, split)
             (line,) = ax.plot([t for t, _ in full], [p for _, p in full], marker="o", label=res["name"])
-            quick = [(t, p) for t, p in progress_curve(res, split) if (t, p) not in full]
+            quick = [(e["elapsed_s"], e["psnr"][split]) for e in res["report"]["history"]
+                     if split in e["psnr"] and not (e.get("full") or e.get("final"))]
             ax.plot([t for t, _ in quick], [p for _, p in quick], "x", color=line.get_color(), alpha=0.4)
         ax.set_title(f"{split} (o: all views, x: {PROGRESS_VIEWS}-view progress evaluations)")
         ax.set_xlabel("training seconds")
@@ -395,8 +458,21 @@ def main(argv: list[str] | None = None) -> int:
         help="add a peer's scored results (benchmarks/peer/: nerfacto_run.py then score_renders.py) to the "
         "table and plot; repeatable",
     )
+    parser.add_argument(
+        "--retable",
+        action="store_true",
+        help="rewrite OUT's table, CSV and plot from OUT/results.json of an earlier run (give its --eval-at), "
+        "without training",
+    )
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
+    if args.retable:
+        try:
+            results = read_results_json(args.out / "results.json")
+        except (OSError, ValueError, KeyError, IndexError, TypeError) as err:
+            parser.error(f"{args.out / 'results.json'}: not a results file of this script ({err!r})")
+        print(write_outputs(results, args.out, [float(t) for t in args.eval_at.split(",") if t]))
+        return 0
     peers = [p.split("=", 1) for p in args.peer]
     if any(len(p) != 2 or not p[0] for p in peers):
         parser.error("--peer takes NAME=DIR")
@@ -432,21 +508,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in names
     ]
     results += peer_results
-    write_text(
-        args.out / "results.json",
-        json.dumps(
-            [
-                {k: v for k, v in r.items() if k != "report"}
-                | {
-                    "history": r["report"]["history"],
-                    "metrics": r["report"].get("metrics"),
-                    "throughput": r["report"].get("throughput"),
-                }
-                for r in results
-            ],
-            indent=2,
-        ),
-    )
+    write_results_json(results, args.out / "results.json", RESULT_REPORT_KEYS)
     print(write_outputs(results, args.out, eval_at))
     return 0
 

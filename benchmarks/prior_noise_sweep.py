@@ -29,6 +29,7 @@ from error_vs_runtime import (
     markdown_table,
     run_training,
     write_csv,
+    write_results_json,
     write_text,
 )
 from make_priors import write_prior_scene
@@ -148,16 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     ] + [f"    {r['command']}" for r in results]
     table = "\n".join(lines)
     write_text(args.out / "prior_noise.md", table + "\n")
-    write_text(
-        args.out / "prior_noise_results.json",
-        json.dumps(
-            [
-                {k: v for k, v in r.items() if k != "report"} | {"metrics": r["report"].get("metrics")}
-                for r in results
-            ],
-            indent=2,
-        ),
-    )
+    write_results_json(results, args.out / "prior_noise_results.json", ("metrics",))
     print(table)
     return 0
 

@@ -13,7 +13,6 @@ is within ``KEEP_DB`` of the best pair's: the candidate for the CPU preset. Writ
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from error_vs_runtime import (
     markdown_table,
     run_training,
     write_csv,
+    write_results_json,
     write_text,
 )
 
@@ -142,17 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     write_csv(rows, args.out / "samples.csv")
     table = markdown(rows, splits, args.budget, [r["command"] for r in results])
     write_text(args.out / "samples.md", table + "\n")
-    write_text(
-        args.out / "samples_results.json",
-        json.dumps(
-            [
-                {k: v for k, v in r.items() if k != "report"}
-                | {"metrics": r["report"].get("metrics"), "throughput": r["report"].get("throughput")}
-                for r in results
-            ],
-            indent=2,
-        ),
-    )
+    write_results_json(results, args.out / "samples_results.json", ("metrics", "throughput"))
     print(table)
     return 0
 

@@ -59,11 +59,53 @@ def test_ratio_table_against_both_baselines() -> None:
         run("uniform", [(10, 10.0), (40, 12.5)]),
     ]
     text = "\n".join(error_vs_runtime.ratio_table(results, ["interpolation"]))
-    # occgrid's target 18.0 dB: occgrid reaches it at 37 s, voxnerf at 16 s -> 2.36x
+    # occgrid's target 18.0 dB: occgrid reaches it at 37.5 s, voxnerf at 16 s -> 2.36x
     assert "vs occgrid, interpolation (18.00 dB)" in text and "| voxnerf | 16 s, 2.36x |" in text
     assert "| uniform | not reached |" in text
-    # uniform's target 12.0 dB: uniform at 34 s, voxnerf at 10 s (already above) -> 3.40x
-    assert "10 s, 3.40x" in text
+    # uniform's target 12.0 dB: uniform at 34 s, voxnerf already above at its first evaluation (10 s): only a
+    # bound, at least 3.40x; occgrid's target voxnerf meets between evaluations: an exact time
+    assert "| voxnerf | 16 s, 2.36x | ≤10 s, ≥3.40x |" in text
+    # occgrid meets uniform's target at its first evaluation while uniform needs 34 s: occgrid's ratio is a bound
+    assert "| occgrid | 38 s, 1.00x | ≤10 s, ≥3.40x |" in text
+
+
+def test_ratio_curves_keep_to_one_set_of_views() -> None:
+    def run(name: str, progress: list, full: list) -> dict:
+        history = [{"elapsed_s": t, "psnr": {"interpolation": p}} for t, p in progress]
+        history += [{"elapsed_s": t, "psnr": {"interpolation": p}, "full": True} for t, p in full]
+        history.sort(key=lambda e: e["elapsed_s"])
+        return {"name": name, "report": {"history": history, "metrics": {"interpolation": {"psnr": full[-1][1]}}}}
+
+    # 4-view progress evaluations score higher than all views: a target from one must not be met on the other
+    with_progress = [
+        run("occgrid", [(60, 20.0), (180, 24.0)], [(120, 19.0), (300, 20.0)]),
+        run("voxnerf", [(60, 22.0), (180, 25.0)], [(120, 21.0), (300, 22.0)]),
+        run("nerfacto", [], [(300, 19.0)]),
+    ]
+    text = "\n".join(error_vs_runtime.ratio_table(with_progress, ["interpolation"]))
+    assert "on the 4-view progress evaluations" in text and "(23.50 dB)" in text
+    assert "| voxnerf | 120 s, 1.38x |" in text and "| nerfacto | - |" in text
+    # without progress evaluations (--eval-every beyond the budget) every curve is the full evaluations'
+    full_only = [run("occgrid", [], [(120, 19.0), (300, 20.0)]), run("voxnerf", [], [(120, 21.0), (300, 22.0)])]
+    text = "\n".join(error_vs_runtime.ratio_table(full_only, ["interpolation"]))
+    assert "on the full evaluations (all views)" in text and "(19.50 dB)" in text
+    assert "| voxnerf | ≤120 s, ≥1.75x |" in text
+
+
+def test_progress_curve_reads_full_evaluations_through_their_progress_views() -> None:
+    history = [
+        {"elapsed_s": 60.0, "psnr": {"interpolation": 20.0}},
+        {"elapsed_s": 120.0, "psnr": {"interpolation": 19.0}, "full": True, "progress_psnr": {"interpolation": 21.0}},
+        {"elapsed_s": 150.0, "psnr": {"interpolation": 19.5}, "final": True},  # a run from before progress_psnr
+    ]
+    curve = error_vs_runtime.progress_curve({"report": {"history": history}}, "interpolation")
+    assert curve == [(60.0, 20.0), (120.0, 21.0)]
+
+
+def test_ratio_bounds_when_the_baseline_starts_above_its_target() -> None:
+    assert error_vs_runtime._ratio_cell(30.0, 10.0, False, True) == "30 s, ≤0.33x"
+    assert error_vs_runtime._ratio_cell(10.0, 10.0, True, True) == "≤10 s, -"
+    assert error_vs_runtime._ratio_cell(25.0, 50.0, False, False) == "25 s, 2.00x"
 
 
 def test_error_vs_runtime_quick(room: Path, tmp_path: Path) -> None:
@@ -85,6 +127,13 @@ def test_error_vs_runtime_quick(room: Path, tmp_path: Path) -> None:
     assert [r["name"] for r in results] == configs
     assert all("--no-compile" in r["command"] for r in results)
     assert (out / "psnr_vs_time.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # --retable rebuilds the same table from results.json alone
+    (out / "table.md").unlink()
+    assert error_vs_runtime.main(["--retable", "--eval-at", "3", "--out", str(out)]) == 0
+    assert (out / "table.md").read_text() == table
+    (out / "results.json").write_text("[{}]")
+    with pytest.raises(SystemExit):
+        error_vs_runtime.main(["--retable", "--out", str(out)])
 
 
 def test_samples_sweep_quick(room: Path, tmp_path: Path) -> None:
