@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+
+from voxnerf.image_io import write_atomic
 
 
 def markers(name: str) -> tuple[str, str]:
@@ -12,13 +13,11 @@ def markers(name: str) -> tuple[str, str]:
 
 
 def replace_section(page: Path, name: str, text: str) -> None:
-    """Put ``text`` between ``page``'s markers of section ``name`` (markers kept), through a temp file and a
-    rename. ValueError naming the page and the marker when either marker is missing or out of order."""
+    """Put ``text`` between ``page``'s markers of section ``name`` (markers kept), written atomically.
+    ValueError naming the page and the marker when either marker is missing or out of order."""
     begin, end = markers(name)
     doc = page.read_text()
     start, stop = doc.find(begin), doc.find(end)
     if start < 0 or stop < start:
         raise ValueError(f"{page}: no '{begin}' ... '{end}' section to replace")
-    tmp = page.with_name(f".{page.name}.tmp")
-    tmp.write_text(doc[: start + len(begin)] + "\n" + text.strip("\n") + "\n" + doc[stop:])
-    os.replace(tmp, page)
+    write_atomic(page, (doc[: start + len(begin)] + "\n" + text.strip("\n") + "\n" + doc[stop:]).encode())

@@ -37,6 +37,7 @@ from pathlib import Path
 
 from make_priors import SOURCES, make_priors, prior_scene_dir
 
+from voxnerf.config import TrainConfig
 from voxnerf.errors import SceneError
 from voxnerf.image_io import write_atomic
 from voxnerf.synthetic import RoomSpec, make_room_scene
@@ -73,8 +74,8 @@ QUICK_TRAIN_ARGS = ("--no-compile", "--downscale", "2", "--max-iters", "5")
 QUICK_BUDGET = 60.0
 QUICK_SAMPLES = ("--samples", "4,2")
 SPLITS = ("interpolation", "extrapolation", "test")
-PROGRESS_VIEWS = 4
-"""Views per split in the trainer's progress evaluations (TrainConfig.eval_views' default)."""
+PROGRESS_VIEWS = TrainConfig.model_fields["eval_views"].default
+"""Views per split in the trainer's progress evaluations (no run here changes it)."""
 
 
 # ----------------------------------------------------------------------------------- shared with sweeps
@@ -262,20 +263,28 @@ def progress_curve(result: dict, split: str) -> list[tuple[float, float]]:
     time): its progress evaluations, and the full ones through their ``progress_psnr``, in order."""
     curve = []
     for e in result["report"]["history"]:
-        full = e.get("full") or e.get("final")
-        psnr = (e.get("progress_psnr") or {}).get(split) if full else e["psnr"].get(split)
+        psnr = (e.get("progress_psnr") or {}).get(split) if _all_views(e) else e["psnr"].get(split)
         if psnr is not None:
             curve.append((e["elapsed_s"], psnr))
     return curve
 
 
-def full_curve(result: dict, split: str) -> list[tuple[float, float]]:
-    """(training seconds, PSNR dB) of the full evaluations of ``split`` (every view: ``--eval-at`` and final)."""
+def _all_views(entry: dict) -> bool:
+    """Whether a history entry evaluated every view (an ``--eval-at`` or the final evaluation)."""
+    return bool(entry.get("full") or entry.get("final"))
+
+
+def _curve(result: dict, split: str, all_views: bool) -> list[tuple[float, float]]:
     return [
         (e["elapsed_s"], e["psnr"][split])
         for e in result["report"]["history"]
-        if split in e["psnr"] and (e.get("full") or e.get("final"))
+        if split in e["psnr"] and _all_views(e) == all_views
     ]
+
+
+def full_curve(result: dict, split: str) -> list[tuple[float, float]]:
+    """(training seconds, PSNR dB) of the full evaluations of ``split`` (every view: ``--eval-at`` and final)."""
+    return _curve(result, split, all_views=True)
 
 
 def time_to_psnr(curve: list[tuple[float, float]], target: float) -> float | None:
@@ -419,8 +428,7 @@ def _plot(results: list[dict], splits: list[str], path: Path) -> None:
         for res in results:
             full = full_curve(res, split)
             (line,) = ax.plot([t for t, _ in full], [p for _, p in full], marker="o", label=res["name"])
-            quick = [(e["elapsed_s"], e["psnr"][split]) for e in res["report"]["history"]
-                     if split in e["psnr"] and not (e.get("full") or e.get("final"))]
+            quick = _curve(res, split, all_views=False)
             ax.plot([t for t, _ in quick], [p for _, p in quick], "x", color=line.get_color(), alpha=0.4)
         ax.set_title(f"{split} (o: all views, x: {PROGRESS_VIEWS}-view progress evaluations)")
         ax.set_xlabel("training seconds")

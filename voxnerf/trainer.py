@@ -597,11 +597,10 @@ def _progress_eval(
 def _progress_views_psnr(metrics: dict, views: dict[str, list[EvalView]], n: int) -> dict[str, float]:
     """Mean PSNR (dB) per split over the views a progress evaluation uses, from a full evaluation's per-view
     ``metrics``: so that one curve over the same views runs through progress and full evaluations alike."""
-    out = {}
-    for split, m in metrics.items():
-        psnr = {v["name"]: v["psnr"] for v in m["views"]}
-        out[split] = float(np.mean([psnr[v.name] for v in _spread(views[split], n)]))
-    return out
+    return {
+        split: float(np.mean([m["views"][i]["psnr"] for i in _spread(list(range(len(views[split]))), n)]))
+        for split, m in metrics.items()
+    }
 
 
 def _spread(views: list, n: int) -> list:
