@@ -115,6 +115,16 @@ def test_slightly_skewed_rotation_is_repaired_with_warning(tmp_path):
     assert any("re-orthonormalised" in w for w in scene.warnings)
 
 
+def test_many_repaired_rotations_give_one_warning(tmp_path):
+    meta = _write_scene(tmp_path, n=6)
+    for i, frame in enumerate(meta["frames"]):
+        frame["transform_matrix"][0][1] = 0.001 * (i + 1)
+    _rewrite(tmp_path, meta)
+    [warning] = [w for w in load_scene(tmp_path).warnings if "re-orthonormalised" in w]
+    assert warning.startswith("frames[0].transform_matrix, frames[1].transform_matrix, frames[2].transform_matrix"
+                              " and 3 more: rotation re-orthonormalised (max |R^T R - I| was 0.006")
+
+
 def test_scene_transform_round_trip():
     pts = np.random.default_rng(0).uniform(-3, 7, size=(100, 3)) + 1e5
     tf = SceneTransform.fit(pts)

@@ -208,7 +208,7 @@ def _check_camera_model(meta: dict, frame: dict, path: Path, where: str) -> None
             )
 
 
-def _read_pose(value, path: Path, key: str, warnings: list[str]) -> np.ndarray:
+def _read_pose(value, path: Path, key: str, reorthonormalised: list[tuple[str, float]]) -> np.ndarray:
     try:
         mat = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as exc:
@@ -233,8 +233,14 @@ def _read_pose(value, path: Path, key: str, warnings: list[str]) -> np.ndarray:
     if deviation > 1e-5:
         u, _, vt = np.linalg.svd(rot)
         mat[:3, :3] = u @ vt
-        warnings.append(f"{key}: rotation re-orthonormalised (max |R^T R - I| was {deviation:.2g})")
+        reorthonormalised.append((key, deviation))
     return mat
+
+
+def _reorthonormalised_warning(fixed: list[tuple[str, float]]) -> str:
+    """One warning for every pose whose rotation was re-orthonormalised (a scan can have thousands)."""
+    keys = ", ".join(key for key, _ in fixed[:3]) + (f" and {len(fixed) - 3} more" if len(fixed) > 3 else "")
+    return f"{keys}: rotation re-orthonormalised (max |R^T R - I| was {max(d for _, d in fixed):.2g})"
 
 
 def _resolve_inside(root: Path, rel, path: Path, key: str) -> Path:
@@ -335,6 +341,7 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
     if not isinstance(raw_frames, list) or not raw_frames:
         raise SceneError(json_path, "must be a non-empty list", key="frames")
     warnings: list[str] = []
+    reorthonormalised: list[tuple[str, float]] = []
     frames: list[Frame] = []
     seen: set[str] = set()
     for i, raw in enumerate(raw_frames):
@@ -348,13 +355,15 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
         seen.add(file_path)
         if "transform_matrix" not in raw:
             raise SceneError(json_path, "missing", key=f"{where}transform_matrix")
-        c2w = _read_pose(raw["transform_matrix"], json_path, f"{where}transform_matrix", warnings)
+        c2w = _read_pose(raw["transform_matrix"], json_path, f"{where}transform_matrix", reorthonormalised)
         intr = _read_intrinsics(raw, meta, json_path, where)
         _check_camera_model(meta, raw, json_path, where)
         depth_path = None
         if raw.get("depth_file_path") is not None:
             depth_path = _resolve_inside(root, raw["depth_file_path"], json_path, f"{where}depth_file_path")
         frames.append(Frame(file_path, image_path, c2w, intr, depth_path))
+    if reorthonormalised:
+        warnings.append(_reorthonormalised_warning(reorthonormalised))
 
     splits = _read_splits(meta, [f.file_path for f in frames], json_path)
     depth_scale = meta.get("depth_unit_scale_factor", 0.001)
