@@ -23,6 +23,7 @@ error_vs_runtime = importlib.import_module("error_vs_runtime")
 samples_sweep = importlib.import_module("samples_sweep")
 prior_noise_sweep = importlib.import_module("prior_noise_sweep")
 docs_section = importlib.import_module("docs_section")
+optimizer_step = importlib.import_module("optimizer_step")
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -253,3 +254,14 @@ def test_docs_section_replaces_only_its_marked_text(tmp_path):
     with pytest.raises(ValueError, match="page.md.*load-test:begin"):
         docs_section.replace_section(page, "load-test", "x")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["page.md"]
+
+
+def test_optimizer_step_benchmark_fills_its_section(tmp_path, monkeypatch):
+    page = tmp_path / "performance.md"
+    begin, end = docs_section.markers("optimizer")
+    page.write_text(f"notes\n{begin}\nold\n{end}\n")
+    monkeypatch.setattr(sys, "argv", ["optimizer_step.py", "--steps", "1", "--repeats", "1", "--out", str(page)])
+    assert optimizer_step.main() == 0
+    rows = [line for line in page.read_text().splitlines() if line.startswith("| preset")]
+    assert len(rows) == 3 and all(line.endswith("x |") for line in rows)
+    assert "old" not in page.read_text() and page.read_text().startswith("notes\n")
