@@ -74,7 +74,9 @@ class TrainConfig(BaseModel):
     eval_chunk: int | None = Field(default=None, gt=0)
 
     lr: float = Field(default=1e-2, description="Adam learning rate, in (0, 1]")
-    lambda_depth: float = Field(default=1.0, ge=0, description="lambda_d of the paper's total loss")
+    lambda_depth: float = Field(
+        default=0.3, ge=0, description="lambda_d of the paper's total loss (no value in the paper; docs/performance.md)"
+    )
     lambda_smooth: float = Field(
         default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
     )
