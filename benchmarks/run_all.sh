@@ -59,8 +59,10 @@ log "prior noise, budget $BUDGET s per setting"
 
 if [ ${#PEER[@]} -gt 0 ]; then
     # Rays per voxnerf step (random rays + smoothness patches) as the voxnerf configuration's run reported them.
+    REPORT="$OUT/evr/runs/voxnerf/report.json"
+    [ -f "$REPORT" ] || { echo "run_all.sh: $REPORT: missing (the voxnerf run did not finish)" >&2; exit 1; }
     STEP_RAYS=$("$PY" -c "import json, sys; print(json.load(open(sys.argv[1]))['throughput']['rays_per_step'])" \
-        "$OUT/evr/runs/voxnerf/report.json")
+        "$REPORT")
     ITERS=$("$PY" -c "import csv, math, sys; row = list(csv.DictReader(open(sys.argv[1])))[-1]; \
 print(math.ceil(int(row['rays_seen']) / int(sys.argv[2])))" "$OUT/nerfacto/timeline.csv" "$STEP_RAYS")
     log "voxnerf at the peer's rays seen: $ITERS steps of $STEP_RAYS rays"
