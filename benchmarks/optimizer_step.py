@@ -20,13 +20,9 @@ from docs_section import replace_section
 
 from voxnerf.config import TrainConfig
 from voxnerf.field import RadianceField
+from voxnerf.model import field_for
 
 IMPLEMENTATIONS = {"loop": {"foreach": False}, "foreach": {"foreach": True}, "fused": {"fused": True}}
-
-
-def _field(log2_size: int, preset: str) -> RadianceField:
-    cfg = TrainConfig(preset=preset, hash_log2_size=log2_size).resolved()
-    return RadianceField(cfg.hash_levels, cfg.hash_features, log2_size, cfg.hash_max_resolution, cfg.hidden_dim)
 
 
 def _step_ms(field: RadianceField, options: dict, steps: int) -> float:
@@ -52,7 +48,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("docs/performance.md"))
     args = parser.parse_args()
     sizes = [("cpu", 17), ("cpu", 19), ("paper", 19)]
-    fields = {size: _field(size[1], size[0]) for size in sizes}
+    fields = {size: field_for(TrainConfig(preset=size[0], hash_log2_size=size[1])) for size in sizes}
     ms: dict[tuple, list[float]] = {}
     for _ in range(args.repeats):
         for size, field in fields.items():

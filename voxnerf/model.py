@@ -38,6 +38,13 @@ def ray_aabb(origins: Tensor, dirs: Tensor, aabb: Tensor) -> tuple[Tensor, Tenso
     return t_lo.amax(-1), t_hi.amin(-1)
 
 
+def field_for(config: TrainConfig) -> RadianceField:
+    """The radiance field (on the CPU, freshly initialised) that ``config``'s resolved preset describes."""
+    cfg = config.resolved()
+    return RadianceField(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size, cfg.hash_max_resolution,
+                         cfg.hidden_dim)
+
+
 @dataclass
 class VoxNeRFModel:
     """Everything needed to render: the field, the occupancy grid, the octree (voxnerf sampler) and the box.
@@ -63,9 +70,7 @@ class VoxNeRFModel:
         device: torch.device,
     ) -> VoxNeRFModel:
         cfg = config.resolved()
-        field = RadianceField(
-            cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size, cfg.hash_max_resolution, cfg.hidden_dim
-        ).to(device)
+        field = field_for(cfg).to(device)
         grid = OccupancyGrid(cfg.occgrid_resolution).to(device)
         return VoxNeRFModel(cfg, transform, aabb.to(device), field, grid, octree)
 
