@@ -5,7 +5,14 @@ import math
 import torch
 
 from voxnerf.octree import SparseVoxelOctree
-from voxnerf.samplers import OccGridSampler, OccupancyGrid, RayBundle, UniformSampler, VoxNeRFSampler
+from voxnerf.samplers import (
+    OccGridSampler,
+    OccupancyGrid,
+    RayBundle,
+    UniformSampler,
+    VoxNeRFSampler,
+    intervals_around_window,
+)
 
 
 def _rays(n: int, origin=(0.0, 0.0, 0.0), direction=(1.0, 0.0, 0.0), near=0.01, far=1.7) -> RayBundle:
@@ -54,6 +61,35 @@ def test_voxnerf_sampler_packs_importance_samples_in_window():
     near_z = torch.where((mids - z[:, None]).abs() <= sampler.half_window, mids - z[:, None], torch.nan)
     std = float(torch.nanmean(near_z**2).sqrt())
     assert 0.7 * math.sqrt(3) * octree.leaf_size < std < 1.1 * math.sqrt(3) * octree.leaf_size
+
+
+def test_voxnerf_importance_intervals_tile_the_window():
+    """The field is read at interval middles: all n_importance of them must lie inside z +- 3 sqrt(3) v, and
+    the importance intervals must cover exactly that window (no long interval from the sparse samples
+    reaches into it)."""
+    octree = _wall_octree()
+    sampler = VoxNeRFSampler(octree, 8, 4, OccGridSampler(OccupancyGrid(16), 12))
+    rays = _rays(128, direction=(1.0, 0.05, -0.03))
+    z, _ = sampler.first_hits(rays)
+    for stratified in (True, False):
+        starts, ends = sampler(rays, stratified)
+        _check_intervals(starts, ends, rays, 12)
+        half = sampler.half_window
+        mids = 0.5 * (starts + ends)
+        inside = (mids - z[:, None]).abs() < half
+        assert torch.all(inside.sum(-1) == 8)
+        width_inside = ((ends - starts) * inside).sum(-1)
+        torch.testing.assert_close(width_inside, torch.full_like(z, 2 * half), rtol=1e-4, atol=1e-5)
+
+
+def test_window_split_is_clipped_to_the_ray():
+    """A window reaching past near/far still gives sorted intervals inside [near, far]."""
+    t = torch.tensor([[0.05, 0.1, 0.2, 0.9]])
+    starts, ends = intervals_around_window(
+        t, torch.tensor([0.0]), torch.tensor([1.0]), torch.tensor([-0.5]), torch.tensor([0.15])
+    )
+    torch.testing.assert_close(starts, torch.tensor([[0.0, 0.075, 0.15, 0.55]]))
+    torch.testing.assert_close(ends, torch.tensor([[0.075, 0.15, 0.55, 1.0]]))
 
 
 def test_voxnerf_sampler_falls_back_to_occupancy_grid_on_miss():

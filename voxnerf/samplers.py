@@ -55,6 +55,27 @@ def intervals_from_points(t: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor,
     return starts, ends
 
 
+def intervals_around_window(
+    t: Tensor, near: Tensor, far: Tensor, window_lo: Tensor, window_hi: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Like :func:`intervals_from_points`, but no interval crosses the window ``[window_lo, window_hi]`` [R]:
+    between a sample outside it and one inside, the split is the window's edge, not the midpoint.
+
+    The samples inside then tile exactly the window (clipped to ``[near, far]``), so the field, evaluated at
+    each interval's middle, is read inside the window for every importance sample, and a long interval from
+    the sparse samples outside never reaches into it.
+    """
+    a, b = t[:, :-1], t[:, 1:]
+    lo, hi = window_lo[:, None], window_hi[:, None]
+    split = 0.5 * (a + b)
+    split = torch.where((a < lo) & (b >= lo), lo, split)
+    split = torch.where((a <= hi) & (b > hi), hi, split)
+    split = torch.minimum(torch.maximum(split, a), b)
+    starts = torch.cat([near[:, None], split], dim=1)
+    ends = torch.cat([split, far[:, None]], dim=1)
+    return starts, ends
+
+
 def _stratified_unit(n_rays: int, n: int, stratified: bool, device: torch.device) -> Tensor:
     """[R, n] sorted numbers in (0, 1): bin centres, or one uniform draw per bin when stratified."""
     offset = torch.rand(n_rays, n, device=device) if stratified else torch.full((n_rays, n), 0.5, device=device)
@@ -209,7 +230,9 @@ class VoxNeRFSampler:
 
     def __call__(self, rays: RayBundle, stratified: bool) -> tuple[Tensor, Tensor]:
         z, hit = self.first_hits(rays)
-        starts, ends = intervals_from_points(self.sample_points(rays, z, stratified), rays.near, rays.far)
+        t = self.sample_points(rays, z, stratified)
+        half = self.half_window
+        starts, ends = intervals_around_window(t, rays.near, rays.far, z - half, z + half)
         if bool((~hit).any()):
             miss = ~hit
             sub = RayBundle(rays.origins[miss], rays.dirs[miss], rays.near[miss], rays.far[miss])
