@@ -71,14 +71,16 @@ def main() -> int:
     rays = {k: statistics.median(r["rays_per_s"] for r in v) for k, v in rates.items()}
     rend = {k: min(v) for k, v in renders.items()}
     command = " ".join(sys.argv)
+    patches = (f" + {cfg.smooth_patches} patches of {cfg.patch_size}x{cfg.patch_size}" if cfg.smooth_patches
+               else " (no smoothness patches)")
     lines = [
         f"Measured {time.strftime('%Y-%m-%d')} on {platform.processor() or platform.machine()}, "
         f"{torch.get_num_threads()} torch threads, torch {torch.__version__}.",
         "",
         f"Command: `.venv/bin/python {command}`",
         "",
-        f"Preset `cpu`: {cfg.rays_per_batch} rays + {cfg.smooth_patches} patches of {cfg.patch_size}x"
-        f"{cfg.patch_size} per step, {cfg.n_importance}+{cfg.n_rest} samples per ray, hash grid "
+        f"Preset `cpu`: {cfg.rays_per_batch} rays{patches} per step, {cfg.n_importance}+{cfg.n_rest} samples "
+        f"per ray, hash grid "
         f"{cfg.hash_levels}x{cfg.hash_features}, 2^{cfg.hash_log2_size} entries per level. Training samples/s "
         f"exclude the compilation of the first step; {args.iters} iterations per run, median of "
         f"{args.repeats} alternating runs.",

@@ -40,8 +40,9 @@ def test_report_lists_stages_and_history(trained_run):
     final = report["history"][-1]
     assert final["final"] and set(final["progress_psnr"]) == set(final["psnr"])
     assert all(np.isfinite(v) for v in final["progress_psnr"].values())
-    # 1024 random rays + the smoothness term's 8 patches of 8 x 8 pixels per step
-    assert report["throughput"]["rays_per_step"] == 1024 + 8 * 8 * 8
+    # 1024 random rays per step; the smoothness term (and its patches) is off by default
+    assert report["throughput"]["rays_per_step"] == 1024
+    assert report["config"]["smooth_patches"] == 0
 
 
 def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_run, small_room):
@@ -92,3 +93,18 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert err.count("\n") == 0 and "scene directory not found" in err
     assert main(["render", str(tmp_path), "--pose", "p.json", "--out", str(tmp_path / "x.png")]) == 2
     assert "no checkpoint" in capsys.readouterr().err
+
+
+def test_cli_smooth_patches_adds_the_smoothness_term(small_room, tmp_path, capsys):
+    """``--smooth-patches N`` mixes N 8 x 8 patches into every batch for the paper's depth-smoothness term."""
+    run = tmp_path / "smooth"
+    args = ["train", str(small_room), "--out", str(run), "--max-iters", "3", "--no-compile", "--smooth-patches", "2"]
+    assert main(args) == 0
+    report = json.loads((run / "report.json").read_text())
+    assert report["config"]["smooth_patches"] == 2
+    assert report["throughput"]["rays_per_step"] == 2048 + 2 * 8 * 8
+    capsys.readouterr()  # the first run's progress bar
+    assert main(["train", str(small_room), "--out", str(tmp_path / "bad"), "--max-iters", "1",
+                 "--smooth-patches", "-1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "smooth_patches" in err

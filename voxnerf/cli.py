@@ -27,6 +27,7 @@ def _train(args: argparse.Namespace) -> int:
         compile=not args.no_compile, eval_at=args.eval_at or [],
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
         **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
+        **({"smooth_patches": args.smooth_patches} if args.smooth_patches is not None else {}),
     )
     if config.max_seconds is None and config.max_iters is None:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
@@ -206,6 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="training seconds between progress evaluations of a few views (default 60)")
     p.add_argument("--samples", type=_sample_counts, metavar="N_IMP,N_REST",
                    help="samples per ray near the surface and on the rest of the ray (default: the preset's)")
+    p.add_argument("--smooth-patches", type=int, metavar="N",
+                   help="add the paper's depth-smoothness term on N 8x8 patches per batch (default 0: off)")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     p.set_defaults(func=_train)
 

@@ -83,7 +83,12 @@ class TrainConfig(BaseModel):
     depth_beta: float | None = Field(
         default=None, gt=0, description="log-Huber beta in scene units; default 5 x the prior's sigma (paper: 0.1 m)"
     )
-    smooth_patches: int = Field(default=8, ge=0, description="s x s patches per batch for the smoothness term")
+    smooth_patches: int = Field(
+        default=0,
+        ge=0,
+        description="s x s patches per batch for the smoothness term; 0 (the default) leaves the term out: with 8 "
+        "patches it cost PSNR on both benchmark scenes (docs/performance.md)",
+    )
     patch_size: int = Field(default=8, ge=2)
     smooth_scales: int = Field(default=3, ge=1)
     octree_leaf: Literal["coverage", "sigma"] = Field(
