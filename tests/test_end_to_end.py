@@ -108,3 +108,4 @@ def test_cli_smooth_patches_adds_the_smoothness_term(small_room, tmp_path, capsy
                  "--smooth-patches", "-1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "smooth_patches" in err
+    assert not (tmp_path / "bad").exists(), "a refused option leaves no run directory behind"

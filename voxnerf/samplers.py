@@ -49,10 +49,12 @@ class RayBundle:
 def intervals_from_points(t: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
     """Sorted sample distances [R, S] -> intervals [R, S] split at the midpoints between samples, the first
     opening at ``near`` and the last closing at ``far`` [R] (so the intervals tile the whole ray)."""
-    mids = 0.5 * (t[:, 1:] + t[:, :-1])
-    starts = torch.cat([near[:, None], mids], dim=1)
-    ends = torch.cat([mids, far[:, None]], dim=1)
-    return starts, ends
+    return _tile(0.5 * (t[:, 1:] + t[:, :-1]), near, far)
+
+
+def _tile(splits: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
+    """Inner split points [R, S-1] -> intervals [R, S] from ``near`` to ``far`` [R]."""
+    return torch.cat([near[:, None], splits], dim=1), torch.cat([splits, far[:, None]], dim=1)
 
 
 def intervals_around_window(
@@ -70,10 +72,7 @@ def intervals_around_window(
     split = 0.5 * (a + b)
     split = torch.where((a < lo) & (b >= lo), lo, split)
     split = torch.where((a <= hi) & (b > hi), hi, split)
-    split = torch.minimum(torch.maximum(split, a), b)
-    starts = torch.cat([near[:, None], split], dim=1)
-    ends = torch.cat([split, far[:, None]], dim=1)
-    return starts, ends
+    return _tile(torch.minimum(torch.maximum(split, a), b), near, far)
 
 
 def _stratified_unit(n_rays: int, n: int, stratified: bool, device: torch.device) -> Tensor:
@@ -231,8 +230,7 @@ class VoxNeRFSampler:
     def __call__(self, rays: RayBundle, stratified: bool) -> tuple[Tensor, Tensor]:
         z, hit = self.first_hits(rays)
         t = self.sample_points(rays, z, stratified)
-        half = self.half_window
-        starts, ends = intervals_around_window(t, rays.near, rays.far, z - half, z + half)
+        starts, ends = intervals_around_window(t, rays.near, rays.far, z - self.half_window, z + self.half_window)
         if bool((~hit).any()):
             miss = ~hit
             sub = RayBundle(rays.origins[miss], rays.dirs[miss], rays.near[miss], rays.far[miss])
