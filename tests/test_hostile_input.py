@@ -224,7 +224,9 @@ def test_fuzzed_transforms_only_ever_raise_scene_error(arena):
 @pytest.mark.parametrize(
     ("key", "accepted"),
     [
-        ("file_path", {"load_scene": set(), "inspect_scene": set()}),
+        # load_scene decodes only frames that a split names; the extra frame is in none, so a real image file
+        # of the wrong kind (the 16-bit depth PNG) passes its header check there; inspect_scene decodes it.
+        ("file_path", {"load_scene": {"depth/d0.png"}, "inspect_scene": set()}),
         ("depth_file_path", {"load_scene": {"depth/d0.png"}, "inspect_scene": {"depth/d0.png"}}),
         # load_scene only checks that the prior is a file of the scene; inspect_scene reads it.
         ("prior_file_path", {"load_scene": {"prior.ply", "depth/d0.png", "transforms.json"},

@@ -50,6 +50,18 @@ def test_named_splits_and_eval_splits(tmp_path):
     assert load_scene(tmp_path).splits["train"] == [0]
 
 
+def test_only_frames_in_a_split_are_decoded(tmp_path):
+    """A scan whose splits name a few of its frames decodes those and leaves the rest as None."""
+    meta = _write_scene(tmp_path, n=6)
+    meta["train_filenames"] = ["images/f00.png", "images/f02.png"]
+    meta["test_filenames"] = ["images/f03.png"]
+    meta["eval_splits"] = {"extrapolation": ["images/f05.png"]}
+    _rewrite(tmp_path, meta)
+    scene = load_scene(tmp_path)
+    assert [i for i, image in enumerate(scene.images) if image is not None] == [0, 2, 3, 5]
+    assert scene.images[5][0, 0, 0] == 50 and scene.depths[1] is None
+
+
 def test_per_frame_intrinsics_and_downscale(tmp_path):
     meta = _write_scene(tmp_path, n=3, w=8, h=6)
     del meta["fl_x"]

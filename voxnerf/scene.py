@@ -45,7 +45,8 @@ class Frame:
 
 @dataclass
 class Scene:
-    """A validated scene. Images and depth maps are loaded at ``1/downscale`` resolution when asked."""
+    """A validated scene. Images and depth maps are loaded at ``1/downscale`` resolution when asked, for the
+    frames of some split only (``None`` for a frame that no split uses)."""
 
     root: Path
     frames: list[Frame]
@@ -54,7 +55,7 @@ class Scene:
     prior_sigma: float | None
     depth_unit_scale: float
     downscale: int = 1
-    images: list[np.ndarray] | None = None
+    images: list[np.ndarray | None] | None = None
     depths: list[np.ndarray | None] | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -329,7 +330,8 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
         path: scene directory holding ``transforms.json``.
         downscale: integer factor; images (area-averaged) and intrinsics are reduced by it.
         load_images: read the images (uint8 [H/d, W/d, 3]) and depth maps (float32 metres, NaN invalid) of
-            every frame; otherwise only their headers are checked.
+            every frame that a split uses (``None`` for the rest: a 1000-frame scan with 125 frames in its
+            splits decodes 125); otherwise only the image headers are checked.
     Raises:
         SceneError: one per problem, naming the file and the key.
     """
@@ -394,9 +396,12 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
     scene = Scene(root.resolve(), frames, splits, prior_path, prior_sigma, depth_scale, downscale,
                   warnings=warnings)
     if load_images:
-        scene.images = [_downscale_rgb(read_rgb(f.image_path), downscale) for f in frames]
+        used = {i for idx in splits.values() for i in idx}
+        scene.images = [_downscale_rgb(read_rgb(f.image_path), downscale) if i in used else None
+                        for i, f in enumerate(frames)]
         scene.depths = [
-            None if f.depth_path is None else _read_depth_at(f, depth_scale, downscale) for f in frames
+            None if f.depth_path is None or i not in used else _read_depth_at(f, depth_scale, downscale)
+            for i, f in enumerate(frames)
         ]
     return scene
 
