@@ -182,6 +182,33 @@ def test_first_hit_matches_brute_force(num_points, leaf_size, seed):
         assert 0 < hit[6 * k :].sum() < len(o) - 6 * k  # clipping hides some hits
 
 
+@pytest.mark.parametrize(("num_points", "leaf_size", "seed"), [(2000, 0.01, 5), (300, 0.05, 6)])
+def test_first_hit_with_a_hint_is_bit_identical_whatever_the_hint(num_points, leaf_size, seed):
+    """Hints at, before and behind the true hit, NaN, before t_min and past t_max all give the plain result."""
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(0.0, 1.0, (num_points, 3)).astype(np.float32)
+    svo = SparseVoxelOctree.from_points(torch.from_numpy(points), leaf_size)
+    o, d, t_min, t_max = (torch.from_numpy(x) for x in make_rays(svo, reference_leaves(points, svo), 4000, rng))
+    t, hit = svo.first_hit(o, d, t_min, t_max)
+    assert 0.2 < hit.float().mean() < 0.95
+    n = len(o)
+    jitter = torch.from_numpy(rng.normal(0.0, 5 * leaf_size, n).astype(np.float32))
+    hints = {
+        "exact": torch.where(hit, t, torch.nan),
+        "noisy": torch.where(hit, t, t_max) + jitter,
+        "too_early": t - 10 * leaf_size,
+        "too_late": t + 0.5,
+        "nan": torch.full((n,), torch.nan),
+        "before_t_min": t_min - 1.0,
+        "past_t_max": t_max + 1.0,
+        "mixed": torch.from_numpy(rng.choice([np.nan, 0.0, 0.3, 1.0, 1e30], n).astype(np.float32)),
+    }
+    for name, hint in hints.items():
+        t_h, hit_h = svo.first_hit(o, d, t_min, t_max, t_hint=hint)
+        assert torch.equal(hit_h, hit), name
+        assert torch.equal(t_h, t), name
+
+
 def test_first_hit_ray_in_plane_takes_plus_side():
     # Two leaves sharing the plane x = 1: ray lies in that plane, so only the +x leaf counts.
     svo = SparseVoxelOctree.from_points(torch.tensor([[0.5, 0.5, 0.5], [1.5, 0.5, 2.5]]), 1.0)

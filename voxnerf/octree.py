@@ -263,6 +263,7 @@ class SparseVoxelOctree:
         t_max: Tensor | float,
         *,
         chunk: int | None = None,
+        t_hint: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Distance to the first occupied leaf along each ray (exact).
 
@@ -273,6 +274,10 @@ class SparseVoxelOctree:
             t_min, t_max: [N] or scalars; only the part of the ray in [t_min, t_max] counts.
             chunk: most (ray, node) candidates expanded at once, bounding temporaries to about ``chunk * 200``
                 bytes (default 2**17 on CPU, 2**21 on GPU).
+            t_hint: [N] optional guess of where each ray meets the surface (NaN: none), e.g. the prior's pseudo
+                depth. The search first stops a leaf diagonal past the guess and looks again over the whole
+                segment only for the rays that found nothing there, so the result is the same with or without
+                it; good guesses save expanding the nodes behind the first surface.
         Returns:
             t_hit [N] float32: ``max(entry, t_min)`` of the first hit leaf, ``t_max`` where there is none;
             hit [N] bool.
@@ -288,6 +293,8 @@ class SparseVoxelOctree:
             raise ValueError(f"origins and dirs must both be [N, 3], got {shapes}")
         device = origins.device
         n = origins.shape[0]
+        if t_hint is not None:
+            return self._first_hit_near(origins, dirs, t_min, t_max, t_hint, chunk)
         tables = self._tables if device == self.device else self._tables.to(device)
         origin = self.origin.to(device)
         v = torch.tensor(self.leaf_size, dtype=torch.float32, device=device)
@@ -327,6 +334,26 @@ class SparseVoxelOctree:
             self._descend(root, rays, tables, best, chunk)
         hit = torch.isfinite(best)
         return torch.where(hit, best, t_max), hit
+
+    def _first_hit_near(
+        self, origins: Tensor, dirs: Tensor, t_min: Tensor | float, t_max: Tensor | float, t_hint: Tensor,
+        chunk: int | None,
+    ) -> tuple[Tensor, Tensor]:
+        """``first_hit`` searching up to ``t_hint`` plus a leaf diagonal first, then the misses in full."""
+        n, device = origins.shape[0], origins.device
+        t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
+        t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
+        reach = self.leaf_size * math.sqrt(3.0) / dirs.to(torch.float32).norm(dim=1).clamp_min(_TINY_DIR)
+        cap = t_hint.to(device=device, dtype=torch.float32) + reach
+        cap = torch.where(torch.isfinite(cap), torch.minimum(cap, t_max), t_max)
+        t, hit = self.first_hit(origins, dirs, t_min, cap, chunk=chunk)
+        again = torch.nonzero(~hit & (cap < t_max)).squeeze(1)
+        if again.numel():
+            t_again, hit_again = self.first_hit(
+                origins[again], dirs[again], t_min[again], t_max[again], chunk=chunk
+            )
+            t[again], hit[again] = t_again, hit_again
+        return t, hit
 
     def _descend(
         self, root: _Frontier, rays: _Rays, tables: _TraversalTables, best: Tensor, chunk: int

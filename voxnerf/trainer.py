@@ -185,10 +185,11 @@ def _sampler_octree(
 def _per_pixel(
     pixels: TrainingPixels,
     model: VoxNeRFModel,
-    fn: Callable[[RayBundle], tuple[torch.Tensor, torch.Tensor]],
+    fn: Callable[[RayBundle, torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
     chunk: int = 262_144,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Evaluate ``fn`` (rays -> (t [R], valid [R])) on every training pixel -> [N, H, W] each; t NaN if invalid."""
+    """Evaluate ``fn`` ((rays, flat pixel indices [R]) -> (t [R], valid [R])) on every training pixel -> [N, H, W]
+    each; t NaN if invalid."""
     n, h, w = pixels.shape
     device = pixels.images.device
     t_all = torch.empty(n * h * w, device=device)
@@ -198,7 +199,7 @@ def _per_pixel(
         f = flat[i : i + chunk]
         img, rem = f // (h * w), f % (h * w)
         origins, dirs = pixels.rays(img, rem // w, rem % w)
-        t, ok = fn(model.ray_bundle(origins, dirs))
+        t, ok = fn(model.ray_bundle(origins, dirs), f)
         t_all[i : i + chunk] = torch.where(ok, t, torch.full_like(t, float("nan")))
         ok_all[i : i + chunk] = ok
     return t_all.view(n, h, w), ok_all.view(n, h, w)
@@ -371,7 +372,7 @@ def train(
             SparseVoxelOctree.from_points(torch.from_numpy(prior_n.points).float().to(device), prior_n.sigma))
         renderer = PriorDepthRenderer(prior_n, depth_svo)
         pixels.pseudo_t, _ = _per_pixel(
-            pixels, model, lambda rays: renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
+            pixels, model, lambda rays, _: renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
         )
         valid = float(torch.isfinite(pixels.pseudo_t).float().mean())
         if valid < MIN_PRIOR_COVERAGE:
@@ -386,8 +387,12 @@ def train(
 
     t0 = time.perf_counter()
     if octree is not None:
+        # The pseudo depth, where there is one, tells the search where to stop first (same result, less work).
+        hint = pixels.pseudo_t.view(-1) if pixels.pseudo_t is not None else None
         pixels.hit_t, pixels.hit = _per_pixel(
-            pixels, model, lambda rays: octree.first_hit(rays.origins, rays.dirs, rays.near, rays.far)
+            pixels, model, lambda rays, index: octree.first_hit(
+                rays.origins, rays.dirs, rays.near, rays.far, t_hint=None if hint is None else hint[index]
+            )
         )
         stage("first_hit_cache", True, f"octree first hit of every training pixel "
               f"({float(pixels.hit.float().mean()):.1%} hit)", t0)
