@@ -207,6 +207,8 @@ def test_first_hit_with_a_hint_is_bit_identical_whatever_the_hint(num_points, le
         t_h, hit_h = svo.first_hit(o, d, t_min, t_max, t_hint=hint)
         assert torch.equal(hit_h, hit), name
         assert torch.equal(t_h, t), name
+    with pytest.raises(ValueError, match=r"t_hint must be \[N\]"):
+        svo.first_hit(o, d, t_min, t_max, t_hint=t[:10])
 
 
 def test_first_hit_ray_in_plane_takes_plus_side():

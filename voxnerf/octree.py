@@ -293,7 +293,11 @@ class SparseVoxelOctree:
             raise ValueError(f"origins and dirs must both be [N, 3], got {shapes}")
         device = origins.device
         n = origins.shape[0]
+        t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
+        t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
         if t_hint is not None:
+            if t_hint.shape != (n,):
+                raise ValueError(f"t_hint must be [N] = [{n}] like the rays, got {tuple(t_hint.shape)}")
             return self._first_hit_near(origins, dirs, t_min, t_max, t_hint, chunk)
         tables = self._tables if device == self.device else self._tables.to(device)
         origin = self.origin.to(device)
@@ -301,8 +305,6 @@ class SparseVoxelOctree:
         o = origins.to(torch.float32)
         d = dirs.to(torch.float32)
         d = torch.where(d.abs() < _TINY_DIR, torch.full_like(d, _TINY_DIR), d)
-        t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
-        t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
 
         # Root segment: slab test against [origin, origin + 2**L * v].
         lo = origin + 0.0 * v
@@ -336,13 +338,11 @@ class SparseVoxelOctree:
         return torch.where(hit, best, t_max), hit
 
     def _first_hit_near(
-        self, origins: Tensor, dirs: Tensor, t_min: Tensor | float, t_max: Tensor | float, t_hint: Tensor,
-        chunk: int | None,
+        self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, t_hint: Tensor, chunk: int | None
     ) -> tuple[Tensor, Tensor]:
-        """``first_hit`` searching up to ``t_hint`` plus a leaf diagonal first, then the misses in full."""
-        n, device = origins.shape[0], origins.device
-        t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
-        t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
+        """``first_hit`` searching up to ``t_hint`` plus a leaf diagonal first, then the misses in full.
+        t_min, t_max, t_hint: [N] float32."""
+        device = origins.device
         reach = self.leaf_size * math.sqrt(3.0) / dirs.to(torch.float32).norm(dim=1).clamp_min(_TINY_DIR)
         cap = t_hint.to(device=device, dtype=torch.float32) + reach
         cap = torch.where(torch.isfinite(cap), torch.minimum(cap, t_max), t_max)
