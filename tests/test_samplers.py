@@ -128,3 +128,18 @@ def test_occgrid_sampler_uniform_when_grid_full():
     starts, ends = OccGridSampler(grid, 10)(rays, stratified=False)
     widths = ends - starts
     torch.testing.assert_close(widths[:, 1:-1], widths[:, 1:2].expand(4, 8), rtol=1e-3, atol=1e-4)
+
+
+def test_occupancy_grid_update_calls_density_with_one_shape():
+    """A compiled density function must see one shape: every chunk is exactly ``batch`` points, the last padded,
+    and the padding does not reach the grid."""
+    grid, seen = OccupancyGrid(8), []
+
+    def density(p):
+        seen.append(len(p))
+        return torch.where(p[:, 0] > 0.5, torch.full_like(p[:, 0], 100.0), torch.zeros_like(p[:, 0]))
+
+    grid.update(density, warmup=True, batch=100)  # 512 cells: 5 full chunks and 12 points
+    assert seen == [100] * 6
+    assert int(grid.occupied.sum()) == 8 * 8 * 2  # the two cell layers with x > 0.5; the zero padding is not
+    assert grid.is_occupied(torch.tensor([[0.8, 0.0, 0.0], [-0.8, 0.0, 0.0]])).tolist() == [True, False]

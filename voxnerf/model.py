@@ -113,6 +113,13 @@ class VoxNeRFModel:
             self._compiled["render_samples"] = torch.compile(self.render_samples, dynamic=False)
         return self._compiled["render_samples"]
 
+    def compiled_density(self):
+        """``field.density`` through ``torch.compile`` (built once per model; callers keep shapes fixed, as
+        :meth:`OccupancyGrid.update` does)."""
+        if "density" not in self._compiled:
+            self._compiled["density"] = torch.compile(self.field.density, dynamic=False)
+        return self._compiled["density"]
+
     def render_rays(self, rays: RayBundle, sampler, stratified: bool = False, compiled: bool = False) -> dict:
         """Render a ray batch: ``rgb`` [R, 3], ``depth`` [R] (ray distance, normalised), ``opacity`` [R]."""
         starts, ends = sampler(rays, stratified)

@@ -136,7 +136,11 @@ class OccupancyGrid(nn.Module):
 
     @torch.no_grad()
     def update(self, density_fn: Callable[[Tensor], Tensor], warmup: bool, batch: int = 65_536) -> None:
-        """Refresh the EMA from ``density_fn`` ([N, 3] -> [N] densities) and re-threshold."""
+        """Refresh the EMA from ``density_fn`` ([N, 3] -> [N] densities) and re-threshold.
+
+        ``density_fn`` always gets exactly ``batch`` points (the last chunk is padded), so a compiled function
+        sees one shape and compiles once.
+        """
         n = self.resolution**3
         device = self.density_ema.device
         if warmup:
@@ -147,7 +151,9 @@ class OccupancyGrid(nn.Module):
         r = self.resolution
         ijk = torch.stack([cells // (r * r), (cells // r) % r, cells % r], dim=-1)
         points = (ijk + torch.rand(ijk.shape, device=device)) * self.cell_size - 1.0
-        density = torch.cat([density_fn(points[i : i + batch]) for i in range(0, len(points), batch)])
+        padded = torch.cat([points, points.new_zeros(-len(points) % batch, 3)])
+        density = torch.cat([density_fn(padded[i : i + batch]) for i in range(0, len(padded), batch)])
+        density = density[: len(points)]
         density = torch.nan_to_num(density.float(), nan=0.0, posinf=1e10)
         ema = self.density_ema.clone()
         ema = torch.where(torch.isinf(ema), torch.zeros_like(ema), ema)
