@@ -82,6 +82,7 @@ class JobOptions(BaseModel):
     downscale: int = Field(1, ge=1, le=16)
     seed: int = Field(0, ge=0, le=2**31 - 1)
     compile: bool = Field(True, description="torch.compile the training step")
+    hash_kernel: bool = Field(True, description="on a CPU worker, the hash encoding's C kernel where it builds")
     eval_at: list[float] = Field([], max_length=64, description="full evaluations at these training seconds")
     eval_every_s: float | None = Field(
         None, gt=0, description="training seconds between PSNR evaluations (the history); engine default 30"

@@ -1,7 +1,8 @@
-"""Training throughput (samples/s, rays/s) and render time, eager against torch.compile, side by side.
+"""Training throughput (samples/s, rays/s) and render time, eager against torch.compile and the hash
+encoding in PyTorch against its C kernel (voxnerf/hash_kernel.py), side by side.
 
-Runs on one scene (default: the synthetic 160x120 room, generated into a temp dir), alternating the
-configurations in one process so both see the same machine load, and replaces the marked ``throughput``
+Runs on one scene (default: the synthetic 160x120 room, generated into a temp dir), alternating the four
+configurations in one process so all see the same machine load, and replaces the marked ``throughput``
 section of docs/performance.md (``--out`` another page holding the same markers).
 
     .venv/bin/python benchmarks/throughput.py [--scene DIR] [--iters 60] [--out docs/performance.md]
@@ -20,22 +21,31 @@ from pathlib import Path
 import torch
 from docs_section import replace_section
 
+from voxnerf import hash_kernel
 from voxnerf.cameras import Intrinsics
 from voxnerf.config import TrainConfig
 from voxnerf.render import load_model, render
 from voxnerf.synthetic import RoomSpec, make_room_scene
 from voxnerf.trainer import train
 
+PATHS = {  # name: (torch.compile, C kernel)
+    "eager, PyTorch encoding": (False, False),
+    "eager, C kernel": (False, True),
+    "compiled, PyTorch encoding": (True, False),
+    "compiled, C kernel (default)": (True, True),
+}
 
-def _train_rate(scene: Path, run: Path, compile_step: bool, iters: int) -> dict:
-    cfg = TrainConfig(max_iters=iters, compile=compile_step, final_eval=False, eval_every_s=1e9)
+
+def _train_rate(scene: Path, run: Path, compile_step: bool, kernel: bool, iters: int) -> dict:
+    cfg = TrainConfig(max_iters=iters, compile=compile_step, hash_kernel=kernel, final_eval=False, eval_every_s=1e9)
     report = train(scene, run, cfg, resume=False, progress_bar=False)
     return report["throughput"]
 
 
-def _render_seconds(run: Path, compile_render: bool, repeats: int) -> list[float]:
+def _render_seconds(run: Path, compile_render: bool, kernel: bool, repeats: int) -> list[float]:
     trained = load_model(run, "cpu")
     trained.model.config = trained.model.config.model_copy(update={"compile": compile_render})
+    trained.model.field.encoding.use_kernel = kernel
     intr = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
     c2w = trained.model.transform  # a pose at the scene centre, looking along -Z
     pose = torch.eye(4, dtype=torch.float64).numpy()
@@ -60,12 +70,16 @@ def main() -> int:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         scene = args.scene or make_room_scene(Path(tmp) / "room", RoomSpec())
-        rates: dict[str, list[dict]] = {"eager": [], "compiled": []}
+        if not hash_kernel.available():
+            raise SystemExit(f"the C kernel is unavailable: {hash_kernel.unavailable_reason()}")
+        rates: dict[str, list[dict]] = {name: [] for name in PATHS}
         for _ in range(args.repeats):
-            for name in rates:
-                rates[name].append(_train_rate(scene, Path(tmp) / f"run_{name}", name == "compiled", args.iters))
-        renders = {name: _render_seconds(Path(tmp) / "run_compiled", name == "compiled", args.repeats)
-                   for name in ("eager", "compiled")}
+            for i, (name, (compiled, kernel)) in enumerate(PATHS.items()):
+                rates[name].append(_train_rate(scene, Path(tmp) / f"run_{i}", compiled, kernel, args.iters))
+        renders: dict[str, list[float]] = {name: [] for name in PATHS}
+        for _ in range(args.repeats):  # alternating, one render per path and round
+            for name, (compiled, kernel) in PATHS.items():
+                renders[name] += _render_seconds(Path(tmp) / "run_3", compiled, kernel, 1)
     cfg = TrainConfig().resolved()
     med = {k: statistics.median(r["samples_per_s"] for r in v) for k, v in rates.items()}
     rays = {k: statistics.median(r["rays_per_s"] for r in v) for k, v in rates.items()}
@@ -88,12 +102,15 @@ def main() -> int:
         "| path | training samples/s | training rays/s | 640x480 render (rgb + depth) |",
         "| --- | --- | --- | --- |",
     ]
-    for name in ("eager", "compiled"):
+    for name in PATHS:
         lines.append(f"| {name} | {med[name]:,.0f} | {rays[name]:,.0f} | {rend[name]:.2f} s |")
+    default, pytorch, eager = "compiled, C kernel (default)", "compiled, PyTorch encoding", "eager, C kernel"
     lines += [
         "",
-        f"Ratios (compiled / eager, same run): training {med['compiled'] / med['eager']:.2f}x, "
-        f"render {rend['eager'] / rend['compiled']:.2f}x faster.",
+        f"Ratios (same run): the C kernel against the PyTorch encoding, both compiled: training "
+        f"{med[default] / med[pytorch]:.2f}x, render {rend[pytorch] / rend[default]:.2f}x faster; compiled against "
+        f"eager, both with the kernel: training {med[default] / med[eager]:.2f}x, render "
+        f"{rend[eager] / rend[default]:.2f}x faster.",
         "",
     ]
     replace_section(args.out, "throughput", "\n".join(lines))

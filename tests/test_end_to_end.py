@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from voxnerf import hash_kernel
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
 from voxnerf.image_io import decode_exr
@@ -34,6 +35,7 @@ def test_report_lists_stages_and_history(trained_run):
     for name in ("load_scene", "prior", "octree", "pseudo_depth", "first_hit_cache", "train", "final_eval"):
         assert stages[name]["ran"], name
     assert stages["compile"]["ran"]
+    assert stages["hash_kernel"]["ran"] == hash_kernel.available(), stages["hash_kernel"]["why"]
     assert report["history"] and all("psnr" in h and "elapsed_s" in h for h in report["history"])
     assert set(report["metrics"]) == {"interpolation", "extrapolation"}  # test_filenames == interpolation
     # the final evaluation also scores the progress evaluations' views, so one curve can run through both

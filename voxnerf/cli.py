@@ -24,7 +24,7 @@ def _train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
         depth_loss=not args.no_depth_loss, downscale=args.downscale, device=args.device, seed=args.seed,
-        compile=not args.no_compile, eval_at=args.eval_at or [],
+        compile=not args.no_compile, hash_kernel=not args.no_hash_kernel, eval_at=args.eval_at or [],
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
         **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
         **({"smooth_patches": args.smooth_patches} if args.smooth_patches is not None else {}),
@@ -200,6 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-compile", action="store_true", help="run the training step eagerly")
+    p.add_argument("--no-hash-kernel", action="store_true",
+                   help="keep the hash encoding in pure PyTorch on the CPU (default: its C kernel where it builds)")
     p.add_argument("--eval-at", type=_seconds_list,
                    help="full evaluations at these training seconds, e.g. 120,300 (for benchmarks: their time is "
                    "not charged to --max-seconds)")

@@ -60,6 +60,11 @@ class TrainConfig(BaseModel):
     device: str = "auto"
     seed: int = 0
     compile: bool = True
+    hash_kernel: bool = Field(
+        default=True,
+        description="on the CPU, run the hash encoding through the C kernel of voxnerf/hash_kernel.py where it "
+        "builds (the same features; a 2-3x cheaper backward); False keeps the pure-PyTorch encoding",
+    )
 
     # Preset-dependent fields: None means "take the preset's value" (see resolved()).
     rays_per_batch: int | None = Field(default=None, gt=0)

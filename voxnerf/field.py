@@ -12,6 +12,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from voxnerf.hash_kernel import hash_encode
+
 # Spatial-hash primes of instant-ngp (Teschner et al.); the first axis uses 1.
 HASH_PRIMES = (1, 2654435761, 805459861)
 # Density activation ceiling: exp(15) ~ 3.3e6 per normalised unit, far beyond opaque for any step size.
@@ -63,6 +65,9 @@ class HashEncoding(nn.Module):
         self.register_buffer("level_offset", offsets.view(1, -1, 1, 1, 1), persistent=False)
         self.register_buffer("upper", torch.tensor([0, 1], dtype=torch.int32), persistent=False)
         self.table = nn.Parameter(torch.empty(levels * self.table_size, features).uniform_(-1e-4, 1e-4))
+        # Set by voxnerf.model.field_for where voxnerf.hash_kernel is available: CPU float32 positions that need
+        # no gradient then go through its C kernel (the same features; a cheaper backward into the table).
+        self.use_kernel = False
 
     @property
     def use_hash(self) -> Tensor:
@@ -79,6 +84,8 @@ class HashEncoding(nn.Module):
         Separable form: each axis contributes its lower/upper grid coordinate once ([N, L, 3, 2]); the 8 corner
         indices are their sums (dense levels) or XORs (hashed levels), and the trilinear blend is three lerps.
         """
+        if self.use_kernel and x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad:
+            return hash_encode(x, self.table, self.resolution, self.dense_levels)
         n = x.shape[0]
         pos = x.clamp(0.0, 1.0)[:, None, :] * self.resolution[None, :, None]  # [N, L, 3]
         cell = torch.minimum(pos.floor(), self.max_cell[None, :, None].to(pos.dtype))

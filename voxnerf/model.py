@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from voxnerf import hash_kernel
 from voxnerf.config import TrainConfig
 from voxnerf.field import RadianceField
 from voxnerf.octree import SparseVoxelOctree
@@ -41,8 +42,10 @@ def ray_aabb(origins: Tensor, dirs: Tensor, aabb: Tensor) -> tuple[Tensor, Tenso
 def field_for(config: TrainConfig) -> RadianceField:
     """The radiance field (on the CPU, freshly initialised) that ``config``'s resolved preset describes."""
     cfg = config.resolved()
-    return RadianceField(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size, cfg.hash_max_resolution,
-                         cfg.hidden_dim)
+    field = RadianceField(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size, cfg.hash_max_resolution,
+                          cfg.hidden_dim)
+    field.encoding.use_kernel = cfg.hash_kernel and hash_kernel.available()
+    return field
 
 
 @dataclass

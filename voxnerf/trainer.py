@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from voxnerf import hash_kernel
 from voxnerf.cameras import camera_rays
 from voxnerf.config import TrainConfig
 from voxnerf.devices import resolve_device
@@ -333,6 +334,18 @@ def train(
             f"sampler {cfg.sampler!r}{' and the depth loss' if cfg.depth_loss else ''} need a prior; "
             "the scene has none, so sampling falls back to the occupancy grid and no depth loss is used"
         )
+
+    t0 = time.perf_counter()
+    if device.type != "cpu":
+        stage("hash_kernel", False, f"on {device.type} the hash encoding stays in PyTorch", t0)
+    elif not cfg.hash_kernel:
+        stage("hash_kernel", False, "disabled (--no-hash-kernel): the hash encoding stays in PyTorch", t0)
+    elif hash_kernel.available():
+        stage("hash_kernel", True, "the hash encoding runs in its C kernel (voxnerf/hashgrid.c; built once, cached)",
+              t0)
+    else:
+        stage("hash_kernel", False, f"C kernel unavailable ({hash_kernel.unavailable_reason()}): the hash encoding "
+              "stays in PyTorch", t0)
 
     transform, aabb = _scene_box(scene, prior)
     prior_n = prior.transformed(np.asarray(transform.center), transform.scale) if prior is not None else None

@@ -1,0 +1,156 @@
+"""The CPU hash-encoding kernel against the pure-PyTorch encoding: same features, same table gradient, one
+registration that torch.compile and autograd accept, and a clear fallback where it cannot be built."""
+
+import pytest
+import torch
+
+from voxnerf import hash_kernel
+from voxnerf.config import TrainConfig
+from voxnerf.field import HashEncoding
+from voxnerf.model import field_for
+
+pytestmark = pytest.mark.skipif(not hash_kernel.available(), reason="the hash kernel could not be built here")
+
+ENCODINGS = [
+    dict(levels=12, features=2, log2_size=17, base_resolution=16, max_resolution=1024),  # the cpu preset's
+    dict(levels=6, features=1, log2_size=10, base_resolution=4, max_resolution=300),
+    dict(levels=3, features=4, log2_size=12, base_resolution=2, max_resolution=64),
+    dict(levels=1, features=3, log2_size=14, base_resolution=8, max_resolution=8),  # one dense level
+]
+
+
+def _positions(n: int = 4000) -> torch.Tensor:
+    """Random points, the box's faces and corners, grid-aligned points and points outside (clamped)."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(n, 3, generator=gen)
+    x[:8] = torch.tensor([[a, b, c] for a in (0.0, 1.0) for b in (0.0, 1.0) for c in (0.0, 1.0)])
+    x[8:200] = torch.randint(0, 65, (192, 3), generator=gen).float() / 64  # on cell boundaries of many levels
+    x[200:260] = x[200:260] * 3 - 1  # outside [0, 1]
+    x[260] = torch.tensor([float("inf"), -float("inf"), 0.5])
+    return x
+
+
+def _encoding(spec: dict) -> HashEncoding:
+    torch.manual_seed(1)
+    enc = HashEncoding(**spec)
+    with torch.no_grad():
+        enc.table.uniform_(-1.0, 1.0)
+    return enc
+
+
+@pytest.mark.parametrize("spec", ENCODINGS)
+def test_kernel_features_equal_the_pytorch_encoding_bit_for_bit(spec):
+    enc, x = _encoding(spec), _positions()
+    assert enc.dense_levels >= 1
+    reference = enc(x)
+    enc.use_kernel = True
+    assert torch.equal(enc(x), reference)
+
+
+@pytest.mark.parametrize("spec", ENCODINGS)
+def test_kernel_table_gradient_matches_autograd_of_the_pytorch_encoding(spec):
+    enc, x = _encoding(spec), _positions()
+    grad_out = torch.randn(x.shape[0], enc.out_dim, generator=torch.Generator().manual_seed(2))
+    (reference,) = torch.autograd.grad(enc(x), enc.table, grad_out)
+    enc.use_kernel = True
+    (grad,) = torch.autograd.grad(enc(x), enc.table, grad_out)
+    assert reference.abs().sum() > 0
+    torch.testing.assert_close(grad, reference, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 5, 64])
+def test_kernel_result_does_not_depend_on_the_thread_count(threads):
+    enc, x = _encoding(ENCODINGS[0]), _positions()
+    enc.use_kernel = True
+    grad_out = torch.randn(x.shape[0], enc.out_dim, generator=torch.Generator().manual_seed(3))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        out1 = enc(x)
+        (g1,) = torch.autograd.grad(out1, enc.table, grad_out)
+        torch.set_num_threads(threads)
+        out = enc(x)
+        (g,) = torch.autograd.grad(out, enc.table, grad_out)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(out, out1) and torch.equal(g, g1)  # each level is one thread's, whatever the count
+
+
+def test_kernel_ops_pass_torch_library_checks():
+    enc, x = _encoding(ENCODINGS[1]), _positions(300)
+    args = (x, enc.table, enc.resolution, enc.dense_levels)
+    torch.library.opcheck(hash_kernel.hash_encode, args)
+
+
+def test_kernel_inside_torch_compile_matches_eager():
+    enc, x = _encoding(ENCODINGS[1]), _positions(512)
+    enc.use_kernel = True
+
+    def loss(p):
+        return (enc(p) ** 2).sum()
+
+    eager = loss(x)
+    (g_eager,) = torch.autograd.grad(eager, enc.table)
+    compiled = torch.compile(loss, dynamic=False, fullgraph=True)(x)
+    (g_compiled,) = torch.autograd.grad(compiled, enc.table)
+    torch.testing.assert_close(compiled, eager)
+    torch.testing.assert_close(g_compiled, g_eager)
+
+
+def test_positions_that_need_a_gradient_take_the_pytorch_path():
+    enc = _encoding(ENCODINGS[1])
+    enc.use_kernel = True
+    x = _positions()[:100].clamp(0, 1).requires_grad_(True)
+    enc(x).sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
+
+
+def test_nan_positions_are_refused_with_a_clear_error():
+    enc = _encoding(ENCODINGS[1])
+    enc.use_kernel = True
+    x = _positions()[:100].clone()
+    x[5, 1] = float("nan")
+    with pytest.raises(ValueError, match="1 of 100 positions are NaN"):
+        enc(x)
+
+
+def test_wrong_inputs_are_refused():
+    enc = _encoding(ENCODINGS[1])
+    with pytest.raises(ValueError, match="float32"):
+        hash_kernel.hash_encode(torch.rand(4, 3, dtype=torch.float64), enc.table, enc.resolution, 1)
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        hash_kernel.hash_encode(torch.rand(4, 2), enc.table, enc.resolution, 1)
+
+
+def test_the_config_switch_and_the_field_factory():
+    assert field_for(TrainConfig()).encoding.use_kernel
+    assert not field_for(TrainConfig(hash_kernel=False)).encoding.use_kernel
+
+
+def test_without_a_compiler_the_kernel_is_unavailable_and_says_why(tmp_path, monkeypatch):
+    monkeypatch.setenv("VOXNERF_CACHE", str(tmp_path))  # an empty cache: it would have to be built
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CC", raising=False)
+    hash_kernel._library.cache_clear()
+    try:
+        assert not hash_kernel.available()
+        assert "no C compiler" in hash_kernel.unavailable_reason()
+        assert not field_for(TrainConfig()).encoding.use_kernel
+    finally:
+        hash_kernel._library.cache_clear()
+    monkeypatch.undo()
+    assert hash_kernel.available()
+
+
+def test_a_failed_build_leaves_nothing_in_the_cache(tmp_path, monkeypatch):
+    compiler = tmp_path / "cc"
+    compiler.write_text("#!/bin/sh\necho 'cc: fatal error: out of disk' >&2\nexit 1\n")
+    compiler.chmod(0o755)
+    monkeypatch.setenv("VOXNERF_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", str(compiler))
+    hash_kernel._library.cache_clear()
+    try:
+        assert "out of disk" in hash_kernel.unavailable_reason()
+        assert list((tmp_path / "cache").iterdir()) == []
+    finally:
+        hash_kernel._library.cache_clear()

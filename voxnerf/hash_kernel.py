@@ -1,0 +1,157 @@
+"""The CPU hash-encoding kernel (``hashgrid.c``) as two torch custom ops, so ``torch.compile`` calls it.
+
+Why: in a compiled training step on this 2-core CPU, inductor's backward of the hash encoding (zero the
+table's gradient, then one atomic float add per sample, level, corner and feature: 4.7 M per redkitchen step)
+took 40-45 % of the step. The kernel splits the work by level, so each thread adds into its own slice of the
+gradient without atomics while that slice sits in cache (docs/performance.md has the measurement).
+
+The kernel is plain C; it is compiled on first use with the C compiler that ``torch.compile`` already needs
+on the CPU, once per source version, into ``$VOXNERF_CACHE`` (default ``~/.cache/voxnerf``), and loaded with
+ctypes. Where it cannot be built (no compiler) :func:`available` is False and the field keeps its pure-PyTorch
+path; it is never used on CUDA or for positions that need a gradient.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+SOURCE = Path(__file__).with_name("hashgrid.c")
+# -ffp-contract=off: no fused multiply-adds, so the blend rounds as the torch version's separate ops do.
+CFLAGS = ("-O3", "-std=c11", "-shared", "-fPIC", "-pthread", "-ffp-contract=off")
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("VOXNERF_CACHE") or Path.home() / ".cache" / "voxnerf")
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if name and shutil.which(name):
+            return name
+    return None
+
+
+def _build(compiler: str, target: Path) -> None:
+    """Compile ``SOURCE`` into ``target`` (written to a temporary name, then renamed)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=target.parent, suffix=".so", delete=False) as tmp:
+        partial = Path(tmp.name)
+    try:
+        subprocess.run([compiler, *CFLAGS, str(SOURCE), "-o", str(partial)], check=True,
+                       capture_output=True, text=True)
+        os.replace(partial, target)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+@functools.cache
+def _library() -> ctypes.CDLL | str:
+    """The loaded kernel, or a one-line reason why there is none."""
+    compiler = _compiler()
+    digest = hashlib.sha256(SOURCE.read_bytes() + " ".join(CFLAGS).encode()).hexdigest()[:16]
+    target = cache_dir() / f"hashgrid-{digest}.so"
+    if not target.is_file():
+        if compiler is None:
+            return "no C compiler (cc, gcc or clang) on PATH"
+        try:
+            _build(compiler, target)
+        except (OSError, subprocess.CalledProcessError) as exc:
+            detail = getattr(exc, "stderr", None) or str(exc)
+            return f"building {SOURCE.name} failed: {detail.strip().splitlines()[-1] if detail.strip() else exc}"
+    lib = ctypes.CDLL(str(target))
+    args = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.c_int64,
+            ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+    for fn in (lib.hash_encode_forward, lib.hash_encode_backward):
+        fn.argtypes, fn.restype = args, None
+    return lib
+
+
+def available() -> bool:
+    """Whether the kernel is built and loaded (building it on the first call)."""
+    return not isinstance(_library(), str)
+
+
+def unavailable_reason() -> str | None:
+    lib = _library()
+    return lib if isinstance(lib, str) else None
+
+
+def _lib() -> ctypes.CDLL:
+    lib = _library()
+    if isinstance(lib, str):
+        raise RuntimeError(f"the CPU hash-encoding kernel is unavailable: {lib}")
+    return lib
+
+
+def _check(x: Tensor, table: Tensor, resolution: Tensor) -> None:
+    for name, t in (("x", x), ("table", table), ("resolution", resolution)):
+        if t.device.type != "cpu" or t.dtype != torch.float32:
+            raise ValueError(f"hash kernel: {name} must be a float32 CPU tensor, got {t.dtype} on {t.device}")
+    if x.dim() != 2 or x.shape[1] != 3:
+        raise ValueError(f"hash kernel: x must be [N, 3], got {list(x.shape)}")
+    if bool(torch.isnan(x).any()):  # infinities are clamped into the box, as by the PyTorch encoding
+        raise ValueError(f"hash kernel: {int(torch.isnan(x).any(-1).sum())} of {x.shape[0]} positions are NaN")
+    levels = resolution.shape[0]
+    if table.dim() != 2 or table.shape[0] % levels:
+        raise ValueError(f"hash kernel: table must be [levels * size, F], got {list(table.shape)} for {levels} levels")
+
+
+@torch.library.custom_op("voxnerf::hash_encode", mutates_args=())
+def hash_encode(x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int) -> Tensor:
+    """Features [N, L * F] of positions ``x`` [N, 3] in [0, 1] from ``table`` [L * T, F] (levels of resolution
+    ``resolution`` [L], the first ``dense_levels`` indexed densely). Differentiable in ``table`` only."""
+    _check(x, table, resolution)
+    x, table, resolution = x.contiguous(), table.contiguous(), resolution.contiguous()
+    levels, (rows, features) = resolution.shape[0], table.shape
+    out = x.new_empty(x.shape[0], levels * features)
+    _lib().hash_encode_forward(x.data_ptr(), x.shape[0], table.data_ptr(), levels, features, rows // levels,
+                               dense_levels, resolution.data_ptr(), out.data_ptr(), torch.get_num_threads())
+    return out
+
+
+@hash_encode.register_fake
+def _(x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int) -> Tensor:
+    return x.new_empty(x.shape[0], resolution.shape[0] * table.shape[1])
+
+
+@torch.library.custom_op("voxnerf::hash_encode_table_grad", mutates_args=())
+def hash_encode_table_grad(grad_out: Tensor, x: Tensor, resolution: Tensor, rows: int, dense_levels: int) -> Tensor:
+    """The gradient [rows, F] of :func:`hash_encode`'s table, given the output's gradient [N, L * F]."""
+    grad_out, x, resolution = grad_out.contiguous(), x.contiguous(), resolution.contiguous()
+    levels = resolution.shape[0]
+    features = grad_out.shape[1] // levels
+    grad = grad_out.new_empty(rows, features)
+    _lib().hash_encode_backward(x.data_ptr(), x.shape[0], grad_out.data_ptr(), levels, features, rows // levels,
+                                dense_levels, resolution.data_ptr(), grad.data_ptr(), torch.get_num_threads())
+    return grad
+
+
+@hash_encode_table_grad.register_fake
+def _(grad_out: Tensor, x: Tensor, resolution: Tensor, rows: int, dense_levels: int) -> Tensor:
+    return grad_out.new_empty(rows, grad_out.shape[1] // resolution.shape[0])
+
+
+def _setup_context(ctx, inputs, output) -> None:
+    x, table, resolution, dense_levels = inputs
+    ctx.save_for_backward(x, resolution)
+    ctx.rows, ctx.dense_levels = table.shape[0], dense_levels
+
+
+def _backward(ctx, grad_out: Tensor):
+    x, resolution = ctx.saved_tensors
+    if ctx.needs_input_grad[0]:
+        raise RuntimeError("hash kernel: no gradient for positions; use the pure-PyTorch encoding for that")
+    return None, hash_encode_table_grad(grad_out, x, resolution, ctx.rows, ctx.dense_levels), None, None
+
+
+hash_encode.register_autograd(_backward, setup_context=_setup_context)

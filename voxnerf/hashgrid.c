@@ -1,0 +1,138 @@
+/* Multi-resolution hash encoding on the CPU: forward (gather + trilinear blend) and the table's gradient.
+ *
+ * The same arithmetic as voxnerf.field.HashEncoding (float32 positions, int32 cells, uint32 hashing with
+ * instant-ngp's primes, dense indexing of the coarse levels, blend z then y then x). Work is split by level:
+ * each thread owns whole levels, so the backward adds into its own slice of the gradient table without
+ * atomics, and one level's slice (2^17 x 2 floats = 1 MB at the cpu preset) stays in cache while it is
+ * written. Built and loaded by voxnerf/hash_kernel.py; plain C and POSIX threads, no Python or torch headers.
+ *
+ * Shapes: x [n, 3] in [0, 1] (clamped here), table and grad_table [levels * table_size, features],
+ * out and grad_out [n, levels * features], resolution [levels] (float), all contiguous, row-major.
+ */
+#include <pthread.h>
+#include <stdint.h>
+#include <string.h>
+
+#define MAX_THREADS 64
+
+typedef struct {
+    const float *x;
+    int64_t n;
+    const float *table;     /* forward only */
+    float *out;             /* forward only */
+    const float *grad_out;  /* backward only */
+    float *grad_table;      /* backward only */
+    int levels, features, dense_levels, first_level, level_step;
+    int64_t table_size;
+    const float *resolution;
+} job_t;
+
+/* The 8 corner rows (level offset included) and the 3 blend fractions of point p at level l. */
+static inline void corners(const job_t *j, int l, int64_t p, int64_t rows[8], float frac[3]) {
+    const float res = j->resolution[l];
+    const int32_t max_cell = (int32_t)res - 1;
+    int32_t cell[3];
+    for (int a = 0; a < 3; a++) {
+        float v = j->x[p * 3 + a];
+        v = v > 0.0f ? (v < 1.0f ? v : 1.0f) : 0.0f; /* NaN -> 0: never an index outside the table */
+        const float pos = v * res;
+        int32_t c = (int32_t)pos; /* pos >= 0: truncation is floor, without a libm call */
+        if (c > max_cell) c = max_cell;
+        frac[a] = pos - (float)c;
+        cell[a] = c;
+    }
+    const int64_t base = (int64_t)l * j->table_size;
+    if (l < j->dense_levels) {
+        const int64_t s1 = (int64_t)res + 1, s2 = s1 * s1;
+        for (int k = 0; k < 8; k++)
+            rows[k] = base + (cell[0] + (k >> 2)) + (cell[1] + ((k >> 1) & 1)) * s1 + (cell[2] + (k & 1)) * s2;
+    } else {
+        const uint32_t mask = (uint32_t)(j->table_size - 1);
+        for (int k = 0; k < 8; k++) {
+            const uint32_t hx = (uint32_t)(cell[0] + (k >> 2));
+            const uint32_t hy = (uint32_t)(cell[1] + ((k >> 1) & 1)) * 2654435761u;
+            const uint32_t hz = (uint32_t)(cell[2] + (k & 1)) * 805459861u;
+            rows[k] = base + (int64_t)((hx ^ hy ^ hz) & mask);
+        }
+    }
+}
+
+static void *forward_levels(void *arg) {
+    const job_t *j = (const job_t *)arg;
+    const int f = j->features, width = j->levels * f;
+    for (int l = j->first_level; l < j->levels; l += j->level_step) {
+        for (int64_t p = 0; p < j->n; p++) {
+            int64_t rows[8];
+            float t[3];
+            corners(j, l, p, rows, t);
+            float *o = j->out + p * width + (int64_t)l * f;
+            for (int c = 0; c < f; c++) {
+                float v[8];
+                for (int k = 0; k < 8; k++) v[k] = j->table[rows[k] * f + c];
+                /* corner k = (x bit, y bit, z bit); blend z, then y, then x, as the torch version */
+                float yz[4];
+                for (int k = 0; k < 4; k++) yz[k] = v[2 * k] + (v[2 * k + 1] - v[2 * k]) * t[2];
+                const float z0 = yz[0] + (yz[1] - yz[0]) * t[1];
+                const float z1 = yz[2] + (yz[3] - yz[2]) * t[1];
+                o[c] = z0 + (z1 - z0) * t[0];
+            }
+        }
+    }
+    return NULL;
+}
+
+static void *backward_levels(void *arg) {
+    const job_t *j = (const job_t *)arg;
+    const int f = j->features, width = j->levels * f;
+    for (int l = j->first_level; l < j->levels; l += j->level_step) {
+        memset(j->grad_table + (int64_t)l * j->table_size * f, 0, sizeof(float) * (size_t)(j->table_size * f));
+        for (int64_t p = 0; p < j->n; p++) {
+            int64_t rows[8];
+            float t[3];
+            corners(j, l, p, rows, t);
+            const float *g = j->grad_out + p * width + (int64_t)l * f;
+            const float wx[2] = {1.0f - t[0], t[0]}, wy[2] = {1.0f - t[1], t[1]}, wz[2] = {1.0f - t[2], t[2]};
+            for (int k = 0; k < 8; k++) {
+                const float w = wx[k >> 2] * wy[(k >> 1) & 1] * wz[k & 1];
+                float *dst = j->grad_table + rows[k] * f;
+                for (int c = 0; c < f; c++) dst[c] += w * g[c];
+            }
+        }
+    }
+    return NULL;
+}
+
+static void run(job_t *proto, int threads, void *(*fn)(void *)) {
+    if (threads < 1) threads = 1;
+    if (threads > proto->levels) threads = proto->levels;
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    job_t jobs[MAX_THREADS];
+    pthread_t ids[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int i = 0; i < threads; i++) {
+        jobs[i] = *proto;
+        jobs[i].first_level = i;
+        jobs[i].level_step = threads;
+    }
+    for (int i = 1; i < threads; i++) started[i] = pthread_create(&ids[i], NULL, fn, &jobs[i]) == 0;
+    fn(&jobs[0]);
+    for (int i = 1; i < threads; i++) {
+        if (started[i]) pthread_join(ids[i], NULL);
+        else fn(&jobs[i]); /* no thread to be had: do that share here */
+    }
+}
+
+void hash_encode_forward(const float *x, int64_t n, const float *table, int levels, int features,
+                         int64_t table_size, int dense_levels, const float *resolution, float *out, int threads) {
+    job_t j = {x, n, table, out, NULL, NULL, levels, features, dense_levels, 0, 1, table_size, resolution};
+    run(&j, threads, forward_levels);
+}
+
+/* grad_table is overwritten (each thread zeroes its own levels first). */
+void hash_encode_backward(const float *x, int64_t n, const float *grad_out, int levels, int features,
+                          int64_t table_size, int dense_levels, const float *resolution, float *grad_table,
+                          int threads) {
+    job_t j = {x, n, NULL, NULL, grad_out, grad_table, levels, features, dense_levels, 0, 1, table_size,
+               resolution};
+    run(&j, threads, backward_levels);
+}
