@@ -1,13 +1,17 @@
 """The CPU hash-encoding kernel against the pure-PyTorch encoding: same features, same table gradient, one
 registration that torch.compile and autograd accept, and a clear fallback where it cannot be built."""
 
+import json
+
 import pytest
 import torch
 
 from voxnerf import hash_kernel
+from voxnerf.cli import main
 from voxnerf.config import TrainConfig
 from voxnerf.field import HashEncoding
 from voxnerf.model import field_for
+from voxnerf.trainer import train
 
 pytestmark = pytest.mark.skipif(not hash_kernel.available(), reason="the hash kernel could not be built here")
 
@@ -154,3 +158,17 @@ def test_a_failed_build_leaves_nothing_in_the_cache(tmp_path, monkeypatch):
         assert list((tmp_path / "cache").iterdir()) == []
     finally:
         hash_kernel._library.cache_clear()
+
+
+def test_the_report_says_whether_the_kernel_ran(small_room, tmp_path):
+    """The default run reports the kernel's stage as run; ``voxnerf train --no-hash-kernel`` as disabled."""
+    report = train(small_room, tmp_path / "kernel", TrainConfig(max_iters=2, compile=False, downscale=4,
+                   final_eval=False), resume=False, progress_bar=False)
+    stage = next(s for s in report["stages"] if s["name"] == "hash_kernel")
+    assert stage["ran"] and "C kernel" in stage["why"]
+    assert main(["train", str(small_room), "--out", str(tmp_path / "torch"), "--max-iters", "2", "--no-compile",
+                 "--downscale", "4", "--no-hash-kernel"]) == 0
+    report = json.loads((tmp_path / "torch" / "report.json").read_text())
+    stage = next(s for s in report["stages"] if s["name"] == "hash_kernel")
+    assert not stage["ran"] and "disabled (--no-hash-kernel)" in stage["why"]
+    assert report["config"]["hash_kernel"] is False

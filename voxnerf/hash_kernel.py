@@ -113,10 +113,10 @@ def hash_encode(x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int)
     _check(x, table, resolution)
     x, table, resolution = x.contiguous(), table.contiguous(), resolution.contiguous()
     levels, (rows, features) = resolution.shape[0], table.shape
-    out = x.new_empty(x.shape[0], levels * features)
+    out = x.new_empty(levels, x.shape[0], features)  # level-major: each level's pass writes one stream
     _lib().hash_encode_forward(x.data_ptr(), x.shape[0], table.data_ptr(), levels, features, rows // levels,
                                dense_levels, resolution.data_ptr(), out.data_ptr(), torch.get_num_threads())
-    return out
+    return out.transpose(0, 1).contiguous().view(x.shape[0], levels * features)
 
 
 @hash_encode.register_fake
@@ -127,9 +127,10 @@ def _(x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int) -> Tensor
 @torch.library.custom_op("voxnerf::hash_encode_table_grad", mutates_args=())
 def hash_encode_table_grad(grad_out: Tensor, x: Tensor, resolution: Tensor, rows: int, dense_levels: int) -> Tensor:
     """The gradient [rows, F] of :func:`hash_encode`'s table, given the output's gradient [N, L * F]."""
-    grad_out, x, resolution = grad_out.contiguous(), x.contiguous(), resolution.contiguous()
+    x, resolution = x.contiguous(), resolution.contiguous()
     levels = resolution.shape[0]
     features = grad_out.shape[1] // levels
+    grad_out = grad_out.reshape(x.shape[0], levels, features).transpose(0, 1).contiguous()  # level-major
     grad = grad_out.new_empty(rows, features)
     _lib().hash_encode_backward(x.data_ptr(), x.shape[0], grad_out.data_ptr(), levels, features, rows // levels,
                                 dense_levels, resolution.data_ptr(), grad.data_ptr(), torch.get_num_threads())

@@ -7,13 +7,16 @@
  * written. Built and loaded by voxnerf/hash_kernel.py; plain C and POSIX threads, no Python or torch headers.
  *
  * Shapes: x [n, 3] in [0, 1] (clamped here), table and grad_table [levels * table_size, features],
- * out and grad_out [n, levels * features], resolution [levels] (float), all contiguous, row-major.
+ * out and grad_out [levels, n, features] (level-major: a level's pass reads and writes one stream and leaves the
+ * cache to the table), resolution [levels] (float), all contiguous, row-major. Within a level, the corners of a
+ * block of points are computed and prefetched before their rows are read, so the random reads overlap.
  */
 #include <pthread.h>
 #include <stdint.h>
 #include <string.h>
 
 #define MAX_THREADS 64
+#define BLOCK 64 /* points whose corners are computed (and prefetched) before their features are read */
 
 typedef struct {
     const float *x;
@@ -57,24 +60,35 @@ static inline void corners(const job_t *j, int l, int64_t p, int64_t rows[8], fl
     }
 }
 
+/* out[c] = trilinear blend of the 8 corner rows' feature c; corner k = (x bit, y bit, z bit), blended z, then
+ * y, then x, as the torch version. */
+static inline void blend(const float *table, const int64_t rows[8], const float t[3], int f, float *out) {
+    for (int c = 0; c < f; c++) {
+        float v[8];
+        for (int k = 0; k < 8; k++) v[k] = table[rows[k] * f + c];
+        float yz[4];
+        for (int k = 0; k < 4; k++) yz[k] = v[2 * k] + (v[2 * k + 1] - v[2 * k]) * t[2];
+        const float z0 = yz[0] + (yz[1] - yz[0]) * t[1];
+        const float z1 = yz[2] + (yz[3] - yz[2]) * t[1];
+        out[c] = z0 + (z1 - z0) * t[0];
+    }
+}
+
 static void *forward_levels(void *arg) {
     const job_t *j = (const job_t *)arg;
-    const int f = j->features, width = j->levels * f;
+    const int f = j->features;
+    int64_t rows[BLOCK][8];
+    float t[BLOCK][3];
     for (int l = j->first_level; l < j->levels; l += j->level_step) {
-        for (int64_t p = 0; p < j->n; p++) {
-            int64_t rows[8];
-            float t[3];
-            corners(j, l, p, rows, t);
-            float *o = j->out + p * width + (int64_t)l * f;
-            for (int c = 0; c < f; c++) {
-                float v[8];
-                for (int k = 0; k < 8; k++) v[k] = j->table[rows[k] * f + c];
-                /* corner k = (x bit, y bit, z bit); blend z, then y, then x, as the torch version */
-                float yz[4];
-                for (int k = 0; k < 4; k++) yz[k] = v[2 * k] + (v[2 * k + 1] - v[2 * k]) * t[2];
-                const float z0 = yz[0] + (yz[1] - yz[0]) * t[1];
-                const float z1 = yz[2] + (yz[3] - yz[2]) * t[1];
-                o[c] = z0 + (z1 - z0) * t[0];
+        for (int64_t p0 = 0; p0 < j->n; p0 += BLOCK) {
+            const int nb = j->n - p0 < BLOCK ? (int)(j->n - p0) : BLOCK;
+            for (int i = 0; i < nb; i++) { /* all the block's corners first, so their loads overlap */
+                corners(j, l, p0 + i, rows[i], t[i]);
+                for (int k = 0; k < 8; k++) __builtin_prefetch(j->table + rows[i][k] * f, 0, 3);
+            }
+            for (int i = 0; i < nb; i++) {
+                float *o = j->out + ((int64_t)l * j->n + p0 + i) * f;
+                blend(j->table, rows[i], t[i], f, o);
             }
         }
     }
@@ -83,19 +97,26 @@ static void *forward_levels(void *arg) {
 
 static void *backward_levels(void *arg) {
     const job_t *j = (const job_t *)arg;
-    const int f = j->features, width = j->levels * f;
+    const int f = j->features;
+    int64_t rows[BLOCK][8];
+    float t[BLOCK][3];
     for (int l = j->first_level; l < j->levels; l += j->level_step) {
         memset(j->grad_table + (int64_t)l * j->table_size * f, 0, sizeof(float) * (size_t)(j->table_size * f));
-        for (int64_t p = 0; p < j->n; p++) {
-            int64_t rows[8];
-            float t[3];
-            corners(j, l, p, rows, t);
-            const float *g = j->grad_out + p * width + (int64_t)l * f;
-            const float wx[2] = {1.0f - t[0], t[0]}, wy[2] = {1.0f - t[1], t[1]}, wz[2] = {1.0f - t[2], t[2]};
-            for (int k = 0; k < 8; k++) {
-                const float w = wx[k >> 2] * wy[(k >> 1) & 1] * wz[k & 1];
-                float *dst = j->grad_table + rows[k] * f;
-                for (int c = 0; c < f; c++) dst[c] += w * g[c];
+        for (int64_t p0 = 0; p0 < j->n; p0 += BLOCK) {
+            const int nb = j->n - p0 < BLOCK ? (int)(j->n - p0) : BLOCK;
+            for (int i = 0; i < nb; i++) {
+                corners(j, l, p0 + i, rows[i], t[i]);
+                for (int k = 0; k < 8; k++) __builtin_prefetch(j->grad_table + rows[i][k] * f, 1, 3);
+            }
+            for (int i = 0; i < nb; i++) {
+                const float *g = j->grad_out + ((int64_t)l * j->n + p0 + i) * f;
+                const float wx[2] = {1.0f - t[i][0], t[i][0]}, wy[2] = {1.0f - t[i][1], t[i][1]},
+                            wz[2] = {1.0f - t[i][2], t[i][2]};
+                for (int k = 0; k < 8; k++) {
+                    const float w = wx[k >> 2] * wy[(k >> 1) & 1] * wz[k & 1];
+                    float *dst = j->grad_table + rows[i][k] * f;
+                    for (int c = 0; c < f; c++) dst[c] += w * g[c];
+                }
             }
         }
     }
