@@ -5,7 +5,8 @@ Runs on one scene (default: the synthetic 160x120 room, generated into a temp di
 configurations in one process so all see the same machine load, and replaces the marked ``throughput``
 section of docs/performance.md (``--out`` another page holding the same markers).
 
-    .venv/bin/python benchmarks/throughput.py [--scene DIR] [--iters 60] [--out docs/performance.md]
+    .venv/bin/python benchmarks/throughput.py [--scene DIR] [--downscale N] [--iters 60] [--out docs/performance.md]
+        [--section throughput]
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ PATHS = {  # name: (torch.compile, C kernel)
 }
 
 
-def _train_rate(scene: Path, run: Path, compile_step: bool, kernel: bool, iters: int) -> dict:
-    cfg = TrainConfig(max_iters=iters, compile=compile_step, hash_kernel=kernel, final_eval=False, eval_every_s=1e9)
+def _train_rate(scene: Path, run: Path, compile_step: bool, kernel: bool, iters: int, downscale: int) -> dict:
+    cfg = TrainConfig(max_iters=iters, compile=compile_step, hash_kernel=kernel, downscale=downscale, final_eval=False,
+                      eval_every_s=1e9)
     report = train(scene, run, cfg, resume=False, progress_bar=False)
     return report["throughput"]
 
@@ -62,11 +64,13 @@ def _render_seconds(run: Path, compile_render: bool, kernel: bool, repeats: int)
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", type=Path)
+    parser.add_argument("--downscale", type=int, default=1, help="training images downscaled by N")
     parser.add_argument("--iters", type=int, default=60)
     parser.add_argument("--repeats", type=int, default=2, help="alternating rounds per configuration")
     parser.add_argument(
-        "--out", type=Path, default=Path("docs/performance.md"), help="page with the throughput section to replace"
+        "--out", type=Path, default=Path("docs/performance.md"), help="page with the section to replace"
     )
+    parser.add_argument("--section", default="throughput", help="name of the marked section to replace")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         scene = args.scene or make_room_scene(Path(tmp) / "room", RoomSpec())
@@ -75,7 +79,8 @@ def main() -> int:
         rates: dict[str, list[dict]] = {name: [] for name in PATHS}
         for _ in range(args.repeats):
             for i, (name, (compiled, kernel)) in enumerate(PATHS.items()):
-                rates[name].append(_train_rate(scene, Path(tmp) / f"run_{i}", compiled, kernel, args.iters))
+                rates[name].append(_train_rate(scene, Path(tmp) / f"run_{i}", compiled, kernel, args.iters,
+                                                args.downscale))
         renders: dict[str, list[float]] = {name: [] for name in PATHS}
         for _ in range(args.repeats):  # alternating, one render per path and round
             for name, (compiled, kernel) in PATHS.items():
@@ -93,6 +98,7 @@ def main() -> int:
         "",
         f"Command: `.venv/bin/python {command}`",
         "",
+        f"Scene: {args.scene or 'the synthetic 160x120 room'}, downscale {args.downscale}. "
         f"Preset `cpu`: {cfg.rays_per_batch} rays{patches} per step, {cfg.n_importance}+{cfg.n_rest} samples "
         f"per ray, hash grid "
         f"{cfg.hash_levels}x{cfg.hash_features}, 2^{cfg.hash_log2_size} entries per level. Training samples/s "
@@ -113,7 +119,7 @@ def main() -> int:
         f"{rend[eager] / rend[default]:.2f}x faster.",
         "",
     ]
-    replace_section(args.out, "throughput", "\n".join(lines))
+    replace_section(args.out, args.section, "\n".join(lines))
     print("\n".join(lines))
     return 0
 
