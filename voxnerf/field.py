@@ -2,7 +2,9 @@
 
 Positions are in normalised units inside ``[-1, 1]^3`` (the canonical box); the field maps them to
 ``[0, 1]^3`` itself. Pure PyTorch, vectorised across levels, on CPU and CUDA alike (tiny-cuda-nn is not
-integrated: it could not be built or tested here).
+integrated: it could not be built or tested here). On the CPU the encoding may instead run through
+:mod:`voxnerf.hash_kernel` (``HashEncoding.use_kernel``), a C kernel with the same arithmetic and a cheaper
+backward; the PyTorch path stays the reference and the fallback.
 """
 
 from __future__ import annotations
