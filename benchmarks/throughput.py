@@ -44,7 +44,8 @@ def _train_rate(scene: Path, run: Path, compile_step: bool, kernel: bool, iters:
     return report["throughput"]
 
 
-def _render_seconds(run: Path, compile_render: bool, kernel: bool, repeats: int) -> list[float]:
+def _render_seconds(run: Path, compile_render: bool, kernel: bool) -> float:
+    """Seconds of one 640x480 render of ``run``'s model, after a warm-up render (which compiles when asked)."""
     trained = load_model(run, "cpu")
     trained.model.config = trained.model.config.model_copy(update={"compile": compile_render})
     trained.model.field.encoding.use_kernel = kernel
@@ -52,13 +53,10 @@ def _render_seconds(run: Path, compile_render: bool, kernel: bool, repeats: int)
     c2w = trained.model.transform  # a pose at the scene centre, looking along -Z
     pose = torch.eye(4, dtype=torch.float64).numpy()
     pose[:3, 3] = c2w.center
-    render(trained, pose, intr, ("rgb", "depth"))  # warm-up (compiles when asked)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        render(trained, pose, intr, ("rgb", "depth"))
-        times.append(time.perf_counter() - t0)
-    return times
+    render(trained, pose, intr, ("rgb", "depth"))
+    t0 = time.perf_counter()
+    render(trained, pose, intr, ("rgb", "depth"))
+    return time.perf_counter() - t0
 
 
 def main() -> int:
@@ -84,7 +82,7 @@ def main() -> int:
         renders: dict[str, list[float]] = {name: [] for name in PATHS}
         for _ in range(args.repeats):  # alternating, one render per path and round
             for name, (compiled, kernel) in PATHS.items():
-                renders[name] += _render_seconds(Path(tmp) / "run_3", compiled, kernel, 1)
+                renders[name].append(_render_seconds(Path(tmp) / "run_3", compiled, kernel))
     cfg = TrainConfig().resolved()
     med = {k: statistics.median(r["samples_per_s"] for r in v) for k, v in rates.items()}
     rays = {k: statistics.median(r["rays_per_s"] for r in v) for k, v in rates.items()}

@@ -74,6 +74,21 @@ static inline void blend(const float *table, const int64_t rows[8], const float 
     }
 }
 
+/* Corners and fractions of the block of points p0 .. p0 + BLOCK - 1 (fewer at the end; returns how many) at
+ * level l, with their rows of `target` prefetched (for writing when `write`), so the block's loads overlap. */
+static inline int block_corners(const job_t *j, int l, int64_t p0, const float *target, int write,
+                                int64_t rows[BLOCK][8], float t[BLOCK][3]) {
+    const int nb = j->n - p0 < BLOCK ? (int)(j->n - p0) : BLOCK;
+    for (int i = 0; i < nb; i++) {
+        corners(j, l, p0 + i, rows[i], t[i]);
+        for (int k = 0; k < 8; k++) {
+            if (write) __builtin_prefetch(target + rows[i][k] * j->features, 1, 3);
+            else __builtin_prefetch(target + rows[i][k] * j->features, 0, 3);
+        }
+    }
+    return nb;
+}
+
 static void *forward_levels(void *arg) {
     const job_t *j = (const job_t *)arg;
     const int f = j->features;
@@ -81,11 +96,7 @@ static void *forward_levels(void *arg) {
     float t[BLOCK][3];
     for (int l = j->first_level; l < j->levels; l += j->level_step) {
         for (int64_t p0 = 0; p0 < j->n; p0 += BLOCK) {
-            const int nb = j->n - p0 < BLOCK ? (int)(j->n - p0) : BLOCK;
-            for (int i = 0; i < nb; i++) { /* all the block's corners first, so their loads overlap */
-                corners(j, l, p0 + i, rows[i], t[i]);
-                for (int k = 0; k < 8; k++) __builtin_prefetch(j->table + rows[i][k] * f, 0, 3);
-            }
+            const int nb = block_corners(j, l, p0, j->table, 0, rows, t);
             for (int i = 0; i < nb; i++) {
                 float *o = j->out + ((int64_t)l * j->n + p0 + i) * f;
                 blend(j->table, rows[i], t[i], f, o);
@@ -103,11 +114,7 @@ static void *backward_levels(void *arg) {
     for (int l = j->first_level; l < j->levels; l += j->level_step) {
         memset(j->grad_table + (int64_t)l * j->table_size * f, 0, sizeof(float) * (size_t)(j->table_size * f));
         for (int64_t p0 = 0; p0 < j->n; p0 += BLOCK) {
-            const int nb = j->n - p0 < BLOCK ? (int)(j->n - p0) : BLOCK;
-            for (int i = 0; i < nb; i++) {
-                corners(j, l, p0 + i, rows[i], t[i]);
-                for (int k = 0; k < 8; k++) __builtin_prefetch(j->grad_table + rows[i][k] * f, 1, 3);
-            }
+            const int nb = block_corners(j, l, p0, j->grad_table, 1, rows, t);
             for (int i = 0; i < nb; i++) {
                 const float *g = j->grad_out + ((int64_t)l * j->n + p0 + i) * f;
                 const float wx[2] = {1.0f - t[i][0], t[i][0]}, wy[2] = {1.0f - t[i][1], t[i][1]},
