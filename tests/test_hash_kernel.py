@@ -172,3 +172,21 @@ def test_the_report_says_whether_the_kernel_ran(small_room, tmp_path):
     stage = next(s for s in report["stages"] if s["name"] == "hash_kernel")
     assert not stage["ran"] and "disabled (--no-hash-kernel)" in stage["why"]
     assert report["config"]["hash_kernel"] is False
+
+
+def test_a_cached_library_that_does_not_load_is_reported_not_raised(tmp_path, monkeypatch):
+    monkeypatch.setenv("VOXNERF_CACHE", str(tmp_path / "built"))
+    hash_kernel._library.cache_clear()
+    try:
+        assert hash_kernel.available()  # builds into tmp_path / "built" (and stays loaded: never overwrite it)
+        (built,) = (tmp_path / "built").glob("hashgrid-*.so")
+        corrupt = tmp_path / "corrupt" / built.name
+        corrupt.parent.mkdir()
+        corrupt.write_bytes(b"not a shared library")  # where the cache would find it, so nothing is built
+        monkeypatch.setenv("VOXNERF_CACHE", str(corrupt.parent))
+        hash_kernel._library.cache_clear()
+        reason = hash_kernel.unavailable_reason()
+        assert reason.startswith("loading ") and built.name in reason
+        assert not field_for(TrainConfig()).encoding.use_kernel
+    finally:
+        hash_kernel._library.cache_clear()

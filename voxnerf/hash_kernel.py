@@ -68,7 +68,10 @@ def _library() -> ctypes.CDLL | str:
         except (OSError, subprocess.CalledProcessError) as exc:
             detail = getattr(exc, "stderr", None) or str(exc)
             return f"building {SOURCE.name} failed: {detail.strip().splitlines()[-1] if detail.strip() else exc}"
-    lib = ctypes.CDLL(str(target))
+    try:
+        lib = ctypes.CDLL(str(target))
+    except OSError as exc:  # e.g. a cache on a noexec mount, or a library built for another machine
+        return f"loading {target} failed: {exc}"
     args = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.c_int64,
             ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
     for fn in (lib.hash_encode_forward, lib.hash_encode_backward):
