@@ -2,28 +2,36 @@
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
-STAMP := $(VENV)/.installed
+SERVICE_STAMP := $(VENV)/.installed-service
+DEV_STAMP := $(VENV)/.installed-dev
 
-.PHONY: install run test lint bench clean
+.PHONY: install install-service run test lint bench clean
 
-$(STAMP): pyproject.toml scripts/install.sh
-	bash scripts/install.sh $(PYTHON) $(VENV)
-	touch $(STAMP)
+# `make run` installs the engine and the service only; `make test` adds the test tooling (a superset).
+$(SERVICE_STAMP): pyproject.toml scripts/install.sh
+	bash scripts/install.sh service $(PYTHON) $(VENV)
+	touch $(SERVICE_STAMP)
 
-install: $(STAMP)
+$(DEV_STAMP): pyproject.toml scripts/install.sh
+	bash scripts/install.sh dev $(PYTHON) $(VENV)
+	touch $(DEV_STAMP) $(SERVICE_STAMP)
 
-run: $(STAMP)
+install: $(DEV_STAMP)
+
+install-service: $(SERVICE_STAMP)
+
+run: $(SERVICE_STAMP)
 	$(VENV)/bin/voxnerf serve
 
-test: $(STAMP)
+test: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -ra
 
 # Every benchmark of docs/benchmarks.md, alone on the machine (about 2 hours on 2 cores): make bench OUT=DIR
-bench: $(STAMP)
+bench: $(DEV_STAMP)
 	bash benchmarks/run_all.sh $(or $(OUT),bench_out)
 
-lint: $(STAMP)
+lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
