@@ -11,9 +11,8 @@ SamplerName = Literal["voxnerf", "occgrid", "uniform"]
 MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
-# 2^19 hash tables); "cpu" keeps a 2-core CPU at a few hundred thousand samples per second, with 8 + 4 samples
-# per ray: the samples-per-ray sweep (benchmarks/samples_sweep.py, docs/benchmarks.md) found 16 + 8 3.8 dB
-# worse at 120 s on the room (fewer steps in the same time) and 4 + 2 tied with 8 + 4 within noise.
+# 2^19 hash tables); "cpu" trades samples per ray (8 + 4) and table size for steps per second, chosen with the
+# samples-per-ray sweep (benchmarks/samples_sweep.py; results in docs/benchmarks.md).
 PRESETS: dict[str, dict] = {
     "cpu": dict(
         rays_per_batch=2048,
@@ -63,7 +62,7 @@ class TrainConfig(BaseModel):
     hash_kernel: bool = Field(
         default=True,
         description="on the CPU, run the hash encoding through the C kernel of voxnerf/hash_kernel.py where it "
-        "builds (the same features; a 2-3x cheaper backward); False keeps the pure-PyTorch encoding",
+        "builds (the same features, a cheaper backward); False keeps the pure-PyTorch encoding",
     )
 
     # Preset-dependent fields: None means "take the preset's value" (see resolved()).
@@ -91,8 +90,8 @@ class TrainConfig(BaseModel):
     smooth_patches: int = Field(
         default=0,
         ge=0,
-        description="s x s patches per batch for the smoothness term; 0 (the default) leaves the term out: 8 "
-        "patches cost the redkitchen scan 0.9 dB and gained the synthetic room 0.5 dB (docs/performance.md)",
+        description="s x s patches per batch for the smoothness term; 0 (the default) leaves the term out "
+        "(docs/performance.md weighs it on the real and the synthetic scenes)",
     )
     patch_size: int = Field(default=8, ge=2)
     smooth_scales: int = Field(default=3, ge=1)

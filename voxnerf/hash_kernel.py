@@ -1,9 +1,9 @@
 """The CPU hash-encoding kernel (``hashgrid.c``) as two torch custom ops, so ``torch.compile`` calls it.
 
-Why: in a compiled training step on this 2-core CPU, inductor's backward of the hash encoding (zero the
-table's gradient, then one atomic float add per sample, level, corner and feature: 4.7 M per redkitchen step)
-took 40-45 % of the step. The kernel splits the work by level, so each thread adds into its own slice of the
-gradient without atomics while that slice sits in cache (docs/performance.md has the measurement).
+Why: inductor's backward of the hash encoding zeroes the table's gradient and then makes one atomic float add
+per sample, level, corner and feature. The kernel splits the work by level instead, so each thread adds into
+its own slice of the gradient without atomics while that slice sits in cache (docs/performance.md, "A C kernel
+for the hash encoding", measures both).
 
 The kernel is plain C; it is compiled on first use with the C compiler that ``torch.compile`` already needs
 on the CPU, once per source version, into ``$VOXNERF_CACHE`` (default ``~/.cache/voxnerf``), and loaded with

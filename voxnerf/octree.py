@@ -300,13 +300,34 @@ class SparseVoxelOctree:
                 raise ValueError(f"t_hint must be [N] = [{n}] like the rays, got {tuple(t_hint.shape)}")
             return self._first_hit_near(origins, dirs, t_min, t_max, t_hint, chunk)
         tables = self._tables if device == self.device else self._tables.to(device)
+        rays, root = self._root_frontier(origins, dirs, t_min, t_max)
+        best = torch.full((n,), float("inf"), device=device)
+        if chunk is None:
+            chunk = _DEFAULT_CHUNK if device.type == "cpu" else _DEFAULT_CHUNK_GPU
+        # On CPU, torch's intra-op threads leave cores idle on these gathers: give each core its own rays.
+        workers = min(torch.get_num_threads(), _MAX_WORKERS) if device.type == "cpu" else 1
+        count = root.ray.numel()
+        if workers > 1 and count >= 2 * _MIN_RAYS_PER_PART:
+            size = max(_MIN_RAYS_PER_PART, -(-count // (4 * workers)))  # 4 parts per worker: balance
+            parts = [root.slice(i, i + size) for i in range(0, count, size)]
+            with ThreadPoolExecutor(workers) as pool:
+                list(pool.map(lambda part: self._descend(part, rays, tables, best, chunk), parts))
+        else:
+            self._descend(root, rays, tables, best, chunk)
+        hit = torch.isfinite(best)
+        return torch.where(hit, best, t_max), hit
+
+    def _root_frontier(
+        self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor
+    ) -> tuple[_Rays, _Frontier]:
+        """The rays' packed form and the frontier of (ray, root) pairs whose segment inside the root's cube
+        [origin, origin + 2**levels * leaf] and [t_min, t_max] has positive length (slab test)."""
+        device = origins.device
         origin = self.origin.to(device)
         v = torch.tensor(self.leaf_size, dtype=torch.float32, device=device)
         o = origins.to(torch.float32)
         d = dirs.to(torch.float32)
         d = torch.where(d.abs() < _TINY_DIR, torch.full_like(d, _TINY_DIR), d)
-
-        # Root segment: slab test against [origin, origin + 2**L * v].
         lo = origin + 0.0 * v
         hi = origin + float(2**self.levels) * v
         ta, tb = (lo - o) / d, (hi - o) / d
@@ -316,26 +337,13 @@ class SparseVoxelOctree:
             torch.cat([o, d], dim=1).T.contiguous(),
             ((d < 0).int() << torch.arange(3, dtype=torch.int32, device=device)).sum(1, dtype=torch.int32),
         )
-        best = torch.full((n,), float("inf"), device=device)
         ray = torch.nonzero(t0 < t1).squeeze(1)
         root = _Frontier(
             ray,
             torch.zeros(ray.numel(), dtype=torch.int32, device=device),
             torch.stack([t0.index_select(0, ray), t1.index_select(0, ray)]),
         )
-        if chunk is None:
-            chunk = _DEFAULT_CHUNK if device.type == "cpu" else _DEFAULT_CHUNK_GPU
-        # On CPU, torch's intra-op threads leave cores idle on these gathers: give each core its own rays.
-        workers = min(torch.get_num_threads(), _MAX_WORKERS) if device.type == "cpu" else 1
-        if workers > 1 and ray.numel() >= 2 * _MIN_RAYS_PER_PART:
-            size = max(_MIN_RAYS_PER_PART, -(-ray.numel() // (4 * workers)))  # 4 parts per worker: balance
-            parts = [root.slice(i, i + size) for i in range(0, ray.numel(), size)]
-            with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(lambda part: self._descend(part, rays, tables, best, chunk), parts))
-        else:
-            self._descend(root, rays, tables, best, chunk)
-        hit = torch.isfinite(best)
-        return torch.where(hit, best, t_max), hit
+        return rays, root
 
     def _first_hit_near(
         self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, t_hint: Tensor, chunk: int | None
