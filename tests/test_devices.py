@@ -1,0 +1,38 @@
+"""voxnerf.devices: device names resolved, unavailable or unknown devices refused with the flag's name."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from voxnerf.devices import resolve_device
+from voxnerf.errors import VoxNeRFError
+
+
+def test_auto_picks_cuda_only_when_present():
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert resolve_device("auto").type == expected
+    assert resolve_device().type == expected
+
+
+def test_cpu_is_always_available():
+    assert resolve_device("cpu") == torch.device("cpu")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+@pytest.mark.parametrize("name", ["cuda", "cuda:1"])
+def test_cuda_without_cuda_is_refused(name):
+    with pytest.raises(VoxNeRFError, match=f"--device {name}: CUDA is not available"):
+        resolve_device(name)
+
+
+def test_cuda_auto_uses_cuda_when_the_runtime_reports_it(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("auto") == torch.device("cuda")
+    assert resolve_device("cuda:0") == torch.device("cuda:0")
+
+
+@pytest.mark.parametrize("name", ["gpu", "mps", "", "CPU"])
+def test_unknown_names_are_refused(name):
+    with pytest.raises(VoxNeRFError, match="expected auto, cpu or cuda"):
+        resolve_device(name)

@@ -1,0 +1,112 @@
+"""voxnerf.model: the ray-box slab test, the sampler a config chooses, clipping rays to the scene box, and a
+checkpoint's state dict that rebuilds the same model."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from voxnerf.config import TrainConfig
+from voxnerf.model import NEAR_MIN, VoxNeRFModel, field_for, ray_aabb
+from voxnerf.octree import SparseVoxelOctree
+from voxnerf.samplers import OccGridSampler, UniformSampler, VoxNeRFSampler
+from voxnerf.scene import SceneTransform
+
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+SMALL = dict(compile=False, hash_kernel=False, hash_levels=4, hash_log2_size=12, hidden_dim=16,
+             occgrid_resolution=8)
+
+
+def _model(sampler: str = "voxnerf", octree: SparseVoxelOctree | None = None) -> VoxNeRFModel:
+    torch.manual_seed(0)
+    cfg = TrainConfig(max_iters=1, sampler=sampler, **SMALL)
+    return VoxNeRFModel.create(cfg, SceneTransform((0.5, -1.0, 2.0), 0.25), BOX * 0.8, octree, torch.device("cpu"))
+
+
+def _octree() -> SparseVoxelOctree:
+    points = torch.tensor([[0.1, 0.1, 0.1], [-0.3, 0.2, 0.4], [0.5, -0.5, 0.0]])
+    return SparseVoxelOctree.from_points(points, 0.05)
+
+
+def test_ray_aabb_enters_and_leaves_the_box():
+    origins = torch.tensor([[-3.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    dirs = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    t0, t1 = ray_aabb(origins, dirs, BOX)
+    assert t0.tolist() == [2.0, -1.0] and t1.tolist() == [4.0, 1.0]
+
+
+def test_ray_aabb_axis_parallel_rays_have_no_nan():
+    origins = torch.tensor([[0.5, 0.5, -5.0], [2.0, 0.0, -5.0]])  # the second runs outside the x slab
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    t0, t1 = ray_aabb(origins, dirs, BOX)
+    assert torch.isfinite(t0).all() and torch.isfinite(t1).all()
+    assert (t0[0].item(), t1[0].item()) == (4.0, 6.0)
+    assert t0[1] > t1[1]  # a miss
+
+
+def test_ray_aabb_miss_gives_an_empty_range():
+    t0, t1 = ray_aabb(torch.tensor([[0.0, 5.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]]), BOX)
+    assert t0.item() > t1.item()
+
+
+def test_ray_bundle_clips_to_the_box_and_keeps_misses_empty():
+    model = _model()
+    origins = torch.tensor([[0.0, 0.0, 0.0], [0.0, 5.0, 0.0]])
+    dirs = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.1, 0.0]]), dim=-1)
+    rays = model.ray_bundle(origins, dirs)
+    assert rays.near[0].item() == pytest.approx(NEAR_MIN)
+    assert rays.far[0].item() == pytest.approx(0.8)
+    assert rays.near[1].item() == pytest.approx(NEAR_MIN)
+    assert 0 < rays.far[1] - rays.near[1] <= 1e-5
+
+
+@pytest.mark.parametrize(
+    ("sampler", "with_octree", "expected"),
+    [("uniform", True, UniformSampler), ("occgrid", True, OccGridSampler), ("voxnerf", True, VoxNeRFSampler),
+     ("voxnerf", False, OccGridSampler)],
+)
+def test_sampler_follows_the_config_and_the_octree(sampler, with_octree, expected):
+    model = _model(sampler, _octree() if with_octree else None)
+    assert type(model.sampler()) is expected
+
+
+def test_field_for_follows_the_resolved_preset():
+    field = field_for(TrainConfig(max_iters=1, preset="cpu", hash_kernel=False))
+    cfg = TrainConfig(max_iters=1, preset="cpu").resolved()
+    table = next(p for name, p in field.named_parameters() if "encoding" in name)
+    assert table.numel() <= cfg.hash_levels * 2**cfg.hash_log2_size * cfg.hash_features
+    assert field.encoding.use_kernel is False
+
+
+def test_render_rays_gives_finite_outputs_of_the_documented_shapes():
+    model = _model("voxnerf", _octree())
+    rays = model.ray_bundle(torch.zeros(5, 3), torch.nn.functional.normalize(torch.randn(5, 3), dim=-1))
+    out = model.render_rays(rays, model.sampler())
+    assert out["rgb"].shape == (5, 3) and out["depth"].shape == (5,) and out["opacity"].shape == (5,)
+    assert all(torch.isfinite(v).all() for v in out.values())
+
+
+def test_state_dict_round_trip_renders_the_same():
+    model = _model("voxnerf", _octree())
+    rebuilt = VoxNeRFModel.from_state_dict(model.state_dict(), torch.device("cpu"))
+    assert rebuilt.config == model.config
+    assert rebuilt.transform == model.transform
+    assert torch.equal(rebuilt.aabb, model.aabb)
+    rays = model.ray_bundle(torch.zeros(4, 3), torch.eye(3)[[0, 1, 2, 0]] * torch.tensor([[1.0], [-1.0], [1.0], [-1]]))
+    a, b = model.render_rays(rays, model.sampler()), rebuilt.render_rays(rays, rebuilt.sampler())
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+
+
+def test_state_dict_without_octree_rebuilds_without_one():
+    model = _model("occgrid")
+    rebuilt = VoxNeRFModel.from_state_dict(model.state_dict(), torch.device("cpu"))
+    assert rebuilt.octree is None and type(rebuilt.sampler()) is OccGridSampler
+
+
+def test_background_follows_the_config():
+    model = _model()
+    assert model.background.tolist() == [0.0, 0.0, 0.0]
+    assert math.isclose(model.transform.scale, 0.25)
