@@ -220,6 +220,8 @@ def octree_and_rays(draw) -> tuple[SparseVoxelOctree, dict[str, np.ndarray]]:
     extent = 10.0 ** draw(st.floats(-3.0, 3.0))
     shift = draw(st.sampled_from([0.0, -1.0, 100.0]))
     points = (shift * extent + rng.uniform(0.0, extent, (n_points, 3))).astype(np.float32)
+    if deepest:  # the clamp needs points spread over most of the extent (two close points need fewer levels)
+        points[:2, 0] = np.float32([shift * extent + 0.05 * extent, shift * extent + 0.95 * extent])
     # 2**-23 of the extent forces the depth clamp (21 levels, leaf grown); otherwise 3..12 levels.
     leaf = extent * (2.0**-23 if deepest else 2.0 ** -draw(st.integers(2, 11)))
     svo = SparseVoxelOctree.from_points(torch.from_numpy(points), leaf)
