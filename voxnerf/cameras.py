@@ -1,37 +1,17 @@
-"""Pinhole cameras and ray generation (OpenGL / nerfstudio convention: camera looks along -Z, +Y up)."""
+"""Pinhole cameras and ray generation (OpenGL / nerfstudio convention: camera looks along -Z, +Y up).
+
+:class:`Intrinsics` lives in the torch-free :mod:`voxnerf.camera_rules` with the pose and intrinsics rules;
+it is re-exported here.
+"""
 
 from __future__ import annotations
-
-from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor
 
+from voxnerf.camera_rules import Intrinsics
 
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels; ``cx, cy`` in continuous pixel coordinates (centre of a WxH image is W/2)."""
-
-    fl_x: float
-    fl_y: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    def scaled(self, factor: float) -> Intrinsics:
-        """Intrinsics of the image resized by ``factor`` (0.5 halves the resolution)."""
-        return Intrinsics(
-            self.fl_x * factor,
-            self.fl_y * factor,
-            self.cx * factor,
-            self.cy * factor,
-            max(1, int(round(self.width * factor))),
-            max(1, int(round(self.height * factor))),
-        )
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+__all__ = ["Intrinsics", "camera_rays", "image_rays"]
 
 
 def camera_rays(

@@ -7,13 +7,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from voxnerf.cameras import Intrinsics
+from voxnerf.camera_rules import CameraError, Intrinsics, resolve_intrinsics, validate_pose
 from voxnerf.errors import RunError, VoxNeRFError
 
 
@@ -70,74 +69,54 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+MAX_RENDER_PIXELS = 8192 * 8192
+# Pose-file keys of the intrinsics, by resolve_intrinsics' argument name.
+POSE_FILE_KEYS = {"fl_x": "fl_x", "fl_y": "fl_y", "cx": "cx", "cy": "cy", "width": "w", "height": "h"}
+
+
 def _read_pose(path: Path, default: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
+    """The pose and camera of a pose file: ``transform_matrix`` and optional ``fl_x fl_y cx cy w h``.
+
+    The rules are :mod:`voxnerf.camera_rules`' (those of ``POST /render``); a refusal is a RunError
+    ``FILE: KEY: why``.
+    """
     try:
         data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad UTF-8 or JSON
         raise RunError(f"{path}: cannot read pose JSON ({exc})") from None
     if not isinstance(data, dict) or "transform_matrix" not in data:
         raise RunError(f"{path}: transform_matrix: missing")
-    pose = np.asarray(data["transform_matrix"], dtype=np.float64) if _is_matrix(data["transform_matrix"]) else None
-    if pose is None or pose.shape != (4, 4) or not np.isfinite(pose).all():
-        raise RunError(f"{path}: transform_matrix: must be a finite 4x4 list of numbers")
-    return pose, intrinsics_for(data, default, str(path))
-
-
-def _is_matrix(value) -> bool:
-    return isinstance(value, list) and all(
-        isinstance(row, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in row)
-        for row in value
-    )
-
-
-def intrinsics_for(data: dict, default: Intrinsics, where: str) -> Intrinsics:
-    """Intrinsics from optional ``fl_x fl_y cx cy w h`` keys; missing ones come from ``default`` (scaled to the
-    requested size when only ``w``/``h`` are given)."""
-    for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
-        value = data.get(key)
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                  or not math.isfinite(value) or value <= 0):
-            raise RunError(f"{where}: {key}: must be a positive number, got {value!r}")
-    w = int(data.get("w") or default.width)
-    h = int(data.get("h") or default.height)
-    if w * h > 8192 * 8192:
-        raise RunError(f"{where}: w, h: {w}x{h} is larger than the 8192x8192 limit")
-    sx, sy = w / default.width, h / default.height
-    return Intrinsics(
-        float(data.get("fl_x") or default.fl_x * sx), float(data.get("fl_y") or default.fl_y * sy),
-        float(data.get("cx") or default.cx * sx), float(data.get("cy") or default.cy * sy), w, h,
-    )
+    try:
+        pose = validate_pose(data["transform_matrix"])
+    except CameraError as err:
+        raise RunError(f"{path}: transform_matrix: {err}") from None
+    given = {arg: data.get(key) for arg, key in POSE_FILE_KEYS.items()}
+    try:
+        intrinsics = resolve_intrinsics(default, **given, max_pixels=MAX_RENDER_PIXELS)
+    except CameraError as err:
+        field = ", ".join(POSE_FILE_KEYS.get(name, name) for name in (err.field or "").split(", "))
+        raise RunError(f"{path}: {field}: {err.message}") from None
+    return pose, intrinsics
 
 
 def _render(args: argparse.Namespace) -> int:
-    from voxnerf.image_io import encode_depth_png16, encode_exr, encode_png, write_atomic
+    from voxnerf.outputs import encode_files, format_of, write_files
     from voxnerf.render import load_model, render
 
     out = Path(args.out)
-    if out.suffix.lower() not in (".png", ".exr"):
-        raise RunError(f"{out}: output must end in .png or .exr")
+    try:
+        format_of(out)
+    except ValueError:
+        raise RunError(f"{out}: output must end in .png or .exr") from None
     trained = load_model(args.run, args.device)
     pose, intr = _read_pose(Path(args.pose), trained.default_intrinsics)
     outputs = ["rgb"] + (["depth"] if args.depth else []) + (["opacity"] if args.opacity else [])
     images = render(trained, pose, intr, outputs)
+    files = encode_files(out, images, outputs, trained.depth_unit_scale)
     out.parent.mkdir(parents=True, exist_ok=True)
-    if out.suffix.lower() == ".exr":
-        channels = {"R": images["rgb"][..., 0], "G": images["rgb"][..., 1], "B": images["rgb"][..., 2]}
-        if "depth" in images:
-            channels["Z"] = images["depth"]
-        if "opacity" in images:
-            channels["A"] = images["opacity"]
-        write_atomic(out, encode_exr(channels))
-    else:
-        write_atomic(out, encode_png(images["rgb"]))
-        if "depth" in images:
-            depth_path = out.with_name(out.stem + "_depth.png")
-            write_atomic(depth_path, encode_depth_png16(images["depth"], trained.depth_unit_scale))
-            print(f"wrote {depth_path}")
-        if "opacity" in images:
-            alpha_path = out.with_name(out.stem + "_opacity.png")
-            write_atomic(alpha_path, encode_png(np.repeat(images["opacity"][..., None], 3, axis=-1)))
-            print(f"wrote {alpha_path}")
+    for path in write_files(files):
+        if path != out:
+            print(f"wrote {path}")
     print(f"wrote {out} ({intr.width}x{intr.height})")
     return 0
 
@@ -184,10 +163,7 @@ def _sample_counts(text: str) -> tuple[int, int]:
     return n_imp, n_rest
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="voxnerf", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_train_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a model on a scene directory")
     p.add_argument("scene", help="scene directory (SCENE_FORMAT.md)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, report.json, eval renders)")
@@ -214,6 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     p.set_defaults(func=_train)
 
+
+def _add_eval_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="evaluate a run on a held-out split")
     p.add_argument("run")
     p.add_argument("--split", help="split name (default: test, or the first evaluation split)")
@@ -222,15 +200,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto")
     p.set_defaults(func=_eval)
 
+
+def _add_render_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render a camera pose to PNG or EXR")
     p.add_argument("run")
-    p.add_argument("--pose", required=True, help="JSON with transform_matrix and optional fl_x fl_y cx cy w h")
+    p.add_argument("--pose", required=True,
+                   help="JSON with transform_matrix and optional fl_x fl_y cx cy, w h (together)")
     p.add_argument("--out", required=True, help="IMG.png or IMG.exr")
     p.add_argument("--depth", action="store_true", help="also render depth (EXR channel Z, or IMG_depth.png)")
-    p.add_argument("--opacity", action="store_true", help="also render opacity (EXR channel A)")
+    p.add_argument("--opacity", action="store_true",
+                   help="also render opacity (EXR channel A, or IMG_opacity.png as 8-bit gray)")
     p.add_argument("--device", default="auto")
     p.set_defaults(func=_render)
 
+
+def _add_synth_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("synth", help="generate a synthetic furnished-room scene")
     p.add_argument("out")
     p.add_argument("--width", type=int, default=160)
@@ -241,15 +225,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_synth)
 
+
+def _add_serve_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="start the REST API with an embedded worker")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.set_defaults(func=_serve)
 
+
+def _add_worker_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("worker", help="start a Celery worker")
     p.add_argument("--queues", default="train,render")
     p.add_argument("--concurrency", type=int, default=1)
     p.set_defaults(func=_worker)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="voxnerf", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_train_command(sub)
+    _add_eval_command(sub)
+    _add_render_command(sub)
+    _add_synth_command(sub)
+    _add_serve_command(sub)
+    _add_worker_command(sub)
     return parser
 
 

@@ -161,6 +161,15 @@ def encode_png(rgb: np.ndarray) -> bytes:
     return iio.imwrite("<bytes>", u8, extension=".png")
 
 
+def encode_gray_png8(values: np.ndarray) -> bytes:
+    """8-bit single-channel (gray) PNG bytes of a float ``[H, W]`` map in [0, 1] (clipped; NaN becomes 0)."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim != 2:
+        raise ValueError(f"encode_gray_png8 expects [H, W], got {list(values.shape)}")
+    u8 = np.round(np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+    return iio.imwrite("<bytes>", u8, extension=".png")
+
+
 def encode_depth_png16(depth: np.ndarray, unit_scale: float) -> bytes:
     """16-bit PNG bytes of a float depth map ``[H, W]`` in metres.
 

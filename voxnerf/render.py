@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,13 +11,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from voxnerf.camera_rules import CameraError, validate_pose
 from voxnerf.cameras import Intrinsics, image_rays
 from voxnerf.devices import resolve_device
 from voxnerf.errors import RunError
+from voxnerf.files import CHECKPOINT
 from voxnerf.model import VoxNeRFModel
+from voxnerf.outputs import OUTPUT_NAMES
 
-CHECKPOINT = "checkpoint.pt"
-OUTPUTS = ("rgb", "depth", "opacity")
+OUTPUTS = OUTPUT_NAMES
 
 
 @dataclass
@@ -39,16 +42,20 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
     try:
         state = torch.load(path, map_location=dev, weights_only=False)
         model = VoxNeRFModel.from_state_dict(state["model"], dev)
-    except (OSError, RuntimeError, KeyError, ValueError) as exc:
-        raise RunError(f"{path}: unreadable checkpoint ({exc})") from None
+        trained = TrainedModel(
+            model,
+            Intrinsics(**state["default_intrinsics"]),
+            float(state["depth_unit_scale"]),
+            int(state["iteration"]),
+            state.get("scene_dir"),
+        )
+    # EOFError: an empty file; UnpicklingError: not a checkpoint; TypeError, KeyError: not a checkpoint's dict
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as exc:
+        why = " ".join(str(exc).split())  # one line: load_state_dict lists its mismatches line by line
+        why = why if len(why) <= 200 else f"{why[:200]}..."
+        raise RunError(f"{path}: unreadable checkpoint ({type(exc).__name__}: {why})") from None
     model.field.eval()
-    return TrainedModel(
-        model,
-        Intrinsics(**state["default_intrinsics"]),
-        float(state["depth_unit_scale"]),
-        int(state["iteration"]),
-        state.get("scene_dir"),
-    )
+    return trained
 
 
 @torch.no_grad()
@@ -109,16 +116,19 @@ def render(
     """Render a pose given in scene units.
 
     Args:
-        c2w: [4, 4] camera-to-world, OpenGL axes (as in transforms.json), scene units.
+        c2w: [4, 4] camera-to-world, OpenGL axes (as in transforms.json), scene units; checked by
+            :func:`voxnerf.camera_rules.validate_pose` (the rule of the CLI and the REST API): RunError
+            ``c2w: <why>`` when it is refused, re-orthonormalised when slightly off.
         intrinsics: default: the scene's first training camera at the trained resolution.
         outputs: subset of ("rgb", "depth", "opacity"); only these are computed.
     Returns:
         rgb float32 [H, W, 3] in [0, 1] (linear as trained), depth float32 [H, W] z-depth in scene units,
         opacity float32 [H, W].
     """
-    pose = np.asarray(c2w.detach().cpu() if isinstance(c2w, Tensor) else c2w, dtype=np.float64)
-    if pose.shape != (4, 4) or not np.isfinite(pose).all():
-        raise RunError(f"pose must be a finite 4x4 matrix, got shape {list(pose.shape)}")
+    try:
+        pose = validate_pose(c2w.detach().cpu().numpy() if isinstance(c2w, Tensor) else c2w)
+    except CameraError as err:
+        raise RunError(f"c2w: {err}") from None
     model = trained.model
     pose_n = torch.from_numpy(model.transform.c2w_to_normalized(pose)).float()
     out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics, outputs)

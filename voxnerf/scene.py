@@ -7,7 +7,6 @@ Every problem raises :class:`SceneError` naming the file and the key. Poses stay
 from __future__ import annotations
 
 import json
-import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,18 +15,26 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from voxnerf.cameras import Intrinsics
+from voxnerf.camera_rules import (
+    REPAIR_WARNING_ABOVE,
+    ROTATION_TOLERANCE,
+    CameraError,
+    Intrinsics,
+    finite_number,
+    pixel_count,
+    positive_number,
+    validate_pose_deviation,
+)
 from voxnerf.errors import SceneError
+from voxnerf.files import TRANSFORMS
 from voxnerf.image_io import image_size, read_depth, read_rgb
 
-TRANSFORMS = "transforms.json"
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
 DEFAULT_PRIOR_NAME = "prior.ply"
-# A rotation whose columns deviate from orthonormal by less than this is re-orthonormalised with a warning;
-# more is refused.
-ROTATION_TOLERANCE = 0.05
+MAX_IMAGE_SIDE = 65536  # pixels, for w and h
+__all__ = ["ROTATION_TOLERANCE", "Frame", "Scene", "SceneTransform", "inspect_scene", "load_scene"]
 # Names of eval_splits: they become folder names of evaluation renders (``eval/<split>/``) and URL segments.
 SPLIT_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
 
@@ -129,17 +136,6 @@ def _fail(path: Path, message: str, key: str | None = None) -> SceneError:
     return SceneError(path, message, key=key)
 
 
-def _as_finite(value) -> float | None:
-    """``value`` as a finite float, or None for non-numbers, NaN, inf and integers too large for a float."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    try:
-        number = float(value)
-    except OverflowError:  # a JSON integer literal of hundreds of digits
-        return None
-    return number if math.isfinite(number) else None
-
-
 def _clip(text: str) -> str:
     """``text`` on one line, at most about 80 characters, and encodable as UTF-8 (hostile input can hold
     anything, lone surrogates from ``\\udc80`` JSON escapes included: those become ``\\udc80`` again)."""
@@ -152,17 +148,27 @@ def _short_repr(value) -> str:
 
 
 def _positive_number(value, path: Path, key: str) -> float:
-    number = _as_finite(value)
-    if number is None or number <= 0:
-        raise _fail(path, f"must be a positive finite number, got {_short_repr(value)}", key)
-    return number
+    try:
+        return positive_number(value, key)
+    except CameraError as err:
+        raise _fail(path, err.message, key) from None
 
 
 def _finite_number(value, path: Path, key: str) -> float:
-    number = _as_finite(value)
-    if number is None:
-        raise _fail(path, f"must be a finite number, got {_short_repr(value)}", key)
-    return number
+    try:
+        return finite_number(value, key)
+    except CameraError as err:
+        raise _fail(path, err.message, key) from None
+
+
+def _pixel_count(value, path: Path, key: str) -> int:
+    try:
+        count = pixel_count(value, key)
+    except CameraError as err:
+        raise _fail(path, err.message, key) from None
+    if count > MAX_IMAGE_SIDE:
+        raise _fail(path, f"must be a positive integer pixel count, got {_short_repr(value)}", key)
+    return count
 
 
 def _read_intrinsics(source: dict, fallback: dict, path: Path, where: str) -> Intrinsics:
@@ -172,19 +178,15 @@ def _read_intrinsics(source: dict, fallback: dict, path: Path, where: str) -> In
         if value is None:
             raise _fail(path, "missing (give it at the top level or in the frame)", f"{where}{key}")
         values[key] = value
-    for key in ("w", "h"):
-        v = _as_finite(values[key])
-        if v is None or v != int(v) or not 0 < v <= 65536:
-            raise _fail(path, f"must be a positive integer pixel count, got {_short_repr(values[key])}",
-                        f"{where}{key}")
-        values[key] = v
+    width = _pixel_count(values["w"], path, f"{where}w")
+    height = _pixel_count(values["h"], path, f"{where}h")
     return Intrinsics(
         _positive_number(values["fl_x"], path, f"{where}fl_x"),
         _positive_number(values["fl_y"], path, f"{where}fl_y"),
         _finite_number(values["cx"], path, f"{where}cx"),
         _finite_number(values["cy"], path, f"{where}cy"),
-        int(values["w"]),
-        int(values["h"]),
+        width,
+        height,
     )
 
 
@@ -210,30 +212,17 @@ def _check_camera_model(meta: dict, frame: dict, path: Path, where: str) -> None
 
 
 def _read_pose(value, path: Path, key: str, reorthonormalised: list[tuple[str, float]]) -> np.ndarray:
+    """The pose rule of :func:`voxnerf.camera_rules.validate_pose`; a 3x4 matrix gets its last row added.
+
+    Appends ``(key, deviation)`` to ``reorthonormalised`` when the repair is large enough to warn about.
+    """
+    if isinstance(value, list) and len(value) == 3 and all(isinstance(r, list) and len(r) == 4 for r in value):
+        value = [*value, [0.0, 0.0, 0.0, 1.0]]
     try:
-        mat = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise _fail(path, f"must be a 4x4 list of numbers ({_clip(str(exc))})", key) from None
-    if mat.shape == (3, 4):
-        mat = np.vstack([mat, [0.0, 0.0, 0.0, 1.0]])
-    if mat.shape != (4, 4):
-        raise _fail(path, f"must be 4x4, got shape {list(mat.shape)}", key)
-    if not np.isfinite(mat).all():
-        raise _fail(path, "contains NaN or inf", key)
-    if not np.allclose(mat[3], [0, 0, 0, 1], atol=1e-6):
-        raise _fail(path, f"last row must be [0, 0, 0, 1], got {mat[3].tolist()}", key)
-    rot = mat[:3, :3]
-    deviation = float(np.abs(rot.T @ rot - np.eye(3)).max())
-    if deviation > ROTATION_TOLERANCE or np.linalg.det(rot) <= 0:
-        raise _fail(
-            path,
-            f"rotation is not a proper orthonormal matrix (max |R^T R - I| = {deviation:.3g}, "
-            f"det = {np.linalg.det(rot):.3g})",
-            key,
-        )
-    if deviation > 1e-5:
-        u, _, vt = np.linalg.svd(rot)
-        mat[:3, :3] = u @ vt
+        mat, deviation = validate_pose_deviation(value)
+    except CameraError as err:
+        raise _fail(path, err.message, key) from None  # bounded: values inside are already shortened
+    if deviation > REPAIR_WARNING_ABOVE:
         reorthonormalised.append((key, deviation))
     return mat
 
@@ -260,19 +249,18 @@ def _resolve_inside(root: Path, rel, path: Path, key: str) -> Path:
     return target
 
 
-def _read_splits(meta: dict, names: list[str], path: Path) -> dict[str, list[int]]:
-    index = {name: i for i, name in enumerate(names)}
+def _split_indices(index: dict[str, int], files, path: Path, key: str) -> list[int]:
+    """Frame indices of the ``file_path`` list ``files`` given under ``key``."""
+    if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+        raise _fail(path, "must be a list of file_path strings", key)
+    missing = [f for f in files if f not in index]
+    if missing:
+        raise _fail(path, f"{len(missing)} file(s) not in frames, e.g. {missing[0]!r}", key)
+    return [index[f] for f in files]
 
-    def lookup(key: str, files) -> list[int]:
-        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
-            raise _fail(path, "must be a list of file_path strings", key)
-        missing = [f for f in files if f not in index]
-        if missing:
-            raise _fail(path, f"{len(missing)} file(s) not in frames, e.g. {missing[0]!r}", key)
-        return [index[f] for f in files]
 
-    splits: dict[str, list[int]] = {}
-    named = {k: lookup(k, meta[k]) for k in SPLIT_KEYS if k in meta}
+def _eval_splits(meta: dict, index: dict[str, int], path: Path) -> dict[str, list[int]]:
+    """The named evaluation splits of ``eval_splits``, their names checked (they name folders)."""
     eval_splits = meta.get("eval_splits")
     if eval_splits is not None and not isinstance(eval_splits, dict):
         raise _fail(path, "must be an object mapping split names to lists of file_path", "eval_splits")
@@ -286,21 +274,28 @@ def _read_splits(meta: dict, names: list[str], path: Path) -> dict[str, list[int
                 "with '.'",
                 "eval_splits",
             )
-    extra = {name: lookup(f"eval_splits.{name}", files) for name, files in (eval_splits or {}).items()}
-    if not named and not extra:
-        test = list(range(0, len(names), 8))
-        splits["train"] = [i for i in range(len(names)) if i % 8 != 0]
-        splits["test"] = test
-        return splits
+    return {name: _split_indices(index, files, path, f"eval_splits.{name}")
+            for name, files in (eval_splits or {}).items()}
+
+
+def _read_splits(meta: dict, names: list[str], path: Path) -> dict[str, list[int]]:
+    index = {name: i for i, name in enumerate(names)}
+    named = {k: _split_indices(index, meta[k], path, k) for k in SPLIT_KEYS if k in meta}
+    extra = _eval_splits(meta, index, path)
+    if not named and not extra:  # every 8th frame is a test frame
+        return {
+            "train": [i for i in range(len(names)) if i % 8 != 0],
+            "test": list(range(0, len(names), 8)),
+        }
+    splits: dict[str, list[int]] = {}
     if "train_filenames" in named:
         splits["train"] = named["train_filenames"]
-    else:
-        used = {i for key, idx in named.items() for i in idx} | {i for idx in extra.values() for i in idx}
+    else:  # the frames no other split names
+        used = {i for idx in named.values() for i in idx} | {i for idx in extra.values() for i in idx}
         splits["train"] = [i for i in range(len(names)) if i not in used]
-    if "val_filenames" in named:
-        splits["val"] = named["val_filenames"]
-    if "test_filenames" in named:
-        splits["test"] = named["test_filenames"]
+    for key, name in (("val_filenames", "val"), ("test_filenames", "test")):
+        if key in named:
+            splits[name] = named[key]
     splits.update(extra)
     if not splits["train"]:
         raise _fail(path, "no training frames", "train_filenames")
@@ -323,6 +318,81 @@ def _read_meta(root: Path) -> tuple[Path, dict]:
     return path, meta
 
 
+def _read_frame(root: Path, meta: dict, i: int, raw, json_path: Path, seen: set[str],
+                reorthonormalised: list[tuple[str, float]]) -> Frame:
+    """Frame ``i`` of ``frames``: its image path (unique, inside the scene), pose, camera and depth path."""
+    where = f"frames[{i}]."
+    if not isinstance(raw, dict):
+        raise SceneError(json_path, "must be an object", key=f"frames[{i}]")
+    file_path = raw.get("file_path")
+    image_path = _resolve_inside(root, file_path, json_path, f"{where}file_path")
+    if file_path in seen:
+        raise SceneError(json_path, f"duplicate file_path {file_path!r}", key=f"{where}file_path")
+    seen.add(file_path)
+    if "transform_matrix" not in raw:
+        raise SceneError(json_path, "missing", key=f"{where}transform_matrix")
+    c2w = _read_pose(raw["transform_matrix"], json_path, f"{where}transform_matrix", reorthonormalised)
+    intr = _read_intrinsics(raw, meta, json_path, where)
+    _check_camera_model(meta, raw, json_path, where)
+    depth_path = None
+    if raw.get("depth_file_path") is not None:
+        depth_path = _resolve_inside(root, raw["depth_file_path"], json_path, f"{where}depth_file_path")
+    return Frame(file_path, image_path, c2w, intr, depth_path)
+
+
+def _read_frames(root: Path, meta: dict, json_path: Path, warnings: list[str]) -> list[Frame]:
+    """Every frame of ``frames``; one warning for all the poses whose rotation was repaired."""
+    raw_frames = meta.get("frames")
+    if not isinstance(raw_frames, list) or not raw_frames:
+        raise SceneError(json_path, "must be a non-empty list", key="frames")
+    reorthonormalised: list[tuple[str, float]] = []
+    seen: set[str] = set()
+    frames = [_read_frame(root, meta, i, raw, json_path, seen, reorthonormalised) for i, raw in enumerate(raw_frames)]
+    if reorthonormalised:
+        warnings.append(_reorthonormalised_warning(reorthonormalised))
+    return frames
+
+
+def _read_prior_keys(root: Path, meta: dict, json_path: Path, warnings: list[str]) -> tuple[Path | None, float | None]:
+    """The prior's path (``prior_file_path``, else ``prior.ply`` when present) and its stated sigma."""
+    prior_path = None
+    if meta.get("prior_file_path") is not None:
+        prior_path = _resolve_inside(root, meta["prior_file_path"], json_path, "prior_file_path")
+    elif (root / DEFAULT_PRIOR_NAME).is_file():
+        prior_path = (root / DEFAULT_PRIOR_NAME).resolve()
+        warnings.append(f"prior_file_path absent: using {DEFAULT_PRIOR_NAME} found in the scene directory")
+    prior_sigma = None
+    if meta.get("prior_sigma") is not None:
+        prior_sigma = _positive_number(meta["prior_sigma"], json_path, "prior_sigma")
+    return prior_path, prior_sigma
+
+
+def _check_image_sizes(frames: list[Frame], json_path: Path, downscale: int) -> None:
+    """Each image header agrees with its frame's ``w h``, and ``downscale`` leaves pixels."""
+    for frame in frames:
+        w, h = image_size(frame.image_path)
+        if (w, h) != (frame.intrinsics.width, frame.intrinsics.height):
+            raise SceneError(
+                frame.image_path,
+                f"image is {w}x{h} but transforms.json says w={frame.intrinsics.width} "
+                f"h={frame.intrinsics.height}",
+                key="size",
+            )
+        if frame.intrinsics.width // downscale < 1 or frame.intrinsics.height // downscale < 1:
+            raise SceneError(json_path, f"downscale {downscale} leaves no pixels", key="w")
+
+
+def _load_pixels(scene: Scene) -> None:
+    """Decode the images and depth maps of the frames some split uses, at the scene's downscale."""
+    used = {i for idx in scene.splits.values() for i in idx}
+    scene.images = [_downscale_rgb(read_rgb(f.image_path), scene.downscale) if i in used else None
+                    for i, f in enumerate(scene.frames)]
+    scene.depths = [
+        None if f.depth_path is None or i not in used else _read_depth_at(f, scene.depth_unit_scale, scene.downscale)
+        for i, f in enumerate(scene.frames)
+    ]
+
+
 def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True) -> Scene:
     """Read and validate a scene directory.
 
@@ -339,70 +409,16 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
     json_path, meta = _read_meta(root)
     if not isinstance(downscale, int) or downscale < 1:
         raise SceneError(json_path, f"downscale must be a positive integer, got {downscale!r}")
-    raw_frames = meta.get("frames")
-    if not isinstance(raw_frames, list) or not raw_frames:
-        raise SceneError(json_path, "must be a non-empty list", key="frames")
     warnings: list[str] = []
-    reorthonormalised: list[tuple[str, float]] = []
-    frames: list[Frame] = []
-    seen: set[str] = set()
-    for i, raw in enumerate(raw_frames):
-        where = f"frames[{i}]."
-        if not isinstance(raw, dict):
-            raise SceneError(json_path, "must be an object", key=f"frames[{i}]")
-        file_path = raw.get("file_path")
-        image_path = _resolve_inside(root, file_path, json_path, f"{where}file_path")
-        if file_path in seen:
-            raise SceneError(json_path, f"duplicate file_path {file_path!r}", key=f"{where}file_path")
-        seen.add(file_path)
-        if "transform_matrix" not in raw:
-            raise SceneError(json_path, "missing", key=f"{where}transform_matrix")
-        c2w = _read_pose(raw["transform_matrix"], json_path, f"{where}transform_matrix", reorthonormalised)
-        intr = _read_intrinsics(raw, meta, json_path, where)
-        _check_camera_model(meta, raw, json_path, where)
-        depth_path = None
-        if raw.get("depth_file_path") is not None:
-            depth_path = _resolve_inside(root, raw["depth_file_path"], json_path, f"{where}depth_file_path")
-        frames.append(Frame(file_path, image_path, c2w, intr, depth_path))
-    if reorthonormalised:
-        warnings.append(_reorthonormalised_warning(reorthonormalised))
-
+    frames = _read_frames(root, meta, json_path, warnings)
     splits = _read_splits(meta, [f.file_path for f in frames], json_path)
-    depth_scale = meta.get("depth_unit_scale_factor", 0.001)
-    depth_scale = _positive_number(depth_scale, json_path, "depth_unit_scale_factor")
-
-    prior_path = None
-    if meta.get("prior_file_path") is not None:
-        prior_path = _resolve_inside(root, meta["prior_file_path"], json_path, "prior_file_path")
-    elif (root / DEFAULT_PRIOR_NAME).is_file():
-        prior_path = (root / DEFAULT_PRIOR_NAME).resolve()
-        warnings.append(f"prior_file_path absent: using {DEFAULT_PRIOR_NAME} found in the scene directory")
-    prior_sigma = None
-    if meta.get("prior_sigma") is not None:
-        prior_sigma = _positive_number(meta["prior_sigma"], json_path, "prior_sigma")
-
-    for frame in frames:
-        w, h = image_size(frame.image_path)
-        if (w, h) != (frame.intrinsics.width, frame.intrinsics.height):
-            raise SceneError(
-                frame.image_path,
-                f"image is {w}x{h} but transforms.json says w={frame.intrinsics.width} "
-                f"h={frame.intrinsics.height}",
-                key="size",
-            )
-        if frame.intrinsics.width // downscale < 1 or frame.intrinsics.height // downscale < 1:
-            raise SceneError(json_path, f"downscale {downscale} leaves no pixels", key="w")
-
+    depth_scale = _positive_number(meta.get("depth_unit_scale_factor", 0.001), json_path, "depth_unit_scale_factor")
+    prior_path, prior_sigma = _read_prior_keys(root, meta, json_path, warnings)
+    _check_image_sizes(frames, json_path, downscale)
     scene = Scene(root.resolve(), frames, splits, prior_path, prior_sigma, depth_scale, downscale,
                   warnings=warnings)
     if load_images:
-        used = {i for idx in splits.values() for i in idx}
-        scene.images = [_downscale_rgb(read_rgb(f.image_path), downscale) if i in used else None
-                        for i, f in enumerate(frames)]
-        scene.depths = [
-            None if f.depth_path is None or i not in used else _read_depth_at(f, depth_scale, downscale)
-            for i, f in enumerate(frames)
-        ]
+        _load_pixels(scene)
     return scene
 
 

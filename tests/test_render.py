@@ -1,0 +1,115 @@
+"""voxnerf.render: loading a run and rendering a pose, on an untrained model written directly (no training)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tiny_run import DEFAULT_INTRINSICS, DEPTH_UNIT_SCALE, write_tiny_run
+
+from voxnerf.camera_rules import Intrinsics, validate_pose
+from voxnerf.errors import RunError
+from voxnerf.outputs import OUTPUT_NAMES
+from voxnerf.render import CHECKPOINT, OUTPUTS, load_model, render
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    return load_model(write_tiny_run(tmp_path_factory.mktemp("tiny") / "run"), "cpu")
+
+
+def _pose(z: float = 3.0) -> np.ndarray:
+    pose = np.eye(4)
+    pose[2, 3] = z  # looking along -Z at the box around the origin
+    return pose
+
+
+def test_load_model_reads_the_default_camera_and_depth_unit(trained):
+    assert trained.default_intrinsics == DEFAULT_INTRINSICS
+    assert trained.depth_unit_scale == DEPTH_UNIT_SCALE and trained.iteration == 0
+    assert not trained.model.field.training
+
+
+def test_missing_checkpoint_is_a_run_error(tmp_path):
+    with pytest.raises(RunError, match="no checkpoint"):
+        load_model(tmp_path, "cpu")
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b"", b"not a checkpoint at all", "list", "no_model", "no_intrinsics", "bad_weights"],
+)
+def test_unreadable_checkpoints_are_one_line_run_errors(tmp_path, content):
+    path = tmp_path / CHECKPOINT
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        write_tiny_run(tmp_path)
+        state = torch.load(path, weights_only=False)
+        if content == "list":
+            state = [1, 2, 3]
+        elif content == "no_model":
+            del state["model"]
+        elif content == "no_intrinsics":
+            del state["default_intrinsics"]
+        else:
+            state["model"]["field"] = {"nonsense": torch.zeros(2)}
+        torch.save(state, path)
+    with pytest.raises(RunError) as info:
+        load_model(tmp_path, "cpu")
+    message = str(info.value)
+    assert message.startswith(f"{path}: unreadable checkpoint") and "\n" not in message, message
+
+
+def test_render_default_camera_gives_every_output(trained):
+    out = render(trained, _pose())
+    assert set(out) == set(OUTPUTS) == set(OUTPUT_NAMES)
+    h, w = DEFAULT_INTRINSICS.height, DEFAULT_INTRINSICS.width
+    assert out["rgb"].shape == (h, w, 3) and out["depth"].shape == (h, w) and out["opacity"].shape == (h, w)
+    assert all(v.dtype == np.float32 for v in out.values())
+    assert ((out["rgb"] >= 0) & (out["rgb"] <= 1)).all()
+    assert ((out["opacity"] >= 0) & (out["opacity"] <= 1 + 1e-6)).all()
+    # the box is [-2, 2]^3 in scene units and the camera 3 units from its centre: depth within [1, 5]
+    assert np.isfinite(out["depth"]).all() and (out["depth"] >= 1 - 1e-4).all() and (out["depth"] <= 5).all()
+
+
+def test_render_computes_only_the_outputs_asked_for(trained):
+    intr = Intrinsics(fl_x=10.0, fl_y=10.0, cx=4.0, cy=3.0, width=8, height=6)
+    out = render(trained, _pose(), intr, ("depth",))
+    assert list(out) == ["depth"] and out["depth"].shape == (6, 8)
+
+
+def test_render_accepts_a_tensor_pose_and_matches_the_array(trained):
+    a = render(trained, _pose(), outputs=("rgb",))
+    b = render(trained, torch.from_numpy(_pose()).float(), outputs=("rgb",))
+    np.testing.assert_allclose(a["rgb"], b["rgb"], atol=1e-6)
+
+
+def test_unknown_output_is_a_run_error(trained):
+    with pytest.raises(RunError, match="unknown outputs"):
+        render(trained, _pose(), outputs=("normals",))
+
+
+@pytest.mark.parametrize(
+    ("pose", "needle"),
+    [
+        (np.diag([2.0, 1, 1, 1]), "not a proper orthonormal"),  # refused by POST /render too
+        (np.diag([-1.0, 1, 1, 1]), "det = -1"),
+        (np.eye(4) * 2, "last row"),
+        (np.eye(3), "4x4"),
+        (np.full((4, 4), np.nan), "NaN or inf"),
+        ([[True, False, False, False], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "numbers"),
+    ],
+)
+def test_bad_poses_are_refused_like_the_rest_api_refuses_them(trained, pose, needle):
+    with pytest.raises(RunError) as info:
+        render(trained, pose)
+    assert str(info.value).startswith("c2w: ") and needle in str(info.value), str(info.value)
+
+
+def test_slightly_skewed_pose_renders_as_its_repaired_rotation(trained):
+    skewed = _pose()
+    skewed[0, 1] = 1e-3
+    a = render(trained, skewed, outputs=("rgb",))
+    b = render(trained, validate_pose(skewed), outputs=("rgb",))
+    np.testing.assert_array_equal(a["rgb"], b["rgb"])
