@@ -8,20 +8,22 @@ from typing import Annotated
 from celery import Celery
 from fastapi import Depends, HTTPException, Path, Request
 
-from app.jobstore import ID_RE
-from app.settings import Settings
+from app.core.jobstore import ID_RE
+from app.core.settings import Settings
 
 
-def get_settings(request: Request) -> Settings:
+def app_settings(request: Request) -> Settings:
+    """The settings this app was built with (``create_app(settings)``; the environment's by default)."""
     return request.app.state.settings
 
 
-def get_celery(request: Request) -> Celery:
+def app_celery(request: Request) -> Celery:
+    """The app's Celery client (publishing only)."""
     return request.app.state.celery
 
 
-SettingsDep = Annotated[Settings, Depends(get_settings)]
-CeleryDep = Annotated[Celery, Depends(get_celery)]
+SettingsDep = Annotated[Settings, Depends(app_settings)]
+CeleryDep = Annotated[Celery, Depends(app_celery)]
 
 ID_DOC = "32 lowercase hex digits"
 SceneId = Annotated[str, Path(pattern=ID_RE.pattern, description=f"scene id, {ID_DOC}")]

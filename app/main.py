@@ -19,16 +19,16 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
-from app import db, storage
 from app.body_limit import BodyLimitMiddleware
+from app.core import db, storage
+from app.core.celery_app import create_celery
+from app.core.dispatch import requeue_stale_jobs
+from app.core.progress import json_safe
+from app.core.render_results import remove_old_outcomes
+from app.core.settings import Settings, get_settings
 from app.deps import require_token
-from app.jobstore import json_safe
 from app.routes import health, jobs, render, scenes
-from app.settings import Settings, get_settings
 from app.uploads import UploadError
-from worker.celery_app import create_celery
-from worker.dispatch import requeue_stale_jobs
-from worker.render_results import remove_old_outcomes
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"

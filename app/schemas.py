@@ -1,22 +1,26 @@
-"""Request and response bodies of the REST API (pydantic). Field names are the public contract."""
+"""Request and response bodies of the REST API (pydantic). Field names are the public contract.
+
+Built from the engine's models rather than repeating them: :data:`JobOptions` takes its fields' defaults,
+limits and descriptions from :class:`voxnerf.config.TrainConfig` (adding only REST limits), and
+:data:`JobOut`'s progress fields, history and stages come from :class:`voxnerf.training.records.ProgressEvent`,
+:class:`EvalRecord` and :class:`StageRecord` (through :data:`app.core.progress.PROGRESS_FIELDS`). The render
+request is :class:`app.core.render_request.RenderRequest`, which the render worker parses too.
+"""
 
 from __future__ import annotations
 
 import math
 from datetime import datetime, timezone
-from typing import Literal
+from typing import Annotated, Any, Literal
 
-import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
-from app.jobstore import ID_RE
-from voxnerf.cameras import Intrinsics
-from voxnerf.config import Preset, SamplerName
-from voxnerf.scene import ROTATION_TOLERANCE
+from app.core import progress
+from app.core.models import JOB_STATES
+from voxnerf.config import TrainConfig
+from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord
 
-JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-OutputName = Literal["rgb", "depth", "opacity"]
-MEDIA_TYPES = {"png": "image/png", "exr": "image/x-exr"}
+JobState = Literal[JOB_STATES]
 
 
 def _utc(seconds: float | None) -> datetime | None:
@@ -68,28 +72,75 @@ class SceneOut(BaseModel):
 
 # ------------------------------------------------------------------------------------------------ jobs
 
+# The TrainConfig fields a job may set, named as TrainConfig (and the CLI's `voxnerf train` flags) names them.
+JOB_OPTION_FIELDS = (
+    "preset",
+    "sampler",
+    "max_seconds",
+    "max_iters",
+    "depth_loss",
+    "downscale",
+    "seed",
+    "compile",
+    "hash_kernel",
+    "eval_at",
+    "eval_every_s",
+    "smooth_patches",
+    "n_importance",
+    "n_rest",
+)
+# TrainConfig fields a job cannot set because the worker's settings set them (VOXNERF_DEVICE,
+# VOXNERF_CHECKPOINT_EVERY_S): where a job trains and how often it saves are the deployment's business.
+WORKER_SET_FIELDS = frozenset({"device", "checkpoint_every_s"})
+# TrainConfig fields deliberately internal: reachable from neither the REST API nor the CLI, only from the Python
+# API (`train(scene, run, TrainConfig(...))`). The presets own the model's size and the batch; the loss weights,
+# the learning rate and the samplers' knobs are tuned values (docs/performance.md) that a job should not move
+# by accident; evaluation views, background and the final evaluation are fixed so jobs stay comparable.
+INTERNAL_TRAIN_FIELDS = frozenset(
+    {
+        "rays_per_batch",
+        "hash_levels",
+        "hash_features",
+        "hash_log2_size",
+        "hash_max_resolution",
+        "hidden_dim",
+        "lr_decay_iters",
+        "eval_chunk",
+        "lr",
+        "lambda_depth",
+        "lambda_smooth",
+        "depth_beta",
+        "patch_size",
+        "smooth_scales",
+        "octree_leaf",
+        "occgrid_resolution",
+        "occgrid_update_every",
+        "background",
+        "eval_views",
+        "final_eval",
+    }
+)
+MAX_JOB_SECONDS = 7 * 24 * 3600
+# Limits the REST API adds to TrainConfig's own: a public endpoint bounds what one request can ask for.
+REST_LIMITS: dict[str, Any] = {
+    "max_seconds": Field(le=MAX_JOB_SECONDS),
+    "max_iters": Field(le=10_000_000),
+    "seed": Field(ge=0, le=2**31 - 1),
+    "eval_at": Field(max_length=64),
+    "smooth_patches": Field(le=64),
+    "n_importance": Field(le=1024),
+    "n_rest": Field(le=1024),
+}
 
-class JobOptions(BaseModel):
-    """Training options, named as the CLI's ``voxnerf train`` flags. At least one bound is required."""
 
-    model_config = ConfigDict(extra="forbid")
+class _JobOptionsRules(BaseModel):
+    """Training options, named as TrainConfig's fields (the CLI's ``voxnerf train`` flags). Defaults, limits and
+    descriptions are TrainConfig's, with a few tighter REST limits. At least one bound is required."""
 
-    preset: Preset = "cpu"
-    sampler: SamplerName = "voxnerf"
-    max_seconds: float | None = Field(None, gt=0, le=7 * 24 * 3600, description="wall-clock bound, seconds")
-    max_iters: int | None = Field(None, gt=0, le=10_000_000)
-    depth_loss: bool = True
-    downscale: int = Field(1, ge=1, le=16)
-    seed: int = Field(0, ge=0, le=2**31 - 1)
-    compile: bool = Field(True, description="torch.compile the training step")
-    hash_kernel: bool = Field(True, description="on a CPU worker, the hash encoding's C kernel where it builds")
-    eval_at: list[float] = Field([], max_length=64, description="full evaluations at these training seconds")
-    eval_every_s: float | None = Field(
-        None, gt=0, description="training seconds between PSNR evaluations (the history); engine default 30"
-    )
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     @model_validator(mode="after")
-    def _bounded(self) -> JobOptions:
+    def _bounded(self) -> _JobOptionsRules:
         if self.max_seconds is None and self.max_iters is None:
             raise ValueError("give max_seconds or max_iters (or both)")
         if any(not (math.isfinite(t) and t > 0) for t in self.eval_at):
@@ -97,40 +148,55 @@ class JobOptions(BaseModel):
         return self
 
 
-class HistoryPoint(BaseModel):
-    """One evaluation during training: PSNR (dB) per split against training seconds."""
+def _engine_field(name: str) -> Any:
+    """TrainConfig's field ``name`` (type, default, limits, description) plus its REST limits, if any."""
+    info = TrainConfig.model_fields[name]
+    extra = [REST_LIMITS[name]] if name in REST_LIMITS else []
+    return Annotated[(info.annotation, info, *extra)]
+
+
+JobOptions = create_model(
+    "JobOptions",
+    __base__=_JobOptionsRules,
+    __doc__=_JobOptionsRules.__doc__,
+    **{name: _engine_field(name) for name in JOB_OPTION_FIELDS},
+)
+
+
+class HistoryPoint(EvalRecord):
+    """One evaluation during training (the engine's EvalRecord): PSNR (dB) per split against training seconds.
+
+    Extra keys are kept, so history written by older versions of the engine still reads."""
 
     model_config = ConfigDict(extra="allow")
 
-    elapsed_s: float = Field(description="training seconds (evaluation time excluded)")
-    wall_s: float | None = None
-    iteration: int
-    loss: float | None = None
-    psnr: dict[str, float | None] = {}
-    final: bool = False
 
+class StageInfo(StageRecord):
+    """One pipeline stage (the engine's StageRecord): whether it ran, why, and its seconds. Extra keys are kept
+    and ``seconds`` may be null, so stages written by older versions (or a non-finite time) still read."""
 
-class StageInfo(BaseModel):
     model_config = ConfigDict(extra="allow")
 
-    name: str
-    ran: bool
-    why: str
-    seconds: float | None = None
+    seconds: float | None = 0.0
 
 
-class JobOut(BaseModel):
+# How the API shows the progress columns whose stored form is a list of engine records.
+_PROGRESS_ITEM_TYPES = {"history": list[HistoryPoint], "stages": list[StageInfo]}
+
+
+def _progress_field(name: str) -> Any:
+    """The API field of progress column ``name``: the event field's type (null while the job has none)."""
+    info = ProgressEvent.model_fields[name]
+    annotation = _PROGRESS_ITEM_TYPES.get(name, info.annotation)
+    if progress.nullable(name):
+        annotation = annotation | None
+    return (annotation, Field(description=info.description))
+
+
+class _JobOutBase(BaseModel):
     id: str
     scene_id: str
     state: JobState
-    progress: float = Field(description="0..1")
-    eta_s: float | None = Field(description="estimated seconds left while running")
-    stage: str | None
-    iteration: int
-    elapsed_s: float = Field(description="training seconds so far")
-    loss: float | None
-    history: list[HistoryPoint]
-    stages: list[StageInfo] = Field(description="pipeline stages, whether each ran and why")
     metrics: dict | None = Field(description="report metrics per evaluation split, when succeeded")
     error: str | None
     cancel_requested: bool
@@ -142,19 +208,11 @@ class JobOut(BaseModel):
     finished_at: datetime | None
 
     @classmethod
-    def from_row(cls, row) -> JobOut:
+    def from_row(cls, row) -> _JobOutBase:
         return cls(
             id=row.id,
             scene_id=row.scene_id,
             state=row.state,
-            progress=row.progress,
-            eta_s=row.eta_s,
-            stage=row.stage,
-            iteration=row.iteration,
-            elapsed_s=row.elapsed_s,
-            loss=row.loss,
-            history=row.history or [],
-            stages=row.stages or [],
             metrics=row.metrics,
             error=row.error,
             cancel_requested=row.cancel_requested,
@@ -164,107 +222,27 @@ class JobOut(BaseModel):
             created_at=_utc(row.created_at),
             started_at=_utc(row.started_at),
             finished_at=_utc(row.finished_at),
+            **{name: _column(row, name) for name in progress.PROGRESS_FIELDS},
         )
+
+
+def _column(row, name: str) -> Any:
+    value = getattr(row, name)
+    return progress.default(name) if value is None and not progress.nullable(name) else value
+
+
+JobOut = create_model(
+    "JobOut",
+    __base__=_JobOutBase,
+    __doc__="A training job: its state, options, progress (the engine's progress event fields) and results.",
+    **{name: _progress_field(name) for name in progress.PROGRESS_FIELDS},
+)
 
 
 class EvalRender(BaseModel):
     split: str
     name: str
     url: str
-
-
-# ------------------------------------------------------------------------------------------------ render
-
-
-class RenderRequest(BaseModel):
-    """One view of a finished job. Missing intrinsics come from the scene's first training camera.
-
-    ``width``/``height`` come together; when given, every missing intrinsic is the default scaled by
-    ``width / default width`` (x) and ``height / default height`` (y). PNG holds one output: ``rgb`` (8-bit
-    sRGB-encoded colour), ``depth`` (16-bit, in the scene's ``depth_unit_scale_factor`` units) or ``opacity``
-    (8-bit gray). EXR holds any of them as float32 channels R, G, B, Z (depth, scene units) and A (opacity).
-    Default outputs: ``["rgb"]`` for PNG, all three for EXR.
-    """
-
-    model_config = ConfigDict(extra="forbid")
-
-    job_id: str = Field(pattern=ID_RE.pattern, description="a succeeded job's id")
-    transform_matrix: list[list[float]] = Field(
-        description="4x4 camera-to-world, OpenGL axes (camera looks along -Z, +Y up), scene units"
-    )
-    width: int | None = Field(None, ge=1, le=16384)
-    height: int | None = Field(None, ge=1, le=16384)
-    fl_x: float | None = Field(None, gt=0)
-    fl_y: float | None = Field(None, gt=0)
-    cx: float | None = None
-    cy: float | None = None
-    format: Literal["png", "exr"] = "png"
-    outputs: list[OutputName] | None = None
-
-    @field_validator("fl_x", "fl_y", "cx", "cy")
-    @classmethod
-    def _finite(cls, value: float | None) -> float | None:
-        if value is not None and not math.isfinite(value):
-            raise ValueError("must be a finite number")
-        return value
-
-    @field_validator("transform_matrix")
-    @classmethod
-    def _pose(cls, value: list[list[float]]) -> list[list[float]]:
-        mat = np.asarray(value, dtype=np.float64) if all(len(r) == 4 for r in value) else None
-        if mat is None or mat.shape != (4, 4):
-            raise ValueError("must be a 4x4 matrix (a list of 4 rows of 4 numbers)")
-        if not np.isfinite(mat).all():
-            raise ValueError("contains NaN or inf")
-        if not np.allclose(mat[3], [0, 0, 0, 1], atol=1e-6):
-            raise ValueError(f"last row must be [0, 0, 0, 1], got {mat[3].tolist()}")
-        rot = mat[:3, :3]
-        deviation = float(np.abs(rot.T @ rot - np.eye(3)).max())
-        det = float(np.linalg.det(rot))
-        if deviation > ROTATION_TOLERANCE or det <= 0:
-            raise ValueError(
-                f"rotation is not a proper orthonormal matrix (max |R^T R - I| = {deviation:.3g}, "
-                f"det = {det:.3g})"
-            )
-        if deviation > 1e-9:
-            u, _, vt = np.linalg.svd(rot)
-            mat[:3, :3] = u @ vt
-        return mat.tolist()
-
-    @model_validator(mode="after")
-    def _consistent(self) -> RenderRequest:
-        if (self.width is None) != (self.height is None):
-            raise ValueError("give width and height together (or neither, for the scene's size)")
-        if self.outputs is None:
-            self.outputs = ["rgb"] if self.format == "png" else ["rgb", "depth", "opacity"]
-        self.outputs = list(dict.fromkeys(self.outputs))
-        if not self.outputs:
-            raise ValueError("outputs must name at least one of rgb, depth, opacity")
-        if self.format == "png" and len(self.outputs) != 1:
-            raise ValueError("a PNG holds one output: ask for one of rgb, depth, opacity, or use format exr")
-        return self
-
-    @property
-    def media_type(self) -> str:
-        return MEDIA_TYPES[self.format]
-
-    def pixels(self) -> int | None:
-        """width x height when given (the default size is the scene's own)."""
-        return None if self.width is None else self.width * int(self.height)
-
-    def intrinsics(self, default: Intrinsics) -> Intrinsics:
-        """The camera to render, filling what the request leaves out from ``default`` (see class doc)."""
-        width = self.width or default.width
-        height = self.height or default.height
-        sx, sy = width / default.width, height / default.height
-        return Intrinsics(
-            fl_x=self.fl_x if self.fl_x is not None else default.fl_x * sx,
-            fl_y=self.fl_y if self.fl_y is not None else default.fl_y * sy,
-            cx=self.cx if self.cx is not None else default.cx * sx,
-            cy=self.cy if self.cy is not None else default.cy * sy,
-            width=width,
-            height=height,
-        )
 
 
 # ------------------------------------------------------------------------------------------------ health

@@ -11,9 +11,9 @@ import time
 
 import uvicorn
 
+from app.core.celery_app import RENDER_QUEUE, TRAIN_QUEUE
+from app.core.settings import get_settings
 from app.main import create_app
-from app.settings import get_settings
-from worker.celery_app import RENDER_QUEUE, TRAIN_QUEUE
 
 STOP_GRACE_S = 15.0
 log = logging.getLogger(__name__)

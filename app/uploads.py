@@ -10,9 +10,10 @@ Order of checks, each refusing with :class:`UploadError` (an HTTP status and a o
 3. every image and ``.npy`` header, before any pixel is decoded: declared width x height over
    ``max_image_pixels``;
 4. :func:`voxnerf.scene.inspect_scene`: the engine's own validation of transforms.json, images (sizes
-   must match the intrinsics), depth maps and the prior;
+   must match the intrinsics), depth maps and the prior (imported when an upload is validated, so that the
+   API process does not load torch until then);
 5. only then one ``os.replace`` of the staging directory into ``data_dir/scenes/<id>``, and, when
-   ``storage_url`` is set, its upload to the object store (:func:`app.storage.publish_scene`).
+   ``storage_url`` is set, its upload to the object store (:func:`app.core.storage.publish_scene`).
 
 Any failure removes the staging directory, so a refused upload leaves nothing behind.
 """
@@ -36,11 +37,11 @@ from typing import BinaryIO
 
 import numpy as np
 
-from app import jobstore, storage
-from app.settings import Settings
+from app.core import jobstore, storage
+from app.core.settings import Settings
 from voxnerf.errors import SceneError
+from voxnerf.files import TRANSFORMS
 from voxnerf.image_io import image_size
-from voxnerf.scene import TRANSFORMS, inspect_scene
 
 ALLOWED_SUFFIXES = frozenset(
     {".json", ".png", ".jpg", ".jpeg", ".npy", ".ply", ".obj", ".mtl", ".glb", ".off"}
@@ -141,49 +142,8 @@ def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfil
         raise UploadError(
             413, f"archive has {len(infos)} entries; at most {settings.max_files} files allowed"
         )
-    planned: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
-    for info in infos:
-        if _ignored(info.filename):
-            continue
-        path = safe_relpath(info.filename)
-        mode = info.external_attr >> 16
-        file_type = stat.S_IFMT(mode) if info.create_system == 3 else 0
-        if file_type == stat.S_IFLNK:
-            raise UploadError(422, f"entry {_clip(info.filename)}: symbolic links are not allowed")
-        if info.is_dir() or file_type == stat.S_IFDIR:
-            continue
-        if file_type not in (0, stat.S_IFREG):
-            raise UploadError(422, f"entry {_clip(info.filename)}: not a regular file (mode {oct(mode)})")
-        if info.flag_bits & 0x1:
-            raise UploadError(422, f"entry {_clip(info.filename)}: encrypted entries are not supported")
-        if info.compress_type not in SUPPORTED_COMPRESSION:
-            raise UploadError(
-                422, f"entry {_clip(info.filename)}: unsupported compression method {info.compress_type}"
-            )
-        _check_suffix(path)
-        planned.append((info, path))
-    if len(planned) > settings.max_files:
-        raise UploadError(413, f"archive has {len(planned)} files; at most {settings.max_files} allowed")
-    declared = sum(info.file_size for info, _ in planned)
-    if declared > settings.max_scene_bytes:
-        raise UploadError(
-            413, f"archive declares {declared} bytes uncompressed; the limit is {settings.max_scene_bytes}"
-        )
-    for info, _ in planned:
-        ratio = info.file_size / max(info.compress_size, 1)
-        if info.file_size >= BOMB_MIN_BYTES and ratio > settings.max_compression_ratio:
-            raise UploadError(
-                422,
-                f"entry {_clip(info.filename)}: compression ratio {ratio:.0f} exceeds "
-                f"{settings.max_compression_ratio:.0f} (zip bomb?)",
-            )
-    compressed = sum(info.compress_size for info, _ in planned)
-    if declared >= BOMB_MIN_BYTES and declared > settings.max_compression_ratio * max(compressed, 1):
-        raise UploadError(
-            422,
-            f"archive compression ratio {declared / max(compressed, 1):.0f} exceeds "
-            f"{settings.max_compression_ratio:.0f} (zip bomb?)",
-        )
+    planned = [(info, path) for info in infos if (path := _entry_path(info)) is not None]
+    _check_archive_sizes([info for info, _ in planned], settings)
     targets = _strip_common_folder([path for _, path in planned])
     seen: set[PurePosixPath] = set()
     for target in targets:
@@ -191,6 +151,56 @@ def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfil
             raise UploadError(422, f"entry {_clip(str(target))} appears twice")
         seen.add(target)
     return [(info, target) for (info, _), target in zip(planned, targets, strict=True)]
+
+
+def _entry_path(info: zipfile.ZipInfo) -> PurePosixPath | None:
+    """Where one archive entry goes in the scene; None for what is skipped (folders, macOS and Windows
+    litter); UploadError for links, special files, encryption, unknown compression and unsupported types."""
+    if _ignored(info.filename):
+        return None
+    path = safe_relpath(info.filename)
+    mode = info.external_attr >> 16
+    file_type = stat.S_IFMT(mode) if info.create_system == 3 else 0
+    if file_type == stat.S_IFLNK:
+        raise UploadError(422, f"entry {_clip(info.filename)}: symbolic links are not allowed")
+    if info.is_dir() or file_type == stat.S_IFDIR:
+        return None
+    if file_type not in (0, stat.S_IFREG):
+        raise UploadError(422, f"entry {_clip(info.filename)}: not a regular file (mode {oct(mode)})")
+    if info.flag_bits & 0x1:
+        raise UploadError(422, f"entry {_clip(info.filename)}: encrypted entries are not supported")
+    if info.compress_type not in SUPPORTED_COMPRESSION:
+        raise UploadError(
+            422, f"entry {_clip(info.filename)}: unsupported compression method {info.compress_type}"
+        )
+    _check_suffix(path)
+    return path
+
+
+def _check_archive_sizes(infos: list[zipfile.ZipInfo], settings: Settings) -> None:
+    """The files to extract: how many, their declared total, and compression ratios (zip bombs)."""
+    if len(infos) > settings.max_files:
+        raise UploadError(413, f"archive has {len(infos)} files; at most {settings.max_files} allowed")
+    declared = sum(info.file_size for info in infos)
+    if declared > settings.max_scene_bytes:
+        raise UploadError(
+            413, f"archive declares {declared} bytes uncompressed; the limit is {settings.max_scene_bytes}"
+        )
+    for info in infos:
+        ratio = info.file_size / max(info.compress_size, 1)
+        if info.file_size >= BOMB_MIN_BYTES and ratio > settings.max_compression_ratio:
+            raise UploadError(
+                422,
+                f"entry {_clip(info.filename)}: compression ratio {ratio:.0f} exceeds "
+                f"{settings.max_compression_ratio:.0f} (zip bomb?)",
+            )
+    compressed = sum(info.compress_size for info in infos)
+    if declared >= BOMB_MIN_BYTES and declared > settings.max_compression_ratio * max(compressed, 1):
+        raise UploadError(
+            422,
+            f"archive compression ratio {declared / max(compressed, 1):.0f} exceeds "
+            f"{settings.max_compression_ratio:.0f} (zip bomb?)",
+        )
 
 
 def _read_chunk(src: BinaryIO, name: str) -> bytes:
@@ -319,6 +329,41 @@ def _publish(settings: Settings, scene_id: str) -> None:
         ) from None
 
 
+def _validate_staged(root: Path, settings: Settings, name: str) -> dict:
+    """The engine's summary of the staged scene at ``root``; UploadError (422) when it is not a valid scene.
+
+    The engine's scene checks are imported here, when an upload is validated, rather than when the API starts:
+    they import torch, which the API process otherwise never needs.
+    """
+    from voxnerf.scene import inspect_scene
+
+    if not (root / TRANSFORMS).is_file():
+        raise UploadError(422, f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder)")
+    _check_declared_sizes(root, settings)
+    try:
+        return inspect_scene(root)
+    except SceneError as err:
+        raise UploadError(422, _hide_staging(str(err), root)) from None
+    except Exception as err:  # a parser deep in the engine choked on hostile bytes: still the upload's fault
+        log.warning("upload %r refused by an unexpected %s", name, type(err).__name__, exc_info=True)
+        detail = _hide_staging(f"the scene could not be read: {type(err).__name__}: {err}", root)
+        raise UploadError(422, detail) from None
+
+
+def _commit(settings: Settings, root: Path, name: str, summary: dict, size: int) -> StoredScene:
+    """Move a validated scene into ``scenes_dir``, publish it to the store and add its row (or undo the move)."""
+    scene_id = jobstore.new_id()
+    final = settings.scenes_dir / scene_id
+    root.replace(final)
+    try:
+        _publish(settings, scene_id)
+        jobstore.add_scene(settings, scene_id, name, summary, size)
+    except BaseException:
+        shutil.rmtree(final, ignore_errors=True)
+        raise
+    return StoredScene(scene_id, size, summary)
+
+
 def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> StoredScene:
     """Stage a scene with ``fill(root) -> bytes written``, validate it, and move it into ``scenes_dir``.
 
@@ -330,31 +375,8 @@ def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> S
     root.mkdir()
     try:
         size = fill(root)
-        if not (root / TRANSFORMS).is_file():
-            raise UploadError(
-                422, f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder)"
-            )
-        _check_declared_sizes(root, settings)
-        try:
-            summary = inspect_scene(root)
-        except SceneError as err:
-            raise UploadError(422, _hide_staging(str(err), root)) from None
-        except (
-            Exception
-        ) as err:  # a parser deep in the engine choked on hostile bytes: still the upload's fault
-            log.warning("upload %r refused by an unexpected %s", name, type(err).__name__, exc_info=True)
-            detail = _hide_staging(f"the scene could not be read: {type(err).__name__}: {err}", root)
-            raise UploadError(422, detail) from None
-        scene_id = jobstore.new_id()
-        final = settings.scenes_dir / scene_id
-        root.replace(final)
-        try:
-            _publish(settings, scene_id)
-            jobstore.add_scene(settings, scene_id, name, summary, size)
-        except BaseException:
-            shutil.rmtree(final, ignore_errors=True)
-            raise
-        return StoredScene(scene_id, size, summary)
+        summary = _validate_staged(root, settings, name)
+        return _commit(settings, root, name, summary, size)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 

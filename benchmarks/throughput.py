@@ -27,7 +27,7 @@ from voxnerf.cameras import Intrinsics
 from voxnerf.config import TrainConfig
 from voxnerf.render import load_model, render
 from voxnerf.synthetic import RoomSpec, make_room_scene
-from voxnerf.trainer import train
+from voxnerf.training.run import train
 
 PATHS = {  # name: (torch.compile, C kernel)
     "eager, PyTorch encoding": (False, False),
@@ -41,7 +41,7 @@ def _train_rate(scene: Path, run: Path, compile_step: bool, kernel: bool, iters:
     cfg = TrainConfig(max_iters=iters, compile=compile_step, hash_kernel=kernel, downscale=downscale, final_eval=False,
                       eval_every_s=1e9)
     report = train(scene, run, cfg, resume=False, progress_bar=False)
-    return report["throughput"]
+    return report.throughput
 
 
 def _render_seconds(run: Path, compile_render: bool, kernel: bool) -> float:

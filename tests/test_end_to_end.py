@@ -15,7 +15,7 @@ from voxnerf.image_io import decode_exr
 from voxnerf.render import load_model, render
 from voxnerf.scene import load_scene
 from voxnerf.synthetic import build_room, render_view
-from voxnerf.trainer import train
+from voxnerf.training.run import train
 
 pytestmark = pytest.mark.slow
 

@@ -36,10 +36,10 @@ from service_fixtures import (
     wait_for,
 )
 
-from app import jobstore
-from app.db import session_scope
-from app.models import JobRow
-from app.settings import Settings
+from app.core import jobstore
+from app.core.db import session_scope
+from app.core.models import JobRow
+from app.core.settings import Settings
 
 pytestmark = pytest.mark.slow
 

@@ -31,9 +31,9 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from app import jobstore
+from app.core import jobstore
+from app.core.settings import Settings
 from app.main import create_app
-from app.settings import Settings
 from voxnerf.synthetic import RoomSpec, make_room_scene
 
 MiB = 1024 * 1024

@@ -11,7 +11,7 @@ from voxnerf.cli import main
 from voxnerf.config import TrainConfig
 from voxnerf.field import HashEncoding
 from voxnerf.model import field_for
-from voxnerf.trainer import train
+from voxnerf.training.run import train
 
 pytestmark = pytest.mark.skipif(not hash_kernel.available(), reason="the hash kernel could not be built here")
 
@@ -164,8 +164,8 @@ def test_the_report_says_whether_the_kernel_ran(small_room, tmp_path):
     """The default run reports the kernel's stage as run; ``voxnerf train --no-hash-kernel`` as disabled."""
     report = train(small_room, tmp_path / "kernel", TrainConfig(max_iters=2, compile=False, downscale=4,
                    final_eval=False), resume=False, progress_bar=False)
-    stage = next(s for s in report["stages"] if s["name"] == "hash_kernel")
-    assert stage["ran"] and "C kernel" in stage["why"]
+    stage = next(s for s in report.stages if s.name == "hash_kernel")
+    assert stage.ran and "C kernel" in stage.why
     assert main(["train", str(small_room), "--out", str(tmp_path / "torch"), "--max-iters", "2", "--no-compile",
                  "--downscale", "4", "--no-hash-kernel"]) == 0
     report = json.loads((tmp_path / "torch" / "report.json").read_text())

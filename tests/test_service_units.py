@@ -13,17 +13,18 @@ import numpy as np
 import pytest
 from kombu import Connection
 
-from app import jobstore
-from app.db import session_scope
-from app.models import JobRow
-from app.schemas import RenderRequest
-from app.settings import Settings
-from app.uploads import UploadError, safe_relpath
+from app.core import jobstore
+from app.core.celery_app import create_celery
+from app.core.db import session_scope
+from app.core.dispatch import requeue_stale_jobs
+from app.core.models import JobRow
+from app.core.render_request import RenderRequest
+from app.core.settings import Settings
+from app.uploads import TRANSFORMS, UploadError, safe_relpath
 from voxnerf.cameras import Intrinsics
 from voxnerf.image_io import decode_exr
-from worker.celery_app import create_celery
-from worker.dispatch import requeue_stale_jobs
-from worker.encoding import encode_render
+from voxnerf.outputs import encode_outputs as encode_render
+from voxnerf.training.records import EvalRecord, ProgressEvent
 
 
 @pytest.mark.parametrize(
@@ -111,7 +112,7 @@ def _broker(folder) -> Connection:
         "claimed_folder": str(folder / "claimed"),
         "polling_interval": 0.01,
     }
-    return Connection("filesystem://", transport="worker.broker:Transport", transport_options=options)
+    return Connection("filesystem://", transport="app.core.broker:Transport", transport_options=options)
 
 
 def _consume(folder, out):
@@ -165,10 +166,12 @@ def test_claims_are_fenced_and_stale_jobs_are_requeued(settings):
     first = jobstore.claim_job(settings, job.id, "elsewhere:1")
     assert first.attempt == 1 and first.state == "running"
     assert jobstore.claim_job(settings, job.id, "elsewhere:2") is None  # fresh lease: not claimable
+    nan_point = EvalRecord(elapsed_s=1.0, iteration=3, psnr={"test": float("nan")})
     assert jobstore.record_progress(
-        settings, job.id, 1, {"progress": 0.5, "history": [{"psnr": float("nan")}]}
+        settings, job.id, 1, ProgressEvent(stage="train", progress=0.5, history=[nan_point])
     )
-    assert jobstore.get_job(settings, job.id).history == [{"psnr": None}]  # NaN never reaches the store
+    history = jobstore.get_job(settings, job.id).history
+    assert [point["psnr"] for point in history] == [{"test": None}]  # NaN never reaches the store
 
     celery = create_celery(settings)
     assert requeue_stale_jobs(settings, celery) == []
@@ -183,7 +186,7 @@ def test_claims_are_fenced_and_stale_jobs_are_requeued(settings):
     second = jobstore.claim_job(settings, job.id, "here:2")
     assert second.attempt == 2
     assert not jobstore.record_progress(
-        settings, job.id, 1, {"progress": 0.9}
+        settings, job.id, 1, ProgressEvent(stage="train", progress=0.9)
     )  # the old worker is fenced off
     assert not jobstore.renew_lease(settings, job.id, 1).owned
     assert jobstore.finish_job(settings, job.id, 2, "succeeded", {"progress": 1.0})
@@ -216,3 +219,11 @@ def test_cancel_is_immediate_when_queued_and_flagged_when_running(settings):
     with pytest.raises(jobstore.SceneBusy):
         jobstore.delete_scene(settings, "c" * 32)
     assert jobstore.get_scene(settings, "c" * 32) is not None
+
+
+def test_upload_names_the_engines_scene_file():
+    from app.core import storage
+    from voxnerf import files, render, scene  # the engine modules import torch: not at app.uploads' import
+
+    assert TRANSFORMS == scene.TRANSFORMS == files.TRANSFORMS
+    assert storage.CHECKPOINT == render.CHECKPOINT == files.CHECKPOINT

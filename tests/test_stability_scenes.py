@@ -20,7 +20,7 @@ import pytest
 import torch
 import trimesh
 
-import voxnerf.trainer as trainer_module
+import voxnerf.training.step as step_module
 from voxnerf.cameras import Intrinsics
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
@@ -30,7 +30,9 @@ from voxnerf.prior import load_prior
 from voxnerf.render import load_model, render
 from voxnerf.scene import SceneTransform, load_scene
 from voxnerf.synthetic import RoomSpec, make_room_scene
-from voxnerf.trainer import eval_views_of, train
+from voxnerf.training.evals import eval_views_of
+from voxnerf.training.records import TrainReport
+from voxnerf.training.run import train
 
 # Scale cases: x -> x * scale + offset for every position, lengths times scale.
 UNITS = {"millimetres": (1e3, 0.0), "kilometres": (1e-3, 0.0), "offset_1e5": (1.0, 1e5)}
@@ -145,14 +147,14 @@ def test_units_and_placement_train_to_the_same_heldout_psnr(room, metre_run, tmp
     report = train(scene, run, small_config(max_iters=150, rays_per_batch=512, final_eval=False,
                                             depth_beta=0.1 * scale), progress_bar=False)
     base_run, base_report = metre_run
-    assert report["status"] == base_report["status"] == "succeeded"
+    assert report.status == base_report.status == "succeeded"
     # Same octree in box units, same pseudo-depth coverage, same first hits.
-    octree, base_octree = report["octree"], base_report["octree"]
+    octree, base_octree = report.octree, base_report.octree
     assert octree["levels"] == base_octree["levels"]
     assert octree["nodes_per_level"] == base_octree["nodes_per_level"]
     assert octree["leaf_size"] == pytest.approx(base_octree["leaf_size"], rel=1e-9)
     np.testing.assert_allclose(octree["root_origin"], base_octree["root_origin"], rtol=0, atol=1e-7)
-    whys = [{s["name"]: s["why"] for s in r["stages"]} for r in (report, base_report)]
+    whys = [{s.name: s.why for s in r.stages} for r in (report, base_report)]
     for stage in ("octree", "pseudo_depth", "first_hit_cache"):
         assert whys[0][stage] == whys[1][stage], stage
     base, psnr = heldout_psnr(base_run, room), heldout_psnr(run, scene)
@@ -304,32 +306,32 @@ def _skew(pose: np.ndarray) -> None:
     pose[:3, :3] = pose[:3, :3] @ np.array([[1.0, 0.01, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
-GRACEFUL: dict[str, tuple[Edit, Callable[[dict], None]]] = {
+GRACEFUL: dict[str, tuple[Edit, Callable[[TrainReport], None]]] = {
     # case: (edit, extra check of the report)
     "one_point_prior": (_prior(lambda p: p[:1]),
-                        lambda r: r["prior"]["points"] == 1 and r["octree"]["nodes_per_level"][-1] == 1),
+                        lambda r: r.prior["points"] == 1 and r.octree["nodes_per_level"][-1] == 1),
     "planar_prior": (_prior(lambda p: p[p[:, 2] < 0.05] * [1.0, 1.0, 0.0]),
-                     lambda r: r["prior"]["points"] > 1000),
+                     lambda r: r.prior["points"] > 1000),
     "prior_1km_from_cameras": (_prior(lambda p: p + [1000.0, 0.0, 0.0]),
                                lambda r: "(0.0% hit)" in _why(r, "first_hit_cache")),
-    "nan_and_inf_vertices": (_prior(_nonfinite_vertices), lambda r: r["prior"]["nonfinite_removed"] == len(
-        range(0, r["prior"]["input_points"], 10)) + len(range(5, r["prior"]["input_points"], 10))),
+    "nan_and_inf_vertices": (_prior(_nonfinite_vertices), lambda r: r.prior["nonfinite_removed"] == len(
+        range(0, r.prior["input_points"], 10)) + len(range(5, r.prior["input_points"], 10))),
     "sigma_10x_too_small": (lambda root, meta: meta.update(prior_sigma=meta["prior_sigma"] / 10),
-                            lambda r: r["prior"]["sigma"] == pytest.approx(0.002)),
+                            lambda r: r.prior["sigma"] == pytest.approx(0.002)),
     "sigma_10x_too_large": (lambda root, meta: meta.update(prior_sigma=meta["prior_sigma"] * 10),
-                            lambda r: r["prior"]["sigma"] == pytest.approx(0.2)),
+                            lambda r: r.prior["sigma"] == pytest.approx(0.2)),
     "single_training_image": (lambda root, meta: meta.update(train_filenames=meta["train_filenames"][:1]),
-                              lambda r: r["scene"]["splits"]["train"] == 1),
-    "all_black_images": (_black, lambda r: 0.0 < r["metrics"]["interpolation"]["psnr"] <= 100.0),
+                              lambda r: r.scene["splits"]["train"] == 1),
+    "all_black_images": (_black, lambda r: 0.0 < r.metrics["interpolation"]["psnr"] <= 100.0),
     "saturated_images": (_saturated, lambda r: True),
-    "duplicate_frame_content": (_duplicate_frame, lambda r: r["scene"]["splits"]["train"] == 11),
+    "duplicate_frame_content": (_duplicate_frame, lambda r: r.scene["splits"]["train"] == 11),
     "slightly_skewed_rotation": (_set_pose(3, _skew), lambda r: any(
-        "frames[3].transform_matrix: rotation re-orthonormalised" in w for w in r["scene"]["warnings"])),
+        "frames[3].transform_matrix: rotation re-orthonormalised" in w for w in r.scene["warnings"])),
 }
 
 
-def _why(report: dict, stage: str) -> str:
-    return next(s["why"] for s in report["stages"] if s["name"] == stage)
+def _why(report: TrainReport, stage: str) -> str:
+    return next(s.why for s in report.stages if s.name == stage)
 
 
 @pytest.mark.slow
@@ -339,12 +341,12 @@ def test_degenerate_scene_trains_without_nan(tiny_room, tmp_path, case):
     scene = variant(tiny_room, tmp_path / "scene", edit)
     run = tmp_path / "run"
     report = train(scene, run, small_config(max_iters=5, rays_per_batch=128), progress_bar=False)
-    assert report["status"] == "succeeded" and report["iteration"] == 5
+    assert report.status == "succeeded" and report.iteration == 5
     assert strict_json(run / "report.json")["status"] == "succeeded"
-    for split, metrics in report["metrics"].items():
+    for split, metrics in report.metrics.items():
         assert math.isfinite(metrics["psnr"]) and math.isfinite(metrics["ssim"]), split
         assert metrics["lpips"] is None and "31x31" in metrics["lpips_note"]  # 24x18 views: too small
-    assert check(report), json.dumps({k: report.get(k) for k in ("prior", "octree", "scene")})[:2000]
+    assert check(report), json.dumps(report.model_dump(include={"prior", "octree", "scene"}))[:2000]
     trained = load_model(run, "cpu")
     assert all(bool(torch.isfinite(p).all()) for p in trained.model.field.parameters())
     frame = load_scene(scene, load_images=False).frames[0]
@@ -361,7 +363,7 @@ def _fault_at(call: int, fault: str, monkeypatch) -> None:
     (``"nan_loss"``) or keep a finite value whose gradient is NaN (``"nan_gradient"``), which poisons the
     weights through the optimiser step. Simulates a numerical fault; everything else is the real engine."""
     calls = [0]
-    real = trainer_module.color_loss
+    real = step_module.color_loss
 
     class NanGradient(torch.autograd.Function):
         @staticmethod
@@ -379,7 +381,7 @@ def _fault_at(call: int, fault: str, monkeypatch) -> None:
             return value
         return value * float("nan") if fault == "nan_loss" else NanGradient.apply(value)
 
-    monkeypatch.setattr(trainer_module, "color_loss", faulty)
+    monkeypatch.setattr(step_module, "color_loss", faulty)
 
 
 @pytest.mark.parametrize(("fault", "last_good"), [("nan_loss", 6), ("nan_gradient", 6)])

@@ -1,4 +1,4 @@
-"""The object store (app/storage.py) against moto's S3 server running as a real process on loopback.
+"""The object store (app/core/storage.py) against moto's S3 server running as a real process on loopback.
 
 Unit tests: round trip of a directory, the completion marker (an unfinished upload is invisible, a damaged
 one refused), missing scenes, cache refresh rules for runs, uploads during training. End to end: an API and
@@ -21,8 +21,8 @@ import pytest
 from pydantic import SecretStr
 from service_fixtures import Service, first_pose, free_port, start_redis, start_service, wait_for, zip_scene
 
-from app import storage
-from app.settings import Settings
+from app.core import storage
+from app.core.settings import Settings
 from voxnerf.render import CHECKPOINT, load_model, render
 
 KEY, SECRET = "test-key", "test-secret"
@@ -337,7 +337,8 @@ def test_service_with_separate_data_dirs(tmp_path, moto_endpoint, store_url):
 
 def test_upload_refused_with_503_when_the_store_is_down(tmp_path):
     """The API keeps no scene the store did not take: no directory, no row, a 503 naming the cause."""
-    from app import jobstore, uploads
+    from app import uploads
+    from app.core import jobstore
     from voxnerf.synthetic import RoomSpec, make_room_scene
 
     scene_dir = tmp_path / "room"
@@ -373,3 +374,8 @@ def test_api_start_up_fails_clearly_when_the_store_is_unreachable(tmp_path):
     expected = r"s3://voxnerf-test/unreachable \(VOXNERF_STORAGE_URL\) cannot be used"
     with pytest.raises(storage.StorageError, match=expected), TestClient(app):
         pass
+
+
+def test_the_store_names_the_engines_checkpoint():
+    """app.core.storage cannot import voxnerf.render (torch) for the name; the two must agree."""
+    assert storage.CHECKPOINT == CHECKPOINT

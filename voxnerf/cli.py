@@ -18,7 +18,7 @@ from voxnerf.errors import RunError, VoxNeRFError
 
 def _train(args: argparse.Namespace) -> int:
     from voxnerf.config import TrainConfig
-    from voxnerf.trainer import train
+    from voxnerf.training.run import train
 
     config = TrainConfig(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
@@ -31,10 +31,10 @@ def _train(args: argparse.Namespace) -> int:
     if config.max_seconds is None and config.max_iters is None:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
     report = train(args.scene, args.out, config, resume=not args.restart)
-    for name, m in report.get("metrics", {}).items():
+    for name, m in (report.metrics or {}).items():
         print(_metrics_line(name, m))
-    print(f"{report['status']}: {report['iteration']} iterations in {report['train_seconds']:.1f} s "
-          f"({report['throughput']['samples_per_s']:.0f} samples/s); report: {Path(args.out) / 'report.json'}")
+    print(f"{report.status}: {report.iteration} iterations in {report.train_seconds:.1f} s "
+          f"({report.throughput['samples_per_s']:.0f} samples/s); report: {Path(args.out) / 'report.json'}")
     return 0
 
 
@@ -47,7 +47,7 @@ def _eval(args: argparse.Namespace) -> int:
     from voxnerf.evaluation import evaluate_views
     from voxnerf.render import load_model
     from voxnerf.scene import load_scene
-    from voxnerf.trainer import eval_views_of
+    from voxnerf.training.evals import eval_views_of
 
     trained = load_model(args.run, args.device)
     scene_dir = args.scene or trained.scene_dir

@@ -6,11 +6,11 @@ import logging
 import os
 import socket
 
-from app import storage
-from app.settings import get_settings
-from worker.celery_app import RENDER_QUEUE, TRAIN_QUEUE, celery_app
+from app.core import storage
+from app.core.celery_app import QUEUES, create_celery
+from app.core.settings import get_settings
 
-QUEUES = (TRAIN_QUEUE, RENDER_QUEUE)
+TASK_MODULES = ("worker.tasks",)  # imported by the worker (and its pool processes) for their tasks
 
 
 def worker_name(queues: list[str], embedded: bool) -> str:
@@ -32,6 +32,7 @@ def run_worker(queues: list[str], concurrency: int) -> None:
     settings.make_dirs()
     storage.check_store(settings)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    celery_app = create_celery(settings, include=TASK_MODULES)
     celery_app.worker_main(
         [
             "worker",

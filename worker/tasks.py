@@ -6,9 +6,14 @@ writes progress at most every ``progress_interval_s``, and renews its lease ever
 side thread that also picks up cancellation. ``acks_late`` + ``reject_on_worker_lost`` give the message
 back to the broker if the process dies; the job store's stale-job sweep covers the rest.
 
-With an object store (``VOXNERF_STORAGE_URL``, :mod:`app.storage`) the scene and the run's last uploaded
+With an object store (``VOXNERF_STORAGE_URL``, :mod:`app.core.storage`) the scene and the run's last uploaded
 checkpoint are fetched into this machine's cache first, and the run is uploaded after every checkpoint and
 at the end; a render fetches the run's checkpoint when the cache lacks it.
+
+The tasks are Celery *shared* tasks: no Celery app is built when this module is imported; they bind to the app
+:func:`worker.run.run_worker` builds (``app.core.celery_app.create_celery``). The engine's typed records are
+the contract with the trainer: ``on_progress`` receives :class:`ProgressEvent` objects and ``train()`` returns a
+:class:`TrainReport`.
 """
 
 from __future__ import annotations
@@ -17,22 +22,27 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from celery import shared_task
 from celery.signals import worker_ready
 
-from app import jobstore, storage
-from app.schemas import RenderRequest
-from app.settings import get_settings
+from app.core import jobstore, storage
+from app.core.celery_app import RENDER_TASK, TRAIN_TASK
+from app.core.dispatch import requeue_stale_jobs
+from app.core.render_request import RenderRequest
+from app.core.render_results import RenderOutcome, deliver_outcome
+from app.core.settings import Settings, get_settings
+from voxnerf.camera_rules import CameraError
 from voxnerf.config import TrainConfig
 from voxnerf.errors import RunError, VoxNeRFError
-from voxnerf.render import CHECKPOINT, TrainedModel, load_model, render
+from voxnerf.files import CHECKPOINT
+from voxnerf.outputs import encode_outputs
+from voxnerf.render import TrainedModel, load_model, render
 from voxnerf.trainer import train
-from worker.celery_app import RENDER_TASK, TRAIN_TASK, celery_app
-from worker.dispatch import requeue_stale_jobs
-from worker.encoding import encode_render
-from worker.render_results import RenderOutcome, deliver_outcome
+from voxnerf.training.records import ProgressEvent, TrainReport
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +50,8 @@ log = logging.getLogger(__name__)
 class Lease:
     """Renews a claimed job's heartbeat in a side thread and turns cancellation into ``should_stop``."""
 
-    def __init__(self, job_id: str, attempt: int) -> None:
+    def __init__(self, settings: Settings, job_id: str, attempt: int) -> None:
+        self.settings = settings
         self.job_id = job_id
         self.attempt = attempt
         self.cancelled = threading.Event()
@@ -49,10 +60,9 @@ class Lease:
         self._thread = threading.Thread(target=self._run, name=f"lease-{job_id}", daemon=True)
 
     def _run(self) -> None:
-        settings = get_settings()
-        while not self._done.wait(settings.heartbeat_s):
+        while not self._done.wait(self.settings.heartbeat_s):
             try:
-                status = jobstore.renew_lease(settings, self.job_id, self.attempt)
+                status = jobstore.renew_lease(self.settings, self.job_id, self.attempt)
             except Exception:  # the database is briefly unreachable: keep training, retry next beat
                 log.warning("job %s: lease renewal failed", self.job_id, exc_info=True)
                 continue
@@ -75,41 +85,65 @@ class Lease:
 
 
 class ProgressWriter:
-    """``on_progress`` callback: writes the trainer's events to the job store, at most one per interval."""
+    """``on_progress`` callback: writes the trainer's events to the job store, at most one per interval.
 
-    def __init__(self, job_id: str, attempt: int, interval_s: float) -> None:
+    A new stage is always written; within a stage, one event per ``progress_interval_s``. The ``done`` event
+    is not written: the task records the final state from the report (and a cancelled job keeps its progress).
+    """
+
+    def __init__(self, settings: Settings, job_id: str, attempt: int) -> None:
+        self.settings = settings
         self.job_id = job_id
         self.attempt = attempt
-        self.interval_s = interval_s
         self._last_write = -float("inf")
         self._last_stage: str | None = None
         self.progress = 0.0
         self.iteration = 0
 
-    def __call__(self, event: dict) -> None:
-        if event.get("stage") == "done":  # the task writes the final state; cancelled keeps its progress
+    def __call__(self, event: ProgressEvent) -> None:
+        if event.stage == "done":
             return
         now = time.monotonic()
-        if event.get("stage") == self._last_stage and now - self._last_write < self.interval_s:
+        if event.stage == self._last_stage and now - self._last_write < self.settings.progress_interval_s:
             return
-        self._last_write, self._last_stage = now, event.get("stage")
+        self._last_write, self._last_stage = now, event.stage
         # Stage events carry iteration 0; an attempt's iteration and progress never go back.
-        self.iteration = max(self.iteration, int(event.get("iteration") or 0))
-        self.progress = max(self.progress, jobstore.finite_or_none(event.get("progress")) or 0.0)
-        values = {
-            "stage": event.get("stage"),
-            "iteration": self.iteration,
-            "progress": self.progress,
-            "eta_s": jobstore.finite_or_none(event.get("eta_s")),
-            "elapsed_s": jobstore.finite_or_none(event.get("elapsed_s")) or 0.0,
-            "loss": jobstore.finite_or_none(event.get("loss")),
-            "history": event.get("history") or [],
-            "stages": event.get("stages") or [],
-        }
-        jobstore.record_progress(get_settings(), self.job_id, self.attempt, values)
+        self.iteration = max(self.iteration, event.iteration)
+        self.progress = max(self.progress, jobstore.finite_or_none(event.progress) or 0.0)
+        event = event.model_copy(update={"iteration": self.iteration, "progress": self.progress})
+        jobstore.record_progress(self.settings, self.job_id, self.attempt, event)
 
 
-@celery_app.task(name=TRAIN_TASK, acks_late=True, reject_on_worker_lost=True)
+def _fail(settings: Settings, job_id: str, attempt: int, error: str) -> None:
+    jobstore.finish_job(settings, job_id, attempt, "failed", {"error": error, "stage": "failed", "eta_s": None})
+
+
+def _train_claimed(settings: Settings, job, writer: ProgressWriter, lease: Lease) -> TrainReport | None:
+    """Train a claimed job; None when it failed (the job is then marked failed)."""
+    config = TrainConfig(**job.options, device=settings.device, checkpoint_every_s=settings.checkpoint_every_s)
+    try:
+        scene_dir = storage.ensure_scene(settings, job.scene_id)
+        run_dir = storage.ensure_run(settings, job.id)
+        with storage.RunPublisher(settings, job.id, run_dir):
+            return train(
+                scene_dir,
+                run_dir,
+                config,
+                on_progress=writer,
+                should_stop=lease.should_stop,
+                resume=True,
+                progress_bar=False,
+            )
+    except VoxNeRFError as err:
+        log.warning("job %s failed: %s", job.id, err)
+        _fail(settings, job.id, job.attempt, f"{type(err).__name__}: {err}")
+    except Exception as err:
+        log.exception("job %s crashed", job.id)
+        _fail(settings, job.id, job.attempt, f"internal error: {type(err).__name__}: {err}")
+    return None
+
+
+@shared_task(name=TRAIN_TASK, acks_late=True, reject_on_worker_lost=True)
 def train_job(job_id: str) -> None:
     """Train job ``job_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
     settings = get_settings()
@@ -120,63 +154,12 @@ def train_job(job_id: str) -> None:
     if job.cancel_requested:
         jobstore.finish_job(settings, job_id, job.attempt, "cancelled", {"stage": "cancelled"})
         return
-    config = TrainConfig(
-        **job.options, device=settings.device, checkpoint_every_s=settings.checkpoint_every_s
-    )
-    writer = ProgressWriter(job_id, job.attempt, settings.progress_interval_s)
-    with Lease(job_id, job.attempt) as lease:
-        try:
-            scene_dir = storage.ensure_scene(settings, job.scene_id)
-            run_dir = storage.ensure_run(settings, job_id)
-            with storage.RunPublisher(settings, job_id, run_dir):
-                report = train(
-                    scene_dir,
-                    run_dir,
-                    config,
-                    on_progress=writer,
-                    should_stop=lease.should_stop,
-                    resume=True,
-                    progress_bar=False,
-                )
-        except VoxNeRFError as err:
-            log.warning("job %s failed: %s", job_id, err)
-            jobstore.finish_job(
-                settings,
-                job_id,
-                job.attempt,
-                "failed",
-                {"error": f"{type(err).__name__}: {err}", "stage": "failed", "eta_s": None},
-            )
-            return
-        except Exception as err:
-            log.exception("job %s crashed", job_id)
-            jobstore.finish_job(
-                settings,
-                job_id,
-                job.attempt,
-                "failed",
-                {"error": f"internal error: {type(err).__name__}: {err}", "stage": "failed", "eta_s": None},
-            )
-            return
-    if lease.lost.is_set():
+    writer = ProgressWriter(settings, job_id, job.attempt)
+    with Lease(settings, job_id, job.attempt) as lease:
+        report = _train_claimed(settings, job, writer, lease)
+    if report is None or lease.lost.is_set():
         return
-    succeeded = report.get("status") == "succeeded"
-    jobstore.finish_job(
-        settings,
-        job_id,
-        job.attempt,
-        "succeeded" if succeeded else "cancelled",
-        {
-            "stage": "done" if succeeded else "cancelled",
-            "progress": 1.0 if succeeded else writer.progress,
-            "eta_s": None,
-            "iteration": int(report.get("iteration") or 0),
-            "elapsed_s": jobstore.finite_or_none(report.get("train_seconds")) or 0.0,
-            "history": report.get("history") or [],
-            "stages": report.get("stages") or [],
-            "metrics": report.get("metrics"),
-        },
-    )
+    jobstore.finish_with_report(settings, job_id, job.attempt, report, writer.progress)
 
 
 class ModelCache:
@@ -202,28 +185,31 @@ class ModelCache:
         return model
 
 
-_models = ModelCache(get_settings().render_cache_size)
+@lru_cache(maxsize=1)
+def model_cache() -> ModelCache:
+    """This process's model cache, built on first use (``render_cache_size`` models)."""
+    return ModelCache(get_settings().render_cache_size)
 
 
 def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:
     """Render ``request`` with job ``job_id``'s model (loaded through the cache)."""
     settings = get_settings()
     try:
-        trained = _models.get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
+        trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
     except (RunError, storage.StorageError) as err:
         return RenderOutcome(409, detail=f"job {job_id} cannot be rendered: {err}")
-    intrinsics = request.intrinsics(trained.default_intrinsics)
-    if intrinsics.width * intrinsics.height > settings.max_render_pixels:
-        size = f"{intrinsics.width}x{intrinsics.height}"
-        return RenderOutcome(422, detail=f"{size} exceeds the limit of {settings.max_render_pixels} pixels")
+    try:  # the scene's default size is only known here, so the pixel limit is checked here too
+        intrinsics = request.intrinsics(trained.default_intrinsics, max_pixels=settings.max_render_pixels)
+    except CameraError as err:
+        return RenderOutcome(422, detail=str(err))
     images = render(trained, np.asarray(request.transform_matrix), intrinsics, tuple(request.outputs))
-    data = encode_render(images, request.format, request.outputs, trained.depth_unit_scale)
+    data = encode_outputs(images, request.format, request.outputs, trained.depth_unit_scale)
     return RenderOutcome(200, request.media_type, data)
 
 
-@celery_app.task(name=RENDER_TASK)
+@shared_task(name=RENDER_TASK)
 def render_pose(request_id: str, job_id: str, request: dict) -> None:
-    """Render one request and hand its outcome to the waiting API (:mod:`worker.render_results`)."""
+    """Render one request and hand its outcome to the waiting API (:mod:`app.core.render_results`)."""
     try:
         outcome = render_outcome(job_id, RenderRequest.model_validate(request))
     except Exception as err:
@@ -233,9 +219,9 @@ def render_pose(request_id: str, job_id: str, request: dict) -> None:
 
 
 @worker_ready.connect
-def _recover_stale_jobs(**_) -> None:
+def _recover_stale_jobs(sender=None, **_) -> None:
     """At worker start-up, requeue jobs whose previous worker died (the API also does so periodically)."""
     try:
-        requeue_stale_jobs(get_settings(), celery_app)
+        requeue_stale_jobs(get_settings(), sender.app)
     except Exception:
         log.exception("start-up recovery of stale jobs failed")

@@ -5,10 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
-from app import db
+from app.core import db
+from app.core.celery_app import RENDER_QUEUE, TRAIN_QUEUE
 from app.deps import CeleryDep, SettingsDep
 from app.schemas import Check, HealthOut
-from worker.celery_app import RENDER_QUEUE, TRAIN_QUEUE
 
 router = APIRouter(tags=["health"])
 

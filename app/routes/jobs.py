@@ -8,11 +8,11 @@ from urllib.parse import quote
 from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import FileResponse
 
-from app import jobstore, storage
+from app.core import jobstore, storage
+from app.core.models import JobRow
+from app.core.settings import Settings
 from app.deps import JobId, SettingsDep
-from app.models import JobRow
 from app.schemas import EvalRender, JobOut
-from app.settings import Settings
 
 router = APIRouter(tags=["jobs"])
 

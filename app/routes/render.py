@@ -15,12 +15,13 @@ from fastapi.concurrency import run_in_threadpool
 from kombu.exceptions import KombuError
 from redis import RedisError
 
-from app import jobstore
+from app.core import jobstore
+from app.core.dispatch import send_render
+from app.core.render_request import RenderRequest
+from app.core.render_results import receive_outcome
+from app.core.settings import Settings
 from app.deps import CeleryDep, SettingsDep
-from app.schemas import MEDIA_TYPES, RenderRequest
-from app.settings import Settings
-from worker.dispatch import send_render
-from worker.render_results import receive_outcome
+from voxnerf.outputs import MEDIA_TYPES
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["render"])
@@ -58,7 +59,7 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
     """The blocking part (job store, broker, waiting for the worker's outcome); runs in a worker thread.
 
     The outcome comes back through Redis (BLPOP) or, with the embedded broker, as files in
-    ``data_dir/render-results``; see :mod:`worker.render_results`.
+    ``data_dir/render-results``; see :mod:`app.core.render_results`.
     """
     job = jobstore.get_job(settings, body.job_id)
     if job is None:

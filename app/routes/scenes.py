@@ -10,11 +10,12 @@ from kombu.exceptions import KombuError
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
-from app import jobstore, storage, uploads
+from app import uploads
+from app.core import jobstore, storage
+from app.core.dispatch import send_train
 from app.deps import CeleryDep, SceneId, SettingsDep
 from app.schemas import JobOptions, JobOut, SceneOut
 from voxnerf.config import TrainConfig
-from worker.dispatch import send_train
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["scenes"])
@@ -129,8 +130,8 @@ def create_job(
     scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response
 ) -> JobOut:
     values = options.model_dump(exclude_none=True)
-    try:
-        TrainConfig(**values, device=settings.device)
+    try:  # TrainConfig's own cross-field rules; the worker adds device and checkpoint_every_s the same way
+        TrainConfig(**values, device=settings.device, checkpoint_every_s=settings.checkpoint_every_s)
     except ValidationError as err:
         raise HTTPException(422, f"invalid training options: {err}") from None
     _scene_or_404(settings, scene_id)

@@ -1,4 +1,4 @@
-"""Publishing work to the queues (used by the API): training jobs, render requests, stale-job recovery.
+"""Publishing work to the queues: training jobs, render requests, stale-job recovery (API and workers).
 
 Only task names cross this boundary, so publishing never imports the engine.
 """
@@ -9,9 +9,9 @@ import logging
 
 from celery import Celery
 
-from app import jobstore
-from app.settings import Settings
-from worker.celery_app import RENDER_TASK, TRAIN_TASK
+from app.core import jobstore
+from app.core.celery_app import RENDER_TASK, TRAIN_TASK
+from app.core.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +31,7 @@ def requeue_stale_jobs(settings: Settings, app: Celery) -> list[str]:
 
     The message is published before the row goes back to ``queued``: if publishing fails the job stays
     stale and the next sweep tries again. A worker may get the message before the row is marked; it then
-    takes the stale job over itself (see :func:`app.jobstore.claim_job`). A duplicate message is harmless
+    takes the stale job over itself (see :func:`app.core.jobstore.claim_job`). A duplicate message is harmless
     because claims are fenced.
     """
     requeued = []

@@ -39,9 +39,9 @@ from types import TracebackType
 import fsspec
 from fsspec.core import url_to_fs
 
-from app.settings import Settings
+from app.core.settings import Settings
 from voxnerf.errors import VoxNeRFError
-from voxnerf.render import CHECKPOINT
+from voxnerf.files import CHECKPOINT
 
 MARKER = "current.json"
 LOCAL_GENERATION = ".store-generation"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from voxnerf.trainer import Budget
+from voxnerf.training.budget import Budget
 
 
 def test_progress_evaluations_pause_training_time_but_still_count_against_the_budget() -> None:

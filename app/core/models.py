@@ -1,9 +1,15 @@
-"""Job-store tables (SQLAlchemy ORM). Times are UNIX seconds (float, UTC); JSON columns hold dicts/lists."""
+"""Job-store tables (SQLAlchemy ORM). Times are UNIX seconds (float, UTC); JSON columns hold dicts/lists.
+
+The job's progress columns (stage, iteration, progress, ETA, history, stages...) are not listed here: they are
+built from the engine's ``ProgressEvent`` by :func:`app.core.progress.progress_columns`.
+"""
 
 from __future__ import annotations
 
 from sqlalchemy import JSON, Boolean, Float, Integer, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+from app.core.progress import progress_columns
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 ACTIVE_STATES = ("queued", "running")
@@ -25,9 +31,14 @@ class SceneRow(Base):
     summary: Mapped[dict] = mapped_column(JSON)
 
 
-class JobRow(Base):
+# A declarative mixin: its columns are copied into JobRow (one per stored ProgressEvent field).
+ProgressColumns = type("ProgressColumns", (), progress_columns())
+
+
+class JobRow(ProgressColumns, Base):
     """A training job and everything the API reports about it; the run lives in ``<data_dir>/runs/<id>``.
 
+    Besides the columns below it has one column per field of :data:`app.core.progress.PROGRESS_FIELDS`.
     ``attempt`` is a fencing token: each claim by a worker increments it, and a worker writes only while the
     row still carries the attempt it claimed, so a worker presumed dead can never overwrite its successor.
     """
@@ -41,14 +52,6 @@ class JobRow(Base):
     created_at: Mapped[float] = mapped_column(Float)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
-    progress: Mapped[float] = mapped_column(Float, default=0.0)
-    eta_s: Mapped[float | None] = mapped_column(Float, nullable=True)
-    stage: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    iteration: Mapped[int] = mapped_column(Integer, default=0)
-    elapsed_s: Mapped[float] = mapped_column(Float, default=0.0)
-    loss: Mapped[float | None] = mapped_column(Float, nullable=True)
-    history: Mapped[list] = mapped_column(JSON, default=list)
-    stages: Mapped[list] = mapped_column(JSON, default=list)
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)

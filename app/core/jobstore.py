@@ -5,6 +5,9 @@ Jobs move ``queued -> running -> succeeded | failed | cancelled``. A worker *cla
 job only while the row still carries that attempt. A running job whose lease is older than
 ``stale_after_s``, or whose worker process on this host is gone, is *stale*: :func:`mark_requeued` puts it
 back to ``queued`` so that the next worker resumes it from its checkpoint.
+
+Progress is written from the engine's typed records: :func:`record_progress` takes a ``ProgressEvent`` and
+:func:`finish_with_report` a ``TrainReport`` (the columns are :data:`app.core.progress.PROGRESS_FIELDS`).
 """
 
 from __future__ import annotations
@@ -21,9 +24,11 @@ from typing import Any
 
 from sqlalchemy import select, update
 
-from app.db import session_scope
-from app.models import ACTIVE_STATES, JobRow, SceneRow
-from app.settings import Settings
+from app.core.db import session_scope
+from app.core.models import ACTIVE_STATES, JobRow, SceneRow
+from app.core.progress import initial_values, json_safe, progress_values
+from app.core.settings import Settings
+from voxnerf.training.records import ProgressEvent, TrainReport
 
 ID_RE = re.compile(r"^[0-9a-f]{32}$")
 
@@ -43,17 +48,6 @@ def finite_or_none(value: Any) -> float | None:
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
     return float(value) if math.isfinite(value) else None
-
-
-def json_safe(value: Any) -> Any:
-    """A copy of a JSON-like value with every non-finite float replaced by None."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    return value
 
 
 # ------------------------------------------------------------------------------------------------ scenes
@@ -119,14 +113,10 @@ def create_job(settings: Settings, scene_id: str, options: dict) -> JobRow | Non
         state="queued",
         options=options,
         created_at=time.time(),
-        progress=0.0,
-        iteration=0,
-        elapsed_s=0.0,
-        history=[],
-        stages=[],
         cancel_requested=False,
         attempt=0,
         requeues=0,
+        **initial_values(),
     )
     with session_scope(settings) as session:
         session.add(row)
@@ -251,30 +241,42 @@ def renew_lease(settings: Settings, job_id: str, attempt: int) -> LeaseStatus:
     return LeaseStatus(bool(owned), bool(cancel))
 
 
-PROGRESS_FIELDS = ("progress", "eta_s", "stage", "iteration", "elapsed_s", "loss", "history", "stages")
-
-
-def record_progress(settings: Settings, job_id: str, attempt: int, values: dict) -> bool:
-    """Write progress fields (a subset of PROGRESS_FIELDS) of a claimed job; False when no longer owned."""
-    values = {k: json_safe(v) for k, v in values.items() if k in PROGRESS_FIELDS}
-    with session_scope(settings) as session:
-        return bool(
-            session.execute(
-                update(JobRow)
-                .where(JobRow.id == job_id, JobRow.attempt == attempt, JobRow.state == "running")
-                .values(heartbeat_at=time.time(), **values)
-            ).rowcount
-        )
+def record_progress(settings: Settings, job_id: str, attempt: int, event: ProgressEvent) -> bool:
+    """Write a progress event's fields (and renew the lease) of a claimed job; False when no longer owned."""
+    return _write_running(settings, job_id, attempt, progress_values(event))
 
 
 def finish_job(settings: Settings, job_id: str, attempt: int, state: str, values: dict) -> bool:
-    """Move a claimed job to a final state with its last fields (metrics, stages, history, error...)."""
+    """Move a claimed job to a final state with its last fields (error, stage...); False when not owned."""
+    return _write_running(settings, job_id, attempt, {"state": state, "finished_at": time.time(), **values})
+
+
+def finish_with_report(settings: Settings, job_id: str, attempt: int, report: TrainReport, progress: float) -> bool:
+    """Move a claimed job to its final state from the report ``train()`` returned: ``succeeded`` (progress 1,
+    metrics) or ``cancelled`` (stopped early: ``progress`` is how far it got). The last loss stays."""
+    succeeded = report.status == "succeeded"
+    final = ProgressEvent(
+        stage="done" if succeeded else "cancelled",
+        iteration=report.iteration,
+        elapsed_s=report.train_seconds or 0.0,
+        progress=1.0 if succeeded else progress,
+        eta_s=None,
+        history=report.history,
+        stages=report.stages,
+    )
+    values = progress_values(final, final.model_fields_set)
+    values["metrics"] = json_safe(report.metrics)
+    return finish_job(settings, job_id, attempt, "succeeded" if succeeded else "cancelled", values)
+
+
+def _write_running(settings: Settings, job_id: str, attempt: int, values: dict) -> bool:
+    """Update a running job's row while it still carries ``attempt``; False when it does not."""
     with session_scope(settings) as session:
         return bool(
             session.execute(
                 update(JobRow)
                 .where(JobRow.id == job_id, JobRow.attempt == attempt, JobRow.state == "running")
-                .values(state=state, finished_at=time.time(), **{k: json_safe(v) for k, v in values.items()})
+                .values(heartbeat_at=time.time(), **{k: json_safe(v) for k, v in values.items()})
             ).rowcount
         )
 

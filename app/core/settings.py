@@ -5,9 +5,9 @@ kombu's filesystem transport in ``data_dir/broker``. Setting ``VOXNERF_BROKER_UR
 switches the broker to Redis; ``VOXNERF_DATABASE_URL`` points the job store at PostgreSQL (or another
 SQLAlchemy URL). Without ``storage_url``, scene files and runs live under ``data_dir``, which every API and
 worker process must then share (the same directory, or a shared filesystem when they run on several
-machines). With ``storage_url`` set (an object store such as ``s3://bucket/prefix``, see :mod:`app.storage`)
-the store holds them and each process's ``data_dir`` is only a local cache; render results then travel
-through Redis, so no directory needs to be shared at all.
+machines). With ``storage_url`` set (an object store such as ``s3://bucket/prefix``, see
+:mod:`app.core.storage`) the store holds them and each process's ``data_dir`` is only a local cache; render
+results then travel through Redis, so no directory needs to be shared at all.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import redis
 
-from app.settings import Settings
+from app.core.settings import Settings
 from voxnerf.image_io import write_atomic
 
 POLL_INTERVAL_S = 0.005

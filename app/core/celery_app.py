@@ -1,26 +1,37 @@
-"""The Celery application, configured from :mod:`app.settings` (one place for broker and queues).
+"""Task and queue names, and the Celery app factory, configured from :mod:`app.core.settings`.
 
-Embedded default: ``broker_url = "filesystem://"`` served by :mod:`worker.broker` in ``<data_dir>/broker``,
+Embedded default: ``broker_url = "filesystem://"`` served by :mod:`app.core.broker` in ``<data_dir>/broker``,
 which works across processes on one host with no server. ``VOXNERF_BROKER_URL=redis://...`` selects Redis.
 No Celery result backend is used: job state lives in the job store and render results come back through
-Redis, or as files in ``<data_dir>/render-results`` in embedded mode (see :mod:`worker.render_results`).
+Redis, or as files in ``<data_dir>/render-results`` in embedded mode (see :mod:`app.core.render_results`).
+
+Nothing is built at import time: the API builds its app in ``create_app``, a worker process in
+``worker.run`` (with its tasks), and :func:`get_celery` builds this process's app from the environment's
+settings on first use.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from functools import lru_cache
+
 from celery import Celery
 
-from app.settings import Settings, get_settings
+from app.core.settings import Settings, get_settings
 
 TRAIN_TASK = "voxnerf.train"
 RENDER_TASK = "voxnerf.render"
 TRAIN_QUEUE = "train"
 RENDER_QUEUE = "render"
+QUEUES = (TRAIN_QUEUE, RENDER_QUEUE)
 
 
-def create_celery(settings: Settings) -> Celery:
-    """A Celery app for ``settings``: JSON messages, train/render routing, prefetch 1, no result backend."""
-    app = Celery("voxnerf", include=["worker.tasks"])
+def create_celery(settings: Settings, include: Sequence[str] = ()) -> Celery:
+    """A Celery app for ``settings``: JSON messages, train/render routing, prefetch 1, no result backend.
+
+    ``include``: modules whose tasks a worker runs (the API only publishes by task name and needs none).
+    """
+    app = Celery("voxnerf", include=list(include))
     app.conf.update(
         task_serializer="json",
         accept_content=["json"],
@@ -36,7 +47,7 @@ def create_celery(settings: Settings) -> Celery:
         queue = str(settings.broker_dir / "queue")
         app.conf.update(
             broker_url="filesystem://",
-            broker_transport="worker.broker:Transport",
+            broker_transport="app.core.broker:Transport",
             broker_transport_options={
                 "data_folder_in": queue,
                 "data_folder_out": queue,
@@ -50,4 +61,8 @@ def create_celery(settings: Settings) -> Celery:
     return app
 
 
-celery_app = create_celery(get_settings())
+@lru_cache(maxsize=1)
+def get_celery() -> Celery:
+    """This process's publishing app for the environment's settings, built on first use (health checks,
+    scripts); the API keeps its own in ``app.state.celery``."""
+    return create_celery(get_settings())

@@ -15,8 +15,8 @@ from contextlib import contextmanager
 from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.models import Base
-from app.settings import Settings
+from app.core.models import Base
+from app.core.settings import Settings
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
 

@@ -63,6 +63,6 @@ class Channel(filesystem.Channel):
 
 
 class Transport(filesystem.Transport):
-    """Selected by ``broker_transport = "worker.broker:Transport"`` with ``broker_url = "filesystem://"``."""
+    """Selected by ``broker_transport = "app.core.broker:Transport"`` with ``broker_url = "filesystem://"``."""
 
     Channel = Channel

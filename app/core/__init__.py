@@ -1,0 +1,16 @@
+"""The service core: what the API (``app``) and the workers (``worker``) share, and the only place they meet.
+
+- :mod:`app.core.settings`: every ``VOXNERF_*`` setting (:class:`Settings`, the one :func:`get_settings`);
+- :mod:`app.core.db`, :mod:`app.core.models`: database engine and sessions, the ``scenes`` and ``jobs`` tables;
+- :mod:`app.core.progress`: which job columns carry training progress, derived from the engine's
+  :class:`voxnerf.training.records.ProgressEvent`;
+- :mod:`app.core.jobstore`: every read and write of scenes and jobs (claims, fencing, progress, final states);
+- :mod:`app.core.storage`: scenes and runs in an object store (``VOXNERF_STORAGE_URL``);
+- :mod:`app.core.celery_app`: task and queue names, the Celery app factory (nothing is built at import time);
+- :mod:`app.core.dispatch`: publishing train and render tasks, requeueing jobs whose worker died;
+- :mod:`app.core.broker`: the embedded filesystem broker transport;
+- :mod:`app.core.render_results`: how a render's outcome travels from the render worker back to the API;
+- :mod:`app.core.render_request`: the render request both the API and the render task parse.
+
+Nothing here imports the API modules, the workers, or torch (tests/test_architecture.py).
+"""

@@ -1,0 +1,91 @@
+"""Publishing (app/core/dispatch.py) on the embedded filesystem broker: train and render messages land in their
+queues under their task names, a render expires, and stale jobs are published again before they are marked."""
+
+from __future__ import annotations
+
+import base64
+import json
+import time
+
+import pytest
+
+from app.core import jobstore
+from app.core.celery_app import RENDER_QUEUE, RENDER_TASK, TRAIN_QUEUE, TRAIN_TASK, create_celery
+from app.core.db import session_scope
+from app.core.dispatch import requeue_stale_jobs, send_render, send_train
+from app.core.models import JobRow
+from app.core.settings import Settings
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:
+    s = Settings(data_dir=tmp_path / "data", stale_after_s=5.0)
+    s.make_dirs()
+    return s
+
+
+def _messages(settings: Settings, queue: str) -> list[dict]:
+    """The messages waiting in ``queue``: Celery's headers plus the decoded ``args``."""
+    found = []
+    for path in sorted((settings.broker_dir / "queue").glob(f"*.{queue}.msg")):
+        message = json.loads(path.read_text())
+        body = message["body"]
+        if message["properties"].get("body_encoding") == "base64":
+            body = base64.b64decode(body)
+        args, _kwargs, _embed = json.loads(body)
+        found.append({**message["headers"], "args": args})
+    return found
+
+
+def test_the_app_routes_by_task_name_on_the_configured_broker(settings):
+    celery = create_celery(settings)
+    assert celery.conf.broker_transport == "app.core.broker:Transport"
+    assert celery.conf.task_routes[TRAIN_TASK] == {"queue": TRAIN_QUEUE}
+    assert celery.conf.task_routes[RENDER_TASK] == {"queue": RENDER_QUEUE}
+    redis = create_celery(settings.model_copy(update={"broker_url": "redis://127.0.0.1:1/0"}))
+    assert redis.conf.broker_url == "redis://127.0.0.1:1/0"
+
+
+def test_send_train_and_send_render_land_in_their_queues(settings):
+    celery = create_celery(settings)
+    send_train(celery, "j" * 32)
+    send_render(celery, "r" * 32, "j" * 32, {"job_id": "j" * 32, "format": "png"}, expires_s=30)
+    (train,) = _messages(settings, TRAIN_QUEUE)
+    assert train["task"] == TRAIN_TASK and train["args"] == ["j" * 32]
+    (render,) = _messages(settings, RENDER_QUEUE)
+    assert render["task"] == RENDER_TASK
+    assert render["args"] == ["r" * 32, "j" * 32, {"job_id": "j" * 32, "format": "png"}]
+    assert render["expires"]  # a worker that gets it after the API gave up drops it
+
+
+def _stale_job(settings: Settings) -> str:
+    jobstore.add_scene(settings, "s" * 32, "room", {"frames": 1}, 10)
+    job = jobstore.create_job(settings, "s" * 32, {"max_iters": 5})
+    jobstore.claim_job(settings, job.id, "gone:1")
+    with session_scope(settings) as session:
+        session.get(JobRow, job.id).heartbeat_at = time.time() - 60
+    return job.id
+
+
+def test_stale_jobs_are_published_then_marked(settings):
+    celery = create_celery(settings)
+    job_id = _stale_job(settings)
+    assert requeue_stale_jobs(settings, celery) == [job_id]
+    assert [m["args"] for m in _messages(settings, TRAIN_QUEUE)] == [[job_id]]
+    assert jobstore.get_job(settings, job_id).state == "queued"
+    assert requeue_stale_jobs(settings, celery) == []  # nothing stale any more
+
+
+def test_a_job_stays_stale_when_publishing_fails(settings, monkeypatch):
+    celery = create_celery(settings)
+    job_id = _stale_job(settings)
+
+    def broker_down(*_args, **_kwargs):
+        raise OSError("connection refused")
+
+    monkeypatch.setattr(celery, "send_task", broker_down)
+    with pytest.raises(OSError):
+        requeue_stale_jobs(settings, celery)
+    assert jobstore.get_job(settings, job_id).state == "running"  # the next sweep tries again
+    monkeypatch.undo()
+    assert requeue_stale_jobs(settings, celery) == [job_id]

@@ -1,0 +1,287 @@
+"""The training loop's callbacks (voxnerf/training/callbacks.py), each driven alone with stubs and a fake clock."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+
+from voxnerf.config import TrainConfig
+from voxnerf.training.budget import Budget
+from voxnerf.training.callbacks import (
+    COMPILE_NO_STEP_WHY,
+    COMPILE_RAN_WHY,
+    DEFAULT_EVAL_SECONDS_PER_RAY,
+    Checkpointing,
+    CompileTimer,
+    LearningRateSchedule,
+    OccupancyGridUpdate,
+    ProgressBar,
+    ProgressEvaluation,
+    ProgressEvents,
+    present,
+)
+from voxnerf.training.loop import LoopState
+from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
+
+
+class FakeClock:
+    def __init__(self, now: float = 100.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _report() -> TrainReport:
+    return TrainReport(config={}, device="cpu")
+
+
+# ------------------------------------------------------------------------------------------ learning rate
+
+
+def test_learning_rate_decays_tenfold_every_decay_iters_on_every_group():
+    optimizer = SimpleNamespace(param_groups=[{"lr": 0.0}, {"lr": 0.0}])
+    schedule = LearningRateSchedule(optimizer, lr=1e-2, decay_iters=1000)
+    state = LoopState(iteration=0)
+    schedule.before_step(state)
+    assert state.lr == pytest.approx(1e-2) and all(g["lr"] == state.lr for g in optimizer.param_groups)
+    state.iteration = 2000
+    schedule.before_step(state)
+    assert state.lr == pytest.approx(1e-4) and all(g["lr"] == pytest.approx(1e-4) for g in optimizer.param_groups)
+
+
+# ----------------------------------------------------------------------------------------- occupancy grid
+
+
+class StubModel:
+    def __init__(self) -> None:
+        self.updates: list[tuple[object, bool]] = []
+        self.field = SimpleNamespace(density="eager density")
+        self.grid = SimpleNamespace(update=lambda density, warmup: self.updates.append((density, warmup)))
+
+    def compiled_density(self) -> str:
+        return "compiled density"
+
+
+@pytest.mark.parametrize(("sampler", "has_octree", "every"),
+                         [("uniform", False, None), ("occgrid", False, 32), ("occgrid", True, 32),
+                          ("voxnerf", True, 128), ("voxnerf", False, 32)])
+def test_grid_update_period_follows_the_sampler(sampler, has_octree, every):
+    cfg = TrainConfig(sampler=sampler, occgrid_update_every=32, max_iters=10)
+    update = OccupancyGridUpdate.for_config(StubModel(), cfg, has_octree)
+    assert (update.every if update is not None else None) == every
+
+
+@pytest.mark.parametrize(("compiled", "density"), [(False, "eager density"), (True, "compiled density")])
+def test_grid_updates_every_n_steps_with_two_warmup_updates(compiled, density):
+    model = StubModel()
+    update = OccupancyGridUpdate(model, every=4, compiled=compiled)
+    for iteration in range(1, 17):
+        update.after_step(LoopState(iteration))
+    assert model.updates == [(density, True), (density, True), (density, False), (density, False)]
+
+
+# --------------------------------------------------------------------------------------- progress events
+
+
+def _events(clock: FakeClock, cfg: TrainConfig | None = None, sink: list | None = None):
+    budget = Budget(None, clock=clock)
+    report = _report()
+    cfg = cfg or TrainConfig(max_iters=100)
+    return ProgressEvents(None if sink is None else sink.append, cfg, budget, report, clock=clock), budget, report
+
+
+def test_progress_events_while_training_are_throttled_to_one_per_second():
+    clock, sent = FakeClock(), []
+    events, _, _ = _events(clock, sink=sent)
+    for i in range(1, 13):  # 3 s of 0.25 s steps
+        clock.now += 0.25
+        events.after_step(LoopState(i, last_loss=0.5))
+    assert [e.iteration for e in sent] == [1, 5, 9]
+    assert all(isinstance(e, ProgressEvent) and e.stage == "train" and e.loss == 0.5 for e in sent)
+
+
+def test_forced_events_are_never_throttled_and_reset_the_interval():
+    clock, sent = FakeClock(), []
+    events, _, _ = _events(clock, sink=sent)
+    events.emit("octree", 0)
+    events.emit("pseudo_depth", 0)
+    clock.now += 0.5
+    events.after_step(LoopState(1))  # 0.5 s after a forced event: throttled
+    clock.now += 0.5
+    events.after_step(LoopState(2))
+    assert [e.stage for e in sent] == ["octree", "pseudo_depth", "train"]
+
+
+def test_without_a_listener_nothing_is_built():
+    events, _, report = _events(FakeClock())
+    events.emit("x")
+    events.after_step(LoopState(1))
+    events.stage(StageRecord(name="octree", ran=False, why="no prior"), 0)
+    assert [s.name for s in report.stages] == ["octree"]
+
+
+def test_an_event_carries_progress_eta_and_copies_of_history_and_stages():
+    clock, sent = FakeClock(), []
+    events, budget, report = _events(clock, TrainConfig(max_iters=100, max_seconds=40.0), sent)
+    clock.now += 10.0
+    report.history.append(EvalRecord(elapsed_s=5.0, iteration=10, psnr={"test": 20.0}))
+    events.stage(StageRecord(name="load_scene", ran=True, why="3 frames"), 0)
+    events.emit("train", 50, math.nan)
+    first, second = sent
+    assert first.stage == "load_scene" and [s.name for s in first.stages] == ["load_scene"]
+    assert second.progress == pytest.approx(0.5)  # iterations: 0.5; time: 10 / 40
+    assert second.eta_s == pytest.approx(10.0) and second.loss is None
+    assert second.elapsed_s == pytest.approx(budget.train_seconds) and second.history == report.history
+    assert second.history is not report.history and second.stages is not report.stages
+    events.emit("done", 60, 0.1)
+    assert sent[-1].progress == 1.0 and sent[-1].loss == 0.1
+    budget.previous = 100.0  # past max_seconds: progress is capped, no eta
+    events.emit("train", 60, 0.1)
+    assert sent[-1].progress == 1.0 and sent[-1].eta_s is None
+
+
+# ------------------------------------------------------------------------------------- progress evaluation
+
+
+class StubEvaluate:
+    def __init__(self, spent: float, per_ray: float) -> None:
+        self.calls: list[tuple[int, float, bool]] = []
+        self.spent, self.per_ray = spent, per_ray
+
+    def __call__(self, iteration: int, loss: float, full: bool) -> tuple[float, float]:
+        self.calls.append((iteration, loss, full))
+        return self.spent, self.per_ray
+
+
+def _evaluation(compile_: bool = True, final_eval: bool = True, eval_at=(5.0, 25.0), sink=None):
+    clock = FakeClock(0.0)
+    budget = Budget(1000.0, clock=clock)
+    cfg = TrainConfig(max_iters=10, eval_every_s=10.0, eval_at=list(eval_at), compile=compile_, final_eval=final_eval)
+    events = ProgressEvents(sink.append, cfg, budget, _report(), clock=clock) if sink is not None else None
+    evaluate = StubEvaluate(spent=2.0, per_ray=1e-3)
+    return ProgressEvaluation(evaluate, budget, cfg, 1000, events), evaluate, budget, clock
+
+
+def test_progress_evaluations_run_every_eval_every_s_and_full_ones_at_eval_at():
+    evaluation, evaluate, budget, clock = _evaluation(eval_at=(5.0,))
+    state = LoopState(3, last_loss=0.25)
+    evaluation.before_step(state)
+    assert evaluate.calls == []
+    clock.now = 5.0
+    evaluation.before_step(state)  # the --eval-at time: a full evaluation, neither training time nor charged
+    assert evaluate.calls == [(3, 0.25, True)]
+    assert budget.paused == 2.0 and budget.excluded == 2.0 and evaluation.next_at == pytest.approx(13.0)
+    clock.now = 15.0  # 13 s of training time (2 s paused), 10 s after the full one: a progress evaluation
+    evaluation.before_step(state)
+    assert evaluate.calls[-1] == (3, 0.25, False) and budget.paused == 4.0 and budget.excluded == 2.0
+    evaluation.before_step(state)
+    assert len(evaluate.calls) == 2
+
+
+def test_eval_at_times_already_passed_by_a_resumed_run_are_skipped():
+    clock = FakeClock(0.0)
+    budget = Budget(None, previous_train_seconds=30.0, clock=clock)
+    cfg = TrainConfig(max_iters=10, eval_every_s=10.0, eval_at=[5.0, 25.0, 35.0])
+    evaluation = ProgressEvaluation(StubEvaluate(1.0, 1e-3), budget, cfg, 10)
+    assert evaluation.pending_full == [35.0] and evaluation.next_at == 40.0
+
+
+def test_the_first_compiled_evaluation_does_not_set_the_cost_per_ray():
+    evaluation, _, _, clock = _evaluation(compile_=True, eval_at=())
+    assert evaluation.final_eval_reserve() == pytest.approx(1.5 * DEFAULT_EVAL_SECONDS_PER_RAY * 1000 + 2.0)
+    clock.now = 10.0
+    evaluation.before_step(LoopState(1))
+    assert evaluation.seconds_per_ray == DEFAULT_EVAL_SECONDS_PER_RAY
+    clock.now = 30.0
+    evaluation.before_step(LoopState(2))
+    assert evaluation.seconds_per_ray == 1e-3
+    assert evaluation.final_eval_reserve() == pytest.approx(1.5 * 1e-3 * 1000 + 2.0)
+
+
+def test_an_eager_run_uses_the_first_measurement_and_no_final_eval_reserves_nothing():
+    evaluation, _, _, clock = _evaluation(compile_=False, eval_at=())
+    clock.now = 10.0
+    evaluation.before_step(LoopState(1))
+    assert evaluation.seconds_per_ray == 1e-3
+    assert _evaluation(final_eval=False)[0].final_eval_reserve() == 0.0
+
+
+def test_each_evaluation_sends_a_train_event():
+    sent: list[ProgressEvent] = []
+    evaluation, _, _, clock = _evaluation(eval_at=(), sink=sent)
+    clock.now = 10.0
+    evaluation.before_step(LoopState(7, last_loss=0.3))
+    assert [(e.stage, e.iteration, e.loss) for e in sent] == [("train", 7, 0.3)]
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+
+
+def test_checkpoints_are_saved_every_checkpoint_every_s():
+    clock, saved = FakeClock(), []
+    saving = Checkpointing(saved.append, every_s=60.0, clock=clock)
+    for iteration in range(1, 8):
+        clock.now += 25.0
+        saving.after_step(LoopState(iteration))
+    assert saved == [3, 6]  # 75 s after set-up, then 75 s after that save
+
+
+# ----------------------------------------------------------------------------------------- progress bar
+
+
+class StubBar:
+    def __init__(self) -> None:
+        self.n, self.postfix, self.closed = 0, [], False
+
+    def update(self, n: int) -> None:
+        self.n += n
+
+    def set_postfix(self, **kwargs) -> None:
+        self.postfix.append(kwargs)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_progress_bar_ticks_every_step_and_shows_loss_and_lr_every_50():
+    bar = ProgressBar(StubBar())
+    for iteration in range(1, 101):
+        bar.after_step(LoopState(iteration, last_loss=0.123456, lr=0.01))
+    bar.close()
+    assert bar.bar.n == 100 and bar.bar.closed
+    assert bar.bar.postfix == [{"loss": "0.1235", "lr": "0.01"}] * 2
+
+
+def test_a_disabled_progress_bar_is_created_silent(capsys):
+    bar = ProgressBar.create(total=10, initial=3, enabled=False)
+    bar.after_step(LoopState(4))
+    bar.close()
+    assert capsys.readouterr().err == ""
+
+
+# --------------------------------------------------------------------------------------------- compile
+
+
+def test_compile_stage_is_recorded_after_the_first_step_only():
+    clock, recorded = FakeClock(), []
+    timer = CompileTimer(started=90.0, record=lambda rec, it: recorded.append((rec, it)), clock=clock)
+    timer.after_step(LoopState(1))
+    clock.now += 5.0
+    timer.after_step(LoopState(2))
+    timer.finish(2)
+    assert recorded == [(StageRecord(name="compile", ran=True, why=COMPILE_RAN_WHY, seconds=10.0), 1)]
+
+
+def test_compile_stage_without_any_step_says_so():
+    recorded = []
+    timer = CompileTimer(started=99.0, record=lambda rec, it: recorded.append((rec, it)), clock=FakeClock())
+    timer.finish(0)
+    assert recorded == [(StageRecord(name="compile", ran=False, why=COMPILE_NO_STEP_WHY, seconds=1.0), 0)]
+
+
+def test_present_drops_callbacks_that_do_not_apply():
+    bar = ProgressBar(StubBar())
+    assert present([None, bar, None]) == [bar]

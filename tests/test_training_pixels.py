@@ -1,0 +1,74 @@
+"""Training pixels and batches (voxnerf/training/pixels.py)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from voxnerf.config import TrainConfig
+from voxnerf.training.pixels import TrainingPixels, per_pixel, sample_batch, training_pixels
+
+
+def _pixels(n: int = 3, h: int = 6, w: int = 7) -> TrainingPixels:
+    return TrainingPixels(torch.zeros(n, h, w, 3, dtype=torch.uint8), torch.eye(4).expand(n, 4, 4).clone(),
+                          torch.tensor([[5.0, 5.0, w / 2, h / 2]] * n))
+
+
+def test_random_pixels_come_from_the_generator_alone():
+    cfg = TrainConfig(max_iters=1, rays_per_batch=64)
+    pixels = _pixels()
+    a = sample_batch(pixels, cfg, False, torch.Generator().manual_seed(5))
+    torch.manual_seed(0)  # the global generator plays no part
+    b = sample_batch(pixels, cfg, False, torch.Generator().manual_seed(5))
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True)) and all(len(x) == 64 for x in a)
+    img, py, px = a
+    assert int(img.max()) < 3 and int(py.max()) < 6 and int(px.max()) < 7
+
+
+def test_patches_follow_the_random_pixels_as_whole_squares_of_one_image():
+    cfg = TrainConfig(max_iters=1, rays_per_batch=10, smooth_patches=2, patch_size=3)
+    img, py, px = sample_batch(_pixels(), cfg, True, torch.Generator().manual_seed(1))
+    assert len(img) == 10 + 2 * 9
+    for p in range(2):
+        sl = slice(10 + 9 * p, 10 + 9 * (p + 1))
+        assert len(set(img[sl].tolist())) == 1
+        ys, xs = py[sl].view(3, 3), px[sl].view(3, 3)
+        assert torch.equal(ys - ys[0, 0], torch.arange(3)[:, None].expand(3, 3))
+        assert torch.equal(xs - xs[0, 0], torch.arange(3)[None, :].expand(3, 3))
+
+
+def test_a_patch_never_exceeds_a_small_image():
+    cfg = TrainConfig(max_iters=1, rays_per_batch=4, smooth_patches=1, patch_size=8)
+    img, py, px = sample_batch(_pixels(h=5, w=6), cfg, True, torch.Generator().manual_seed(1))
+    assert len(img) == 4 + 25 and int(py.max()) < 5 and int(px.max()) < 6
+
+
+def test_rays_of_a_pixel_start_at_its_camera():
+    pixels = _pixels()
+    pixels.c2w[1, :3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    origins, dirs = pixels.rays(torch.tensor([1]), torch.tensor([3]), torch.tensor([3]))
+    assert torch.allclose(origins, torch.tensor([[1.0, 2.0, 3.0]])) and origins.shape == dirs.shape == (1, 3)
+
+
+@pytest.mark.parametrize("chunk", [5, 1000])
+def test_per_pixel_maps_every_pixel_in_chunks_with_nan_where_invalid(chunk):
+    pixels = _pixels(n=2, h=3, w=4)
+    model = SimpleNamespace(ray_bundle=lambda origins, dirs: SimpleNamespace(origins=origins, dirs=dirs))
+
+    def fn(rays, index):
+        assert len(rays.origins) == len(index)
+        return index.float(), index % 2 == 0
+
+    t, ok = per_pixel(pixels, model, fn, chunk=chunk)
+    flat = torch.arange(24).view(2, 3, 4)
+    assert torch.equal(ok, flat % 2 == 0)
+    assert torch.equal(t[ok], flat[ok].float()) and torch.isnan(t[~ok]).all()
+
+
+def test_training_images_of_different_sizes_are_refused():
+    scene = SimpleNamespace(train_indices=[0, 1], images=[np.zeros((4, 5, 3)), np.zeros((5, 4, 3))])
+    with pytest.raises(ValueError, match="differ in size"):
+        training_pixels(scene, None, torch.device("cpu"))

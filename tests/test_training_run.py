@@ -1,0 +1,66 @@
+"""``train()`` (voxnerf/training/run.py) on a tiny room: the typed report and events, report.json, resuming;
+and the throughput figures and the ``voxnerf.trainer`` facade."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+import voxnerf.trainer
+from voxnerf.config import TrainConfig
+from voxnerf.synthetic import RoomSpec, make_room_scene
+from voxnerf.training.records import ProgressEvent, StageRecord, TrainReport
+from voxnerf.training.run import REPORT, throughput, train
+
+STAGES = ["load_scene", "prior", "hash_kernel", "octree", "pseudo_depth", "first_hit_cache", "compile", "train",
+          "final_eval"]
+
+
+@pytest.fixture(scope="module")
+def tiny_room(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("training") / "tiny"
+    return make_room_scene(out, RoomSpec(width=24, height=18, n_frames=40, train_every=4, n_gaps=0, gap_len=0,
+                                         prior_max_points=20_000))
+
+
+def _config(**overrides) -> TrainConfig:
+    values = dict(max_iters=3, compile=False, device="cpu", rays_per_batch=128, hash_levels=4, hash_log2_size=10,
+                  hidden_dim=16, n_importance=4, n_rest=2, checkpoint_every_s=1e9)
+    return TrainConfig(**{**values, **overrides})
+
+
+def test_train_returns_the_report_it_writes_and_sends_typed_events(tiny_room, tmp_path):
+    events: list[ProgressEvent] = []
+    report = train(tiny_room, tmp_path, _config(), on_progress=events.append, progress_bar=False)
+    assert isinstance(report, TrainReport) and report.status == "succeeded" and report.iteration == 3
+    assert [s.name for s in report.stages] == STAGES
+    assert json.loads((tmp_path / REPORT).read_text()) == json.loads(json.dumps(report.to_json_dict()))
+    assert all(isinstance(e, ProgressEvent) for e in events)
+    assert [e.stage for e in events if e.stage != "train"] == [*STAGES[:7], "final_eval", "final_eval", "done"]
+    assert events[-1].progress == 1.0 and events[-1].iteration == 3 and len(events[-1].history) == 1
+
+
+def test_a_resumed_run_continues_its_iterations_and_history(tiny_room, tmp_path):
+    train(tiny_room, tmp_path, _config(final_eval=False, eval_every_s=1e-6), progress_bar=False)
+    report = train(tiny_room, tmp_path, _config(max_iters=5, final_eval=False, eval_every_s=1e-6),
+                   progress_bar=False)
+    assert report.resumed_from_iteration == 3 and report.iteration == 5
+    assert [h.iteration for h in report.history] == [0, 1, 2, 3, 4]
+
+
+def test_throughput_counts_patch_rays_and_leaves_out_compile_time():
+    records = [StageRecord(name="compile", ran=True, why="", seconds=2.0),
+               StageRecord(name="train", ran=True, why="", seconds=12.0)]
+    cfg = TrainConfig(max_iters=10, rays_per_batch=100, n_importance=6, n_rest=2)
+    got = throughput(cfg, 10, records, True, 28)
+    assert got == {"rays_per_step": 128, "rays_per_s": 128.0, "samples_per_s": 128.0 * cfg.samples_per_ray,
+                   "seconds_excluding_compile": 10.0}
+    assert throughput(cfg, 10, records, False, 28)["rays_per_step"] == 100
+
+
+def test_the_trainer_facade_keeps_the_old_names():
+    for name in ("train", "Budget", "eval_views_of", "REPORT", "TrainingDiverged", "TrainingPixels"):
+        assert hasattr(voxnerf.trainer, name), name
+    assert voxnerf.trainer.train is train

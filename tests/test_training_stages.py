@@ -1,0 +1,90 @@
+"""The set-up stages (voxnerf/training/stages.py): what each records, and why, on small stub inputs."""
+
+from __future__ import annotations
+
+import random
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from voxnerf import hash_kernel
+from voxnerf.config import TrainConfig
+from voxnerf.training import stages
+from voxnerf.training.records import StageRecord
+
+CPU = torch.device("cpu")
+
+
+def _scene(prior_path=None):
+    frames = [SimpleNamespace(c2w=np.eye(4)), SimpleNamespace(c2w=np.eye(4))]
+    frames[1].c2w[:3, 3] = [2.0, 0.0, 0.0]
+    return SimpleNamespace(prior_path=prior_path, frames=frames)
+
+
+def test_seeding_makes_every_generator_repeat():
+    stages.seed_everything(3)
+    first = (random.random(), np.random.rand(), float(torch.rand(())))
+    stages.seed_everything(3)
+    assert (random.random(), np.random.rand(), float(torch.rand(()))) == first
+
+
+@pytest.mark.parametrize(("cfg", "warning"), [
+    (TrainConfig(max_iters=1, sampler="voxnerf", depth_loss=True), "sampler 'voxnerf' and the depth loss need a prior"),
+    (TrainConfig(max_iters=1, sampler="occgrid", depth_loss=True), "sampler 'occgrid' and the depth loss need"),
+    (TrainConfig(max_iters=1, sampler="voxnerf", depth_loss=False), "sampler 'voxnerf' need a prior"),
+    (TrainConfig(max_iters=1, sampler="occgrid", depth_loss=False), None),
+])
+def test_a_scene_without_prior_warns_only_when_something_needs_one(cfg, warning):
+    found = stages.prior_stage(_scene(), cfg)
+    assert found.prior is None and found.record.name == "prior" and not found.record.ran
+    assert found.record.why == "the scene has no prior"
+    assert (found.warning is None) if warning is None else (warning in found.warning)
+
+
+def test_hash_kernel_stage_says_why_it_did_not_run():
+    off = stages.hash_kernel_stage(TrainConfig(max_iters=1, hash_kernel=False), CPU)
+    assert not off.ran and off.why.startswith("disabled (--no-hash-kernel)")
+    cuda = stages.hash_kernel_stage(TrainConfig(max_iters=1), torch.device("cuda"))
+    assert not cuda.ran and cuda.why == "on cuda the hash encoding stays in PyTorch"
+
+
+def test_hash_kernel_stage_reports_an_unavailable_kernel(monkeypatch):
+    monkeypatch.setattr(hash_kernel, "available", lambda: False)
+    monkeypatch.setattr(hash_kernel, "unavailable_reason", lambda: "no compiler")
+    record = stages.hash_kernel_stage(TrainConfig(max_iters=1), CPU)
+    assert record == StageRecord(name="hash_kernel", ran=False, seconds=record.seconds,
+                                 why="C kernel unavailable (no compiler): the hash encoding stays in PyTorch")
+
+
+def test_without_prior_the_box_is_the_cameras_grown_by_their_extent():
+    transform, aabb = stages.scene_box(_scene(), None)
+    centres = transform.points_to_normalized(np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]))
+    assert aabb.shape == (2, 3) and (aabb[0] < centres.min(0)).all() and (aabb[1] > centres.max(0)).all()
+    assert (aabb >= -1.0).all() and (aabb <= 1.0).all()
+
+
+def test_stages_that_have_nothing_to_work_on_say_so():
+    cfg = TrainConfig(max_iters=1, sampler="occgrid")
+    assert stages.octree_stage(cfg, None, None, None, CPU).record.why == "no prior"
+    prior = SimpleNamespace(points=np.zeros((1, 3)), sigma=0.1)
+    tree = stages.octree_stage(cfg, prior, None, None, CPU)
+    assert tree.octree is None and tree.record.why == "sampler 'occgrid' does not use it"
+    depth = stages.pseudo_depth_stage(TrainConfig(max_iters=1, depth_loss=False), None, prior, None, None, None, CPU)
+    assert depth.pseudo_t is None and depth.record.why == "depth loss disabled"
+    depth = stages.pseudo_depth_stage(TrainConfig(max_iters=1), None, None, None, None, None, CPU)
+    assert depth.record.why == "no prior to render depth from"
+    hits = stages.first_hit_stage(None, None, None)
+    assert hits.hit is None and hits.record == StageRecord(name="first_hit_cache", ran=False, why="no octree",
+                                                           seconds=hits.record.seconds)
+
+
+def test_an_eager_step_records_compile_as_disabled_at_once():
+    def loss_fn():
+        return None
+
+    compiled = stages.compile_stage(TrainConfig(max_iters=1, compile=False), loss_fn)
+    assert compiled.loss_fn is loss_fn
+    assert compiled.record.name == "compile" and not compiled.record.ran
+    assert compiled.record.why == "disabled (--no-compile)"

@@ -1,0 +1,137 @@
+"""One training step (voxnerf/training/step.py): the loss function, the batch, the divergence guard."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from voxnerf.config import TrainConfig
+from voxnerf.errors import TrainingDiverged
+from voxnerf.losses import color_loss
+from voxnerf.training.pixels import TrainingPixels
+from voxnerf.training.step import PAPER_BETA, Batch, Losses, TrainStep, divergence_guard, make_loss_fn
+
+
+class StubModel:
+    """render_samples: colour = mean of the starts, depth = the first start times ``depth_scale``."""
+
+    def __init__(self, scale: float = 1.0, depth_scale: float = 1.0) -> None:
+        self.transform = SimpleNamespace(scale=scale)
+        self.depth_scale = depth_scale
+
+    def render_samples(self, origins, dirs, starts, ends):
+        return {"rgb": starts.mean(-1, keepdim=True).expand(-1, 3), "depth": starts[:, 0] * self.depth_scale}
+
+    def ray_bundle(self, origins, dirs):
+        return SimpleNamespace(origins=origins, dirs=dirs)
+
+
+def _inputs(rays: int, with_depth: bool):
+    g = torch.Generator().manual_seed(0)
+    starts = torch.rand(rays, 4, generator=g, requires_grad=True)
+    target_t = torch.rand(rays, generator=g) if with_depth else None
+    target_ok = torch.ones(rays, dtype=torch.bool) if with_depth else None
+    return torch.zeros(rays, 3), torch.ones(rays, 3), starts, starts + 0.1, torch.rand(rays, 3, generator=g), \
+        target_t, target_ok
+
+
+def test_without_depth_targets_the_loss_is_the_colour_loss():
+    cfg = TrainConfig(max_iters=1)
+    args = _inputs(16, with_depth=False)
+    total, lc, ld, lreg = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(*args)
+    assert total is lc and float(ld) == 0 and float(lreg) == 0
+    expected = color_loss(args[2].mean(-1, keepdim=True).expand(-1, 3), args[4])
+    assert float(lc.detach()) == pytest.approx(float(expected.detach()))
+
+
+def test_depth_and_smoothness_terms_add_with_their_weights():
+    cfg = TrainConfig(max_iters=1, lambda_depth=0.5, lambda_smooth=0.25)
+    args = _inputs(16 + 2 * 4 * 4, with_depth=True)
+    total, lc, ld, lreg = make_loss_fn(StubModel(), cfg, PAPER_BETA, 2 * 4 * 4, 4)(*args)
+    assert float(total.detach()) == pytest.approx(float((lc + 0.5 * (ld + 0.25 * lreg)).detach()))
+    ld, lreg = ld.detach(), lreg.detach()
+    assert float(ld) > 0 and float(lreg) > 0
+
+
+def test_the_depth_terms_do_not_depend_on_the_scene_unit():
+    """Millimetres: beta 1000x, depths 1000x in scene units (normalised depths the same): the same loss."""
+    cfg = TrainConfig(max_iters=1, lambda_smooth=0.5)
+    args = _inputs(16 + 4 * 4, with_depth=True)
+    metres = make_loss_fn(StubModel(scale=0.5), cfg, 0.1, 16, 4)(*args)
+    millimetres = make_loss_fn(StubModel(scale=0.5e-3), cfg, 100.0, 16, 4)(*args)
+    for a, b in zip(metres, millimetres, strict=True):
+        assert float(a.detach()) == pytest.approx(float(b.detach()), rel=1e-5)
+
+
+def test_the_guard_returns_the_loss_and_raises_on_nan_with_the_terms():
+    t = torch.tensor
+    assert divergence_guard(Losses(t(0.5), t(0.4), t(0.1), t(0.0)), 3) == 0.5
+    with pytest.raises(TrainingDiverged, match=r"loss became nan at iteration 7 \(colour 0.4, depth nan, "
+                                               r"smoothness 0\)"):
+        divergence_guard(Losses(t(math.nan), t(0.4), t(math.nan), t(0.0)), 7)
+
+
+def _pixels(with_caches: bool) -> TrainingPixels:
+    n, h, w = 2, 4, 5
+    images = torch.arange(n * h * w * 3, dtype=torch.uint8).view(n, h, w, 3)
+    c2w = torch.eye(4).expand(n, 4, 4).clone()
+    intr = torch.tensor([[4.0, 4.0, 2.5, 2.0]] * n)
+    pixels = TrainingPixels(images, c2w, intr)
+    if with_caches:
+        pixels.pseudo_t = torch.full((n, h, w), 2.0)
+        pixels.pseudo_t[0, 0, 0] = math.nan
+        pixels.hit_t, pixels.hit = torch.full((n, h, w), 1.5), torch.ones(n, h, w, dtype=torch.bool)
+    return pixels
+
+
+class StubOptimizer:
+    def __init__(self, log: list) -> None:
+        self.log = log
+
+    def zero_grad(self, set_to_none: bool) -> None:
+        self.log.append(("zero_grad", set_to_none))
+
+    def step(self) -> None:
+        self.log.append("step")
+
+
+@pytest.mark.parametrize("with_caches", [False, True])
+def test_a_batch_carries_rays_samples_and_targets(with_caches):
+    seen = []
+
+    def sampler(rays, training):
+        seen.append((getattr(rays, "hit_t", None), training, torch.is_grad_enabled()))
+        return torch.zeros(len(rays.origins), 4), torch.ones(len(rays.origins), 4)
+
+    cfg = TrainConfig(max_iters=1, rays_per_batch=32, smooth_patches=1, patch_size=2)
+    step = TrainStep(StubModel(), StubOptimizer([]), _pixels(with_caches), cfg, None, with_caches, sampler,
+                     torch.Generator().manual_seed(0))
+    batch = step.batch()
+    assert isinstance(batch, Batch)
+    rays = 32 + (4 if with_caches else 0)
+    assert batch.origins.shape == batch.dirs.shape == (rays, 3) and batch.target_rgb.shape == (rays, 3)
+    assert float(batch.target_rgb.max()) <= 1.0
+    hit_t, training, grad = seen[0]
+    assert training and not grad and (hit_t is not None) == with_caches
+    if with_caches:
+        assert torch.equal(batch.target_ok, torch.isfinite(batch.target_t))
+    else:
+        assert batch.target_t is None and batch.target_ok is None
+
+
+def test_losses_zero_the_gradients_then_backpropagate_and_apply_steps():
+    log: list = []
+    w = torch.tensor(2.0, requires_grad=True)
+
+    def loss_fn(*args):
+        return w * 3, w, w * 0, w * 0
+
+    step = TrainStep(StubModel(), StubOptimizer(log), _pixels(False), TrainConfig(max_iters=1), loss_fn, False,
+                     None, torch.Generator())
+    losses = step.losses(Batch(*range(7)))
+    assert float(losses.total.detach()) == 6.0 and float(w.grad) == 3.0 and log == [("zero_grad", True)]
+    step.apply()
+    assert log[-1] == "step"

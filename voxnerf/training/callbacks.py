@@ -1,0 +1,210 @@
+"""The loop's periodic duties as small callback objects (see :class:`voxnerf.training.loop.Callback`).
+
+Callbacks that run every step keep to a comparison or two unless their period is due; none adds a host sync.
+Clocks are injectable (``clock``) so that tests can drive them.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+import torch
+from tqdm import tqdm
+
+from voxnerf.config import TrainConfig
+from voxnerf.model import VoxNeRFModel
+from voxnerf.training.budget import Budget, Clock
+from voxnerf.training.loop import Callback, LoopState
+from voxnerf.training.records import ProgressEvent, StageRecord, TrainReport
+
+DEFAULT_EVAL_SECONDS_PER_RAY = 1.5e-5  # the final-evaluation cost per ray assumed until one is measured
+COMPILE_RAN_WHY = "torch.compile of the training step (time of the first step)"
+COMPILE_NO_STEP_WHY = "no training step ran"
+ProgressCallback = Callable[[ProgressEvent], None]
+Evaluate = Callable[[int, float, bool], tuple[float, float]]  # (iteration, loss, full) -> (seconds, s per ray)
+
+
+class LearningRateSchedule(Callback):
+    """lr = lr0 * 0.1 ** (iteration / decay_iters), set on every parameter group before each step."""
+
+    def __init__(self, optimizer: torch.optim.Optimizer, lr: float, decay_iters: float) -> None:
+        self.groups, self.lr, self.decay_iters = optimizer.param_groups, lr, decay_iters
+
+    def before_step(self, state: LoopState) -> None:
+        lr = self.lr * 0.1 ** (state.iteration / self.decay_iters)
+        for group in self.groups:
+            group["lr"] = lr
+        state.lr = lr
+
+
+class OccupancyGridUpdate(Callback):
+    """Every ``every`` steps, re-estimate the occupancy grid from the field's density (the compiled density
+    when training is compiled, see docs/performance.md); the first two updates are warm-up updates."""
+
+    def __init__(self, model: VoxNeRFModel, every: int, compiled: bool) -> None:
+        self.model, self.every, self.compiled = model, every, compiled
+
+    @classmethod
+    def for_config(cls, model: VoxNeRFModel, cfg: TrainConfig, has_octree: bool) -> OccupancyGridUpdate | None:
+        """None for the uniform sampler. The grid drives the occgrid sampler; for voxnerf it only serves rays
+        that miss the octree, so it is updated 4x less often there."""
+        if cfg.sampler == "uniform":
+            return None
+        return cls(model, cfg.occgrid_update_every * (1 if cfg.sampler == "occgrid" or not has_octree else 4),
+                   cfg.compile)
+
+    def after_step(self, state: LoopState) -> None:
+        iteration = state.iteration
+        if iteration % self.every == 0:
+            density = self.model.compiled_density() if self.compiled else self.model.field.density
+            self.model.grid.update(density, warmup=iteration <= 2 * self.every)
+
+
+class ProgressEvents(Callback):
+    """``on_progress`` events: at every stage, after each progress evaluation and at the end (forced), and
+    while training at most one per ``interval`` seconds. Also the run's stage log (:meth:`stage`)."""
+
+    def __init__(self, on_progress: ProgressCallback | None, cfg: TrainConfig, budget: Budget,
+                 report: TrainReport, clock: Clock = time.perf_counter, interval: float = 1.0) -> None:
+        self.on_progress, self.cfg, self.budget, self.report = on_progress, cfg, budget, report
+        self.clock, self.interval, self.last = clock, interval, 0.0
+
+    def stage(self, record: StageRecord, iteration: int) -> None:
+        """Add a finished stage to the report and tell ``on_progress``."""
+        self.report.stages.append(record)
+        self.emit(record.name, iteration)
+
+    def emit(self, stage: str, iteration: int = 0, loss: float | None = None, force: bool = True) -> None:
+        if self.on_progress is None:
+            return
+        now = self.clock()
+        if not force and now - self.last < self.interval:
+            return
+        self.last = now
+        self.on_progress(self.event(stage, iteration, loss))
+
+    def after_step(self, state: LoopState) -> None:
+        self.emit("train", state.iteration, state.last_loss, force=False)
+
+    def event(self, stage: str, iteration: int, loss: float | None) -> ProgressEvent:
+        cfg, budget = self.cfg, self.budget
+        fractions = []
+        if cfg.max_iters:
+            fractions.append(iteration / cfg.max_iters)
+        if cfg.max_seconds:
+            fractions.append((budget.previous + budget.wall) / cfg.max_seconds)
+        progress = min(1.0, max(fractions)) if fractions else 0.0
+        eta = budget.wall * (1 - progress) / progress if 0 < progress < 1 else None
+        return ProgressEvent(
+            stage=stage, iteration=iteration, max_iters=cfg.max_iters, elapsed_s=budget.train_seconds,
+            progress=1.0 if stage == "done" else progress, eta_s=eta,
+            loss=loss if loss is not None and math.isfinite(loss) else None,
+            history=list(self.report.history), stages=list(self.report.stages),
+        )
+
+
+class ProgressEvaluation(Callback):
+    """Progress evaluations every ``eval_every_s`` training seconds and full ones at the ``eval_at`` times,
+    before a step. Their time is paused (not training time); a full one's is also not charged to the budget.
+
+    They also measure the evaluation cost per ray, which sizes the final evaluation's reserve of the budget
+    (:meth:`final_eval_reserve`): the first one compiles when training is compiled, so it does not count.
+    """
+
+    def __init__(self, evaluate: Evaluate, budget: Budget, cfg: TrainConfig, final_eval_rays: int,
+                 events: ProgressEvents | None = None) -> None:
+        self.evaluate, self.budget, self.events = evaluate, budget, events
+        self.every, self.compiled, self.final_eval = cfg.eval_every_s, cfg.compile, cfg.final_eval
+        self.final_eval_rays = final_eval_rays
+        self.next_at = budget.train_seconds + cfg.eval_every_s
+        self.pending_full = sorted(t for t in cfg.eval_at if t > budget.train_seconds)
+        self.seconds_per_ray = DEFAULT_EVAL_SECONDS_PER_RAY
+        self.done = 0
+
+    def before_step(self, state: LoopState) -> None:
+        budget, pending = self.budget, self.pending_full
+        if not (budget.train_seconds >= self.next_at or (pending and budget.train_seconds >= pending[0])):
+            return
+        full = bool(pending) and budget.train_seconds >= pending[0]
+        if full:
+            pending.pop(0)
+        spent, per_ray = self.evaluate(state.iteration, state.last_loss, full)
+        self.done += 1
+        if self.done > 1 or not self.compiled:
+            self.seconds_per_ray = per_ray
+        budget.paused += spent
+        if full:
+            budget.excluded += spent
+        self.next_at = budget.train_seconds + self.every
+        if self.events is not None:
+            self.events.emit("train", state.iteration, state.last_loss)
+
+    def final_eval_reserve(self) -> float:
+        """Seconds kept back for the final evaluation: 1.5x its estimated cost plus 2 s."""
+        if not self.final_eval:
+            return 0.0
+        return 1.5 * self.seconds_per_ray * self.final_eval_rays + 2.0
+
+
+class Checkpointing(Callback):
+    """Calls ``save(iteration)`` after a step once ``every_s`` seconds have passed since the last save (or
+    since the loop was set up)."""
+
+    def __init__(self, save: Callable[[int], None], every_s: float, clock: Clock = time.perf_counter) -> None:
+        self.save, self.every_s, self.clock = save, every_s, clock
+        self.last = clock()
+
+    def after_step(self, state: LoopState) -> None:
+        if self.clock() - self.last >= self.every_s:
+            self.save(state.iteration)
+            self.last = self.clock()
+
+
+class ProgressBar(Callback):
+    """The tqdm bar (stderr): one tick per step, loss and learning rate every 50 steps."""
+
+    def __init__(self, bar) -> None:
+        self.bar = bar
+
+    @classmethod
+    def create(cls, total: int | None, initial: int, enabled: bool) -> ProgressBar:
+        return cls(tqdm(total=total, initial=initial, disable=not enabled, file=sys.stderr, desc="train",
+                        dynamic_ncols=True))
+
+    def after_step(self, state: LoopState) -> None:
+        self.bar.update(1)
+        if state.iteration % 50 == 0:
+            self.bar.set_postfix(loss=f"{state.last_loss:.4g}", lr=f"{state.lr:.2g}")
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class CompileTimer(Callback):
+    """Records the compile stage after the first step (``torch.compile`` compiles on the first call, so that
+    step's time, from ``started``, is the compile time), or at :meth:`finish` when no step ran."""
+
+    def __init__(self, started: float, record: Callable[[StageRecord, int], None],
+                 clock: Clock = time.perf_counter) -> None:
+        self.started, self.record, self.clock = started, record, clock
+        self.pending = True
+
+    def after_step(self, state: LoopState) -> None:
+        if self.pending:
+            self._record(True, COMPILE_RAN_WHY, state.iteration)
+
+    def finish(self, iteration: int) -> None:
+        if self.pending:
+            self._record(False, COMPILE_NO_STEP_WHY, iteration)
+
+    def _record(self, ran: bool, why: str, iteration: int) -> None:
+        self.pending = False
+        self.record(StageRecord(name="compile", ran=ran, why=why, seconds=self.clock() - self.started), iteration)
+
+
+def present(callbacks: Sequence[Callback | None]) -> list[Callback]:
+    """The callbacks that apply to this run (a None stands for one that does not)."""
+    return [c for c in callbacks if c is not None]

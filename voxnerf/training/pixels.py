@@ -1,0 +1,103 @@
+"""Training pixels on the training device: images, poses and per-pixel caches, and the random batches."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from voxnerf.cameras import camera_rays
+from voxnerf.config import TrainConfig
+from voxnerf.model import VoxNeRFModel
+from voxnerf.samplers import RayBundle
+from voxnerf.scene import Scene, SceneTransform
+
+PixelIndex = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # img, py, px [R] each
+
+
+@dataclass
+class TrainingPixels:
+    """Training images and per-pixel caches on the training device.
+
+    images uint8 [N, H, W, 3]; c2w float32 [N, 4, 4] normalised; intr float32 [N, 4] (fl_x, fl_y, cx, cy);
+    pseudo_t / hit_t float32 [N, H, W] ray distances (normalised; NaN where invalid), hit bool [N, H, W].
+    """
+
+    images: torch.Tensor
+    c2w: torch.Tensor
+    intr: torch.Tensor
+    pseudo_t: torch.Tensor | None = None
+    hit_t: torch.Tensor | None = None
+    hit: torch.Tensor | None = None
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        n, h, w, _ = self.images.shape
+        return n, h, w
+
+    def rays(self, img: torch.Tensor, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Rays of the given pixels: origins, dirs [R, 3], normalised units."""
+        k = self.intr[img]
+        origins, dirs, _ = camera_rays(self.c2w[img], k[:, 0], k[:, 1], k[:, 2], k[:, 3], px, py)
+        return origins, dirs
+
+
+def training_pixels(scene: Scene, transform: SceneTransform, device: torch.device) -> TrainingPixels:
+    """The scene's training images and normalised poses on ``device``; one image size per scene."""
+    idx = scene.train_indices
+    sizes = {scene.images[i].shape for i in idx}
+    if len(sizes) != 1:
+        raise ValueError(f"training images differ in size ({sorted(sizes)}); one size per scene is supported")
+    images = torch.from_numpy(np.stack([scene.images[i] for i in idx])).to(device)
+    c2w = np.stack([transform.c2w_to_normalized(scene.frames[i].c2w) for i in idx])
+    intr = [scene.intrinsics(i) for i in idx]
+    return TrainingPixels(
+        images,
+        torch.from_numpy(c2w).float().to(device),
+        torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intr], dtype=torch.float32, device=device),
+    )
+
+
+def per_pixel(
+    pixels: TrainingPixels,
+    model: VoxNeRFModel,
+    fn: Callable[[RayBundle, torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+    chunk: int = 262_144,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Evaluate ``fn`` ((rays, flat pixel indices [R]) -> (t [R], valid [R])) on every training pixel -> [N, H, W]
+    each; t NaN if invalid."""
+    n, h, w = pixels.shape
+    device = pixels.images.device
+    t_all = torch.empty(n * h * w, device=device)
+    ok_all = torch.empty(n * h * w, dtype=torch.bool, device=device)
+    flat = torch.arange(n * h * w, device=device)
+    for i in range(0, n * h * w, chunk):
+        f = flat[i : i + chunk]
+        img, rem = f // (h * w), f % (h * w)
+        origins, dirs = pixels.rays(img, rem // w, rem % w)
+        t, ok = fn(model.ray_bundle(origins, dirs), f)
+        t_all[i : i + chunk] = torch.where(ok, t, torch.full_like(t, float("nan")))
+        ok_all[i : i + chunk] = ok
+    return t_all.view(n, h, w), ok_all.view(n, h, w)
+
+
+def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, gen: torch.Generator) -> PixelIndex:
+    """Random pixels plus (optionally) s x s patches: index tensors img, py, px [R] (patches last)."""
+    n, h, w = pixels.shape
+    device = pixels.images.device
+    r = int(cfg.rays_per_batch)
+    img = torch.randint(0, n, (r,), generator=gen, device=device)
+    py = torch.randint(0, h, (r,), generator=gen, device=device)
+    px = torch.randint(0, w, (r,), generator=gen, device=device)
+    if use_patches:
+        s, p = min(cfg.patch_size, h, w), cfg.smooth_patches
+        pi = torch.randint(0, n, (p,), generator=gen, device=device)
+        y0 = torch.randint(0, h - s + 1, (p,), generator=gen, device=device)
+        x0 = torch.randint(0, w - s + 1, (p,), generator=gen, device=device)
+        dy, dx = torch.meshgrid(torch.arange(s, device=device), torch.arange(s, device=device), indexing="ij")
+        img = torch.cat([img, pi[:, None].expand(p, s * s).reshape(-1)])
+        py = torch.cat([py, (y0[:, None] + dy.reshape(1, -1)).reshape(-1)])
+        px = torch.cat([px, (x0[:, None] + dx.reshape(1, -1)).reshape(-1)])
+    return img, py, px

@@ -1,0 +1,115 @@
+"""One optimisation step: the batch, the differentiable loss (what ``torch.compile`` compiles), the divergence
+guard and the optimiser update."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+
+from voxnerf.config import TrainConfig
+from voxnerf.errors import TrainingDiverged
+from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss
+from voxnerf.model import VoxNeRFModel
+from voxnerf.training.pixels import TrainingPixels, sample_batch
+
+PAPER_BETA = 0.1  # the paper's log-Huber beta, metres
+DEPTH_BETA_PER_SIGMA = 5.0  # default beta = 5 sigma: the paper's 0.1 m for its 2 cm priors, in any unit
+
+
+class Batch(NamedTuple):
+    """The loss function's arguments, in its order: rays [R, 3] each, sample intervals, targets."""
+
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    starts: torch.Tensor
+    ends: torch.Tensor
+    target_rgb: torch.Tensor
+    target_t: torch.Tensor | None
+    target_ok: torch.Tensor | None
+
+
+class Losses(NamedTuple):
+    """Scalar tensors of one step: the total and its colour, depth and smoothness terms."""
+
+    total: torch.Tensor
+    colour: torch.Tensor
+    depth: torch.Tensor
+    smoothness: torch.Tensor
+
+
+LossFn = Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
+
+
+def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_rays: int, patch: int) -> LossFn:
+    """The differentiable part of a step (field, rendering, losses) as one function of fixed-shape tensors.
+
+    ``beta`` is in scene units. The depth terms compare depths in units of ``beta / 0.1``: for the paper's
+    beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
+    so lambda_d keeps its meaning whatever the scene's units and normalisation.
+    """
+    lam, to_units = cfg.lambda_depth, PAPER_BETA / (beta * model.transform.scale)
+
+    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok):
+        out = model.render_samples(origins, dirs, starts, ends)
+        lc = color_loss(out["rgb"], target_rgb)
+        total = lc
+        ld = lreg = torch.zeros((), device=origins.device)
+        if target_t is not None:
+            depth = out["depth"] * to_units
+            ld = depth_loss(depth, target_t * to_units, target_ok, PAPER_BETA)
+            if n_patch_rays:
+                d = depth[-n_patch_rays:].view(-1, patch, patch)
+                m = target_ok[-n_patch_rays:].view(-1, patch, patch)
+                lreg = depth_smoothness_loss(d, m, cfg.smooth_scales)
+            total = lc + lam * (ld + cfg.lambda_smooth * lreg)
+        return total, lc, ld, lreg
+
+    return loss_fn
+
+
+def divergence_guard(losses: Losses, iteration: int) -> float:
+    """The total loss as a float (the step's one host sync); raises TrainingDiverged if it is NaN or inf."""
+    loss = float(losses.total.detach())
+    if not math.isfinite(loss):
+        raise TrainingDiverged(
+            f"loss became {loss} at iteration {iteration} (colour {float(losses.colour.detach()):.4g}, "
+            f"depth {float(losses.depth.detach()):.4g}, smoothness {float(losses.smoothness.detach()):.4g})"
+        )
+    return loss
+
+
+class TrainStep:
+    """The step, split where the divergence guard looks: ``batch()``, ``losses(batch)`` (forward and
+    backward) and ``apply()`` (the optimiser update, only after the guard passed)."""
+
+    def __init__(self, model: VoxNeRFModel, optimizer: torch.optim.Optimizer, pixels: TrainingPixels,
+                 cfg: TrainConfig, loss_fn: LossFn, use_patches: bool, sampler, gen: torch.Generator) -> None:
+        self.model, self.optimizer, self.pixels, self.cfg = model, optimizer, pixels, cfg
+        self.loss_fn, self.use_patches, self.sampler, self.gen = loss_fn, use_patches, sampler, gen
+
+    def batch(self) -> Batch:
+        pixels = self.pixels
+        img, py, px = sample_batch(pixels, self.cfg, self.use_patches, self.gen)
+        rays = self.model.ray_bundle(*pixels.rays(img, py, px))
+        if pixels.hit_t is not None:
+            rays.hit_t, rays.hit = pixels.hit_t[img, py, px], pixels.hit[img, py, px]
+        with torch.no_grad():
+            starts, ends = self.sampler(rays, True)
+        target_rgb = pixels.images[img, py, px].float() / 255.0
+        target_t = target_ok = None
+        if pixels.pseudo_t is not None:
+            target_t = pixels.pseudo_t[img, py, px]
+            target_ok = torch.isfinite(target_t)
+        return Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok)
+
+    def losses(self, batch: Batch) -> Losses:
+        losses = Losses(*self.loss_fn(*batch))
+        self.optimizer.zero_grad(set_to_none=True)
+        losses.total.backward()
+        return losses
+
+    def apply(self) -> None:
+        self.optimizer.step()
