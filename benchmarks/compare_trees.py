@@ -1,9 +1,10 @@
 """Training throughput and render time of two source trees of VoxNeRF side by side (e.g. before and after a
 refactoring that must not cost speed).
 
-Each measurement runs in its own process with ``PYTHONPATH`` set to one tree, and the trees alternate round
-by round, so both see the same machine load. Default path only (compiled step, the C kernel where it builds).
-Prints the medians and their ratios and, with ``--out``, replaces the marked section of a docs page.
+Each measurement runs in its own process with ``PYTHONPATH`` set to one tree; the trees alternate in an
+ABBA order (before first in even rounds, after first in odd ones), so both see the same machine load and
+drift. Default path only (compiled step, the C kernel where it builds). Prints the medians and their
+ratios and, with ``--out``, replaces the marked section of a docs page.
 
     .venv/bin/python benchmarks/compare_trees.py --before /tmp/before --after . [--scene DIR] [--downscale N]
         [--iters 200] [--rounds 3] [--out docs/performance.md --section refactor-ab]
@@ -23,7 +24,8 @@ from pathlib import Path
 
 from docs_section import replace_section
 
-# Runs inside the measured tree: train, then time one 640x480 render (rgb + depth) after a warm-up render.
+# Runs inside the measured tree: train, then time three 640x480 renders (rgb + depth) after a warm-up render
+# and keep their median.
 CHILD = r"""
 import json, sys, time
 import numpy as np
@@ -40,9 +42,12 @@ pose = np.eye(4)
 pose[:3, 3] = trained.model.transform.center
 intr = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
 render(trained, pose, intr, ("rgb", "depth"))
-t0 = time.perf_counter()
-render(trained, pose, intr, ("rgb", "depth"))
-print(json.dumps({"samples_per_s": report["throughput"]["samples_per_s"], "render_s": time.perf_counter() - t0}))
+seconds = []
+for _ in range(3):
+    t0 = time.perf_counter()
+    render(trained, pose, intr, ("rgb", "depth"))
+    seconds.append(time.perf_counter() - t0)
+print(json.dumps({"samples_per_s": report["throughput"]["samples_per_s"], "render_s": sorted(seconds)[1]}))
 """
 
 
@@ -63,8 +68,8 @@ def table(results: dict[str, list[dict]], args: argparse.Namespace) -> list[str]
         f"Measured {time.strftime('%Y-%m-%d')}; command: `.venv/bin/python {' '.join(sys.argv)}`",
         "",
         f"Scene: {args.scene or 'the synthetic 160x120 room'}, downscale {args.downscale}, default config "
-        f"(compiled step, C kernel), {args.iters} iterations per run; medians of {args.rounds} alternating rounds, "
-        "each run in its own process.",
+        f"(compiled step, C kernel), {args.iters} iterations per run; medians of {args.rounds} rounds in ABBA "
+        "order, each run in its own process; a run's render time is the median of three renders.",
         "",
         "| tree | training samples/s | 640x480 render (rgb + depth) | runs (samples/s) |",
         "| --- | --- | --- | --- |",
@@ -97,7 +102,8 @@ def main() -> int:
 
             scene = make_room_scene(Path(tmp) / "room", RoomSpec())
         for i in range(args.rounds):
-            for name, tree in (("before", args.before), ("after", args.after)):
+            order = (("before", args.before), ("after", args.after))
+            for name, tree in order if i % 2 == 0 else order[::-1]:
                 results[name].append(measure(tree, Path(scene).resolve(), Path(tmp) / f"{name}_{i}", args.iters,
                                              args.downscale))
                 print(name, results[name][-1], flush=True)
