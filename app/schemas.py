@@ -36,6 +36,8 @@ class PriorSummary(BaseModel):
     file: str
     kind: str | None = None
     sigma: float | None = Field(None, description="standard deviation of the prior's noise, scene units")
+    source: str | None = Field(None, description="where the prior came from: prior_file_path, nerfstudio's "
+                               "ply_file_path, or a prior.ply found in the scene")
     sigma_estimated: bool | None = None
 
 

@@ -165,3 +165,41 @@ def test_inspect_scene_reports_prior(tmp_path):
     summary = inspect_scene(tmp_path / "s")
     assert summary["prior"]["kind"] == "points" and summary["prior"]["sigma"] == 0.02
     shutil.rmtree(tmp_path / "s")
+
+
+def _write_cloud(path: Path, n: int = 400) -> None:
+    """A noisy plane of points as a PLY point cloud (no faces)."""
+    import trimesh
+
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(-1, 1, (n, 2)), rng.normal(0, 0.01, n)]
+    trimesh.PointCloud(points).export(path)
+
+
+def test_ply_file_path_is_the_prior_when_prior_file_path_is_absent(tmp_path):
+    _write_scene(tmp_path, ply_file_path="sparse_pc.ply")
+    _write_cloud(tmp_path / "sparse_pc.ply")
+    scene = load_scene(tmp_path, load_images=False)
+    assert scene.prior_path == (tmp_path / "sparse_pc.ply").resolve() and scene.prior_key == "ply_file_path"
+    assert not scene.warnings
+    summary = inspect_scene(tmp_path)
+    assert summary["prior"]["file"] == "sparse_pc.ply" and summary["prior"]["source"] == "ply_file_path"
+    assert summary["prior"]["sigma_estimated"] and 0 < summary["prior"]["sigma"] < 0.1
+
+
+def test_prior_file_path_wins_over_ply_file_path(tmp_path):
+    _write_scene(tmp_path, prior_file_path="prior_mesh.ply", ply_file_path="sparse_pc.ply")
+    _write_cloud(tmp_path / "prior_mesh.ply")
+    _write_cloud(tmp_path / "sparse_pc.ply")
+    scene = load_scene(tmp_path, load_images=False)
+    assert scene.prior_path.name == "prior_mesh.ply" and scene.prior_key == "prior_file_path"
+
+
+@pytest.mark.parametrize(("value", "words"), [("missing.ply", "file not found"), ("../outside.ply", "outside"),
+                                              (3, "non-empty relative path")])
+def test_a_bad_ply_file_path_names_the_key(tmp_path, value, words):
+    (tmp_path / "outside.ply").write_text("ply")
+    _write_scene(tmp_path / "scene", ply_file_path=value)
+    with pytest.raises(SceneError) as info:
+        load_scene(tmp_path / "scene", load_images=False)
+    assert info.value.key == "ply_file_path" and words in info.value.message

@@ -88,3 +88,14 @@ def test_an_eager_step_records_compile_as_disabled_at_once():
     assert compiled.loss_fn is loss_fn
     assert compiled.record.name == "compile" and not compiled.record.ran
     assert compiled.record.why == "disabled (--no-compile)"
+
+
+def test_a_prior_from_ply_file_path_says_so(tmp_path):
+    import trimesh
+
+    rng = np.random.default_rng(0)
+    trimesh.PointCloud(np.c_[rng.uniform(-1, 1, (300, 2)), rng.normal(0, 0.01, 300)]).export(tmp_path / "pc.ply")
+    scene = SimpleNamespace(prior_path=tmp_path / "pc.ply", prior_sigma=None, prior_key="ply_file_path")
+    found = stages.prior_stage(scene, TrainConfig(max_iters=1))
+    assert found.record.ran and found.prior is not None and found.prior.sigma_estimated
+    assert "(estimated)" in found.record.why and "from nerfstudio's ply_file_path (pc.ply)" in found.record.why

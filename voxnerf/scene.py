@@ -61,6 +61,7 @@ class Scene:
     prior_path: Path | None
     prior_sigma: float | None
     depth_unit_scale: float
+    prior_key: str | None = None  # where prior_path came from: prior_file_path, ply_file_path or the default name
     downscale: int = 1
     images: list[np.ndarray | None] | None = None
     depths: list[np.ndarray | None] | None = None
@@ -95,7 +96,7 @@ class Scene:
             "splits": {name: len(idx) for name, idx in self.splits.items()},
             "image_size": [first.width, first.height],
             "prior": None if self.prior_path is None else {
-                "file": self.prior_path.name, "sigma": self.prior_sigma,
+                "file": self.prior_path.name, "sigma": self.prior_sigma, "source": self.prior_key,
             },
             "depth": any(f.depth_path is not None for f in self.frames),
             "warnings": list(self.warnings),
@@ -353,18 +354,24 @@ def _read_frames(root: Path, meta: dict, json_path: Path, warnings: list[str]) -
     return frames
 
 
-def _read_prior_keys(root: Path, meta: dict, json_path: Path, warnings: list[str]) -> tuple[Path | None, float | None]:
-    """The prior's path (``prior_file_path``, else ``prior.ply`` when present) and its stated sigma."""
-    prior_path = None
-    if meta.get("prior_file_path") is not None:
-        prior_path = _resolve_inside(root, meta["prior_file_path"], json_path, "prior_file_path")
-    elif (root / DEFAULT_PRIOR_NAME).is_file():
-        prior_path = (root / DEFAULT_PRIOR_NAME).resolve()
-        warnings.append(f"prior_file_path absent: using {DEFAULT_PRIOR_NAME} found in the scene directory")
+def _read_prior_keys(
+    root: Path, meta: dict, json_path: Path, warnings: list[str]
+) -> tuple[Path | None, float | None, str | None]:
+    """The prior's path, its stated sigma and where the path came from: ``prior_file_path``, else nerfstudio's
+    ``ply_file_path`` (a COLMAP or capture-app point cloud), else ``prior.ply`` when present."""
+    prior_path = key = None
+    for name in ("prior_file_path", "ply_file_path"):
+        if meta.get(name) is not None:
+            prior_path, key = _resolve_inside(root, meta[name], json_path, name), name
+            break
+    else:
+        if (root / DEFAULT_PRIOR_NAME).is_file():
+            prior_path, key = (root / DEFAULT_PRIOR_NAME).resolve(), DEFAULT_PRIOR_NAME
+            warnings.append(f"prior_file_path absent: using {DEFAULT_PRIOR_NAME} found in the scene directory")
     prior_sigma = None
     if meta.get("prior_sigma") is not None:
         prior_sigma = _positive_number(meta["prior_sigma"], json_path, "prior_sigma")
-    return prior_path, prior_sigma
+    return prior_path, prior_sigma, key
 
 
 def _check_image_sizes(frames: list[Frame], json_path: Path, downscale: int) -> None:
@@ -413,9 +420,9 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
     frames = _read_frames(root, meta, json_path, warnings)
     splits = _read_splits(meta, [f.file_path for f in frames], json_path)
     depth_scale = _positive_number(meta.get("depth_unit_scale_factor", 0.001), json_path, "depth_unit_scale_factor")
-    prior_path, prior_sigma = _read_prior_keys(root, meta, json_path, warnings)
+    prior_path, prior_sigma, prior_key = _read_prior_keys(root, meta, json_path, warnings)
     _check_image_sizes(frames, json_path, downscale)
-    scene = Scene(root.resolve(), frames, splits, prior_path, prior_sigma, depth_scale, downscale,
+    scene = Scene(root.resolve(), frames, splits, prior_path, prior_sigma, depth_scale, prior_key, downscale,
                   warnings=warnings)
     if load_images:
         _load_pixels(scene)
@@ -470,6 +477,7 @@ def inspect_scene(path: str | Path) -> dict:
         prior = load_prior(scene.prior_path, scene.prior_sigma)
         summary["prior"] = {
             "file": scene.prior_path.name,
+            "source": scene.prior_key,
             "kind": prior.kind,
             "sigma": prior.sigma,
             "sigma_estimated": prior.sigma_estimated,

@@ -71,6 +71,8 @@ def prior_stage(scene: Scene, cfg: TrainConfig) -> PriorStage:
             "the scene has none, so sampling falls back to the occupancy grid and no depth loss is used"))
     prior = load_prior(scene.prior_path, scene.prior_sigma, seed=cfg.seed)
     why = "sets the scene box" + (" and guides sampling / depth" if needs_prior else " only (not needed else)")
+    if scene.prior_key == "ply_file_path":
+        why += f"; from nerfstudio's ply_file_path ({scene.prior_path.name}), no prior_file_path given"
     return PriorStage(_record("prior", True, f"{prior.kind} prior, sigma {prior.sigma:.4g} "
                               f"({'estimated' if prior.sigma_estimated else 'given'}); {why}", t0), prior)
 
