@@ -67,10 +67,16 @@ class Intrinsics:
 # ------------------------------------------------------------------------------------------------ numbers
 
 
-def _short_repr(value) -> str:
-    """``repr(value)`` on one line, at most about 80 characters, encodable as UTF-8."""
-    text = repr(value).replace("\n", " ").replace("\r", " ").encode("utf-8", "backslashreplace").decode("utf-8")
+def one_line(text: str) -> str:
+    """``text`` on one line, at most about 80 characters, and encodable as UTF-8 (hostile input can hold
+    anything, lone surrogates from ``\\udc80`` JSON escapes included: those become ``\\udc80`` again)."""
+    text = text.replace("\n", " ").replace("\r", " ").encode("utf-8", "backslashreplace").decode("utf-8")
     return text if len(text) <= 80 else f"{text[:60]}... ({len(text)} characters)"
+
+
+def short_repr(value) -> str:
+    """``repr(value)`` as :func:`one_line` gives it, for quoting a bad value in an error message."""
+    return one_line(repr(value))
 
 
 def _is_number(value) -> bool:
@@ -93,7 +99,7 @@ def finite_number(value, field: str) -> float:
     """``value`` as a float; CameraError naming ``field`` unless it is a finite number."""
     number = as_finite(value)
     if number is None:
-        raise CameraError(f"must be a finite number, got {_short_repr(value)}", field)
+        raise CameraError(f"must be a finite number, got {short_repr(value)}", field)
     return number
 
 
@@ -101,7 +107,7 @@ def positive_number(value, field: str) -> float:
     """``value`` as a float; CameraError naming ``field`` unless it is a finite number > 0."""
     number = as_finite(value)
     if number is None or number <= 0:
-        raise CameraError(f"must be a positive finite number, got {_short_repr(value)}", field)
+        raise CameraError(f"must be a positive finite number, got {short_repr(value)}", field)
     return number
 
 
@@ -109,7 +115,7 @@ def pixel_count(value, field: str) -> int:
     """``value`` as an int; CameraError naming ``field`` unless it is a positive whole number (2.0 is 2)."""
     number = as_finite(value)
     if number is None or number <= 0 or number != int(number):
-        raise CameraError(f"must be a positive integer pixel count, got {_short_repr(value)}", field)
+        raise CameraError(f"must be a positive integer pixel count, got {short_repr(value)}", field)
     return int(number)
 
 
@@ -124,14 +130,14 @@ def _matrix_of_numbers(value) -> np.ndarray:
         return value.astype(np.float64)
     shape_hint = "must be a 4x4 matrix (a list of 4 rows of 4 numbers)"
     if not isinstance(value, (list, tuple)) or not all(isinstance(row, (list, tuple)) for row in value):
-        raise CameraError(f"{shape_hint}, got {_short_repr(value)}")
+        raise CameraError(f"{shape_hint}, got {short_repr(value)}")
     if len(value) != 4 or any(len(row) != 4 for row in value):
         lengths = "/".join(str(n) for n in sorted({len(row) for row in value})) or "0"
         raise CameraError(f"{shape_hint}, got {len(value)} rows of {lengths} numbers")
     for row in value:
         for x in row:
             if not _is_number(x):
-                raise CameraError(f"must hold numbers only, got {_short_repr(x)}")
+                raise CameraError(f"must hold numbers only, got {short_repr(x)}")
     try:
         return np.array([[float(x) for x in row] for row in value], dtype=np.float64)
     except OverflowError:

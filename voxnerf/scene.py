@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,8 +22,10 @@ from voxnerf.camera_rules import (
     CameraError,
     Intrinsics,
     finite_number,
+    one_line,
     pixel_count,
     positive_number,
+    short_repr,
     validate_pose_deviation,
 )
 from voxnerf.errors import SceneError
@@ -137,38 +140,26 @@ def _fail(path: Path, message: str, key: str | None = None) -> SceneError:
     return SceneError(path, message, key=key)
 
 
-def _clip(text: str) -> str:
-    """``text`` on one line, at most about 80 characters, and encodable as UTF-8 (hostile input can hold
-    anything, lone surrogates from ``\\udc80`` JSON escapes included: those become ``\\udc80`` again)."""
-    text = text.replace("\n", " ").replace("\r", " ").encode("utf-8", "backslashreplace").decode("utf-8")
-    return text if len(text) <= 80 else f"{text[:60]}... ({len(text)} characters)"
-
-
-def _short_repr(value) -> str:
-    return _clip(repr(value))
+def _checked(rule: Callable, value, path: Path, key: str):
+    """``rule(value, key)`` of :mod:`voxnerf.camera_rules`, its CameraError as a SceneError naming ``path``."""
+    try:
+        return rule(value, key)
+    except CameraError as err:
+        raise _fail(path, err.message, key) from None
 
 
 def _positive_number(value, path: Path, key: str) -> float:
-    try:
-        return positive_number(value, key)
-    except CameraError as err:
-        raise _fail(path, err.message, key) from None
+    return _checked(positive_number, value, path, key)
 
 
 def _finite_number(value, path: Path, key: str) -> float:
-    try:
-        return finite_number(value, key)
-    except CameraError as err:
-        raise _fail(path, err.message, key) from None
+    return _checked(finite_number, value, path, key)
 
 
 def _pixel_count(value, path: Path, key: str) -> int:
-    try:
-        count = pixel_count(value, key)
-    except CameraError as err:
-        raise _fail(path, err.message, key) from None
+    count = _checked(pixel_count, value, path, key)
     if count > MAX_IMAGE_SIDE:
-        raise _fail(path, f"must be a positive integer pixel count, got {_short_repr(value)}", key)
+        raise _fail(path, f"must be a positive integer pixel count, got {short_repr(value)}", key)
     return count
 
 
@@ -194,7 +185,7 @@ def _read_intrinsics(source: dict, fallback: dict, path: Path, where: str) -> In
 def _check_camera_model(meta: dict, frame: dict, path: Path, where: str) -> None:
     model = frame.get("camera_model", meta.get("camera_model", "PINHOLE"))
     if model not in ("PINHOLE", "OPENCV"):
-        raise _fail(path, f"unsupported camera model {_short_repr(model)} (PINHOLE or OPENCV)",
+        raise _fail(path, f"unsupported camera model {short_repr(model)} (PINHOLE or OPENCV)",
                     f"{where}camera_model")
     for key in DISTORTION_KEYS:
         value = frame.get(key, meta.get(key, 0.0))
@@ -236,17 +227,17 @@ def _reorthonormalised_warning(fixed: list[tuple[str, float]]) -> str:
 
 def _resolve_inside(root: Path, rel, path: Path, key: str) -> Path:
     if not isinstance(rel, str) or not rel:
-        raise _fail(path, f"must be a non-empty relative path string, got {_short_repr(rel)}", key)
+        raise _fail(path, f"must be a non-empty relative path string, got {short_repr(rel)}", key)
     try:
         target = (root / rel).resolve()
         inside = target.is_relative_to(root.resolve())
         found = inside and target.is_file()
     except (OSError, ValueError, RuntimeError) as exc:  # NUL byte, name too long, symlink loop (3.11)
-        raise _fail(path, f"unusable path {_short_repr(rel)} ({type(exc).__name__})", key) from None
+        raise _fail(path, f"unusable path {short_repr(rel)} ({type(exc).__name__})", key) from None
     if not inside:
-        raise _fail(path, f"{_short_repr(rel)} points outside the scene directory", key)
+        raise _fail(path, f"{short_repr(rel)} points outside the scene directory", key)
     if not found:
-        raise _fail(path, f"file not found: {_clip(rel)}", key)
+        raise _fail(path, f"file not found: {one_line(rel)}", key)
     return target
 
 
@@ -271,7 +262,7 @@ def _eval_splits(meta: dict, index: dict[str, int], path: Path) -> dict[str, lis
         if not SPLIT_NAME.fullmatch(name):  # it names a folder of evaluation renders
             raise _fail(
                 path,
-                f"split name {_short_repr(name)}: use 1 to 64 letters, digits, '_', '-' or '.', not starting "
+                f"split name {short_repr(name)}: use 1 to 64 letters, digits, '_', '-' or '.', not starting "
                 "with '.'",
                 "eval_splits",
             )
@@ -313,7 +304,7 @@ def _read_meta(root: Path) -> tuple[Path, dict]:
     try:
         meta = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, RecursionError) as exc:  # bad UTF-8 or JSON, 4300+ digit integers, deep nesting
-        raise SceneError(path, f"invalid JSON: {_clip(str(exc))}") from None
+        raise SceneError(path, f"invalid JSON: {one_line(str(exc))}") from None
     if not isinstance(meta, dict):
         raise SceneError(path, "top level must be a JSON object")
     return path, meta
