@@ -81,6 +81,7 @@ JOB_OPTION_FIELDS = (
     "max_seconds",
     "max_iters",
     "depth_loss",
+    "depth_source",
     "downscale",
     "seed",
     "compile",

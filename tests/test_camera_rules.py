@@ -13,7 +13,10 @@ from voxnerf.camera_rules import (
     ROTATION_TOLERANCE,
     CameraError,
     Intrinsics,
+    Lens,
+    lens_of,
     resolve_intrinsics,
+    resolve_lens,
     validate_pose,
     validate_pose_deviation,
 )
@@ -223,3 +226,75 @@ def test_cameras_and_scene_re_export_the_same_objects():
 def test_camera_rules_and_outputs_import_no_torch():
     code = "import sys, voxnerf.camera_rules, voxnerf.outputs; sys.exit(1 if 'torch' in sys.modules else 0)"
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
+
+
+# ------------------------------------------------------------------------------------------------ lenses
+
+FISHEYE = Lens("OPENCV_FISHEYE", k1=0.05, k2=-0.02, k3=0.01, k4=-0.002)
+
+
+@pytest.mark.parametrize(
+    ("model", "values", "field"),
+    [
+        ("PINHOLE", {}, "camera_model"),
+        ("FISHEYE", {}, "camera_model"),
+        ("OPENCV", {"k1": float("inf")}, "k1"),
+        ("OPENCV", {"k2": "0.1"}, "k2"),
+        ("OPENCV", {"p1": True}, "p1"),
+        ("OPENCV", {"k4": 0.1}, "k4"),
+        ("OPENCV_FISHEYE", {"p2": -0.1}, "p2"),
+    ],
+)
+def test_a_lens_refuses_bad_values_naming_them(model, values, field):
+    with pytest.raises(CameraError) as info:
+        Lens(model, **values)
+    assert info.value.field == field and "\n" not in str(info.value)
+
+
+def test_lens_of_follows_the_camera_model():
+    assert lens_of("PINHOLE", {"k1": 0, "p2": None}) is None
+    assert lens_of("OPENCV", {"k1": -0.1, "k3": None}) == Lens("OPENCV", k1=-0.1)
+    assert lens_of("OPENCV_FISHEYE", {"k4": 1}).k4 == 1.0
+    for model, values, field in [("PINHOLE", {"k1": 0.1}, "k1"), (None, {}, "camera_model"),
+                                 ("opencv", {}, "camera_model")]:
+        with pytest.raises(CameraError) as info:
+            lens_of(model, values)
+        assert info.value.field == field
+
+
+def test_intrinsics_carry_their_lens_through_scaling_and_dicts():
+    intr = Intrinsics(50.0, 40.0, 32.0, 24.0, 64, 48, FISHEYE)
+    assert intr.scaled(0.5) == Intrinsics(25.0, 20.0, 16.0, 12.0, 32, 24, FISHEYE)
+    assert intr.as_dict()["lens"] == {"model": "OPENCV_FISHEYE", "k1": 0.05, "k2": -0.02, "k3": 0.01, "k4": -0.002,
+                                      "p1": 0.0, "p2": 0.0}
+    assert Intrinsics(**intr.as_dict()) == intr  # as a checkpoint stores and reads it
+    assert intr.undistorted() == DEFAULT.scaled(1.0) and "lens" not in DEFAULT.as_dict()
+
+
+def test_a_render_is_a_pinhole_unless_it_names_a_camera_model():
+    trained = Intrinsics(50.0, 40.0, 32.0, 24.0, 64, 48, Lens("OPENCV", k1=-0.1, p1=0.01))
+    assert resolve_intrinsics(trained).lens is None  # the undistorted view of the trained camera
+    assert resolve_intrinsics(trained, width=32, height=24) == Intrinsics(25.0, 20.0, 16.0, 12.0, 32, 24)
+    same = resolve_intrinsics(trained, camera_model="OPENCV", k2=0.01)  # the trained coefficients, k2 changed
+    assert same.lens == Lens("OPENCV", k1=-0.1, k2=0.01, p1=0.01)
+    other = resolve_intrinsics(trained, camera_model="OPENCV_FISHEYE", k1=0.2)  # another model: from zero
+    assert other.lens == Lens("OPENCV_FISHEYE", k1=0.2)
+    assert resolve_intrinsics(trained, camera_model="PINHOLE").lens is None
+    assert resolve_lens(None, "OPENCV") == Lens("OPENCV")
+
+
+@pytest.mark.parametrize(
+    ("given", "field"),
+    [
+        ({"k1": 0.1}, "k1"),  # coefficients need camera_model
+        ({"camera_model": "PINHOLE", "p1": 0.1}, "p1"),
+        ({"camera_model": "OPENCV", "k4": 0.1}, "k4"),
+        ({"camera_model": "OPENCV", "k1": float("nan")}, "k1"),
+        ({"camera_model": "OPENCV", "k1": False}, "k1"),
+        ({"camera_model": "THETA"}, "camera_model"),
+    ],
+)
+def test_bad_render_lenses_name_the_field(given, field):
+    with pytest.raises(CameraError) as info:
+        resolve_intrinsics(DEFAULT, **given)
+    assert info.value.field == field

@@ -108,14 +108,14 @@ def test_read_rgb_refuses_unreadable_files(tmp_path: Path) -> None:
 # --- depth ------------------------------------------------------------------------------------------
 
 
-def test_read_depth_converts_millimetres_and_marks_zero_invalid(tmp_path: Path) -> None:
-    raw = np.array([[0, 1000, 1234], [65535, 1, 0]], dtype=np.uint16)
+def test_read_depth_converts_millimetres_and_marks_zero_and_saturation_invalid(tmp_path: Path) -> None:
+    raw = np.array([[0, 1000, 1234], [65535, 1, 65534]], dtype=np.uint16)
     iio.imwrite(tmp_path / "d.png", raw)
     depth = read_depth(tmp_path / "d.png", unit_scale=0.001)
     assert depth.dtype == np.float32 and depth.shape == (2, 3)
-    assert np.isnan(depth[0, 0]) and np.isnan(depth[1, 2])
+    assert np.isnan(depth[0, 0]) and np.isnan(depth[1, 0])  # 0 and the 16-bit maximum: no measurement
     np.testing.assert_allclose(depth[0, 1:], [1.0, 1.234], rtol=1e-7)
-    np.testing.assert_allclose(depth[1, :2], [65.535, 0.001], rtol=1e-7)
+    np.testing.assert_allclose(depth[1, 1:], [0.001, 65.534], rtol=1e-7)
 
 
 def test_read_depth_npy_float_metres(tmp_path: Path) -> None:
@@ -163,7 +163,7 @@ def test_depth_png16_round_trip_within_half_unit(tmp_path: Path) -> None:
     scale = 0.001
     depth = rng.uniform(0.01, 60.0, size=(17, 19))
     depth[0, 0] = np.nan
-    depth[0, 1] = 100.0  # beyond 65535 units: clipped
+    depth[0, 1] = 100.0  # beyond 65535 units: stored as 65535, read back as no measurement
     depth[0, 2] = -1.0  # negative: stored as 0 (no depth)
     data = encode_depth_png16(depth, scale)
     assert data[24] == 16 and data[25] == 0  # IHDR: 16-bit grayscale
@@ -173,8 +173,7 @@ def test_depth_png16_round_trip_within_half_unit(tmp_path: Path) -> None:
     valid = np.ones_like(depth, dtype=bool)
     valid[0, :3] = False
     assert np.all(np.abs(back[valid] - depth[valid]) <= scale / 2 + 1e-6)
-    assert np.isnan(back[0, 0]) and np.isnan(back[0, 2])
-    assert back[0, 1] == pytest.approx(65.535)
+    assert np.isnan(back[0, 0]) and np.isnan(back[0, 1]) and np.isnan(back[0, 2])
 
 
 # --- image_size ---------------------------------------------------------------------------------------

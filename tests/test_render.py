@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
 from tiny_run import DEFAULT_INTRINSICS, DEPTH_UNIT_SCALE, write_tiny_run
 
-from voxnerf.camera_rules import Intrinsics, validate_pose
+from voxnerf.camera_rules import Intrinsics, Lens, validate_pose
 from voxnerf.errors import RunError
 from voxnerf.outputs import OUTPUT_NAMES
 from voxnerf.render import CHECKPOINT, OUTPUTS, load_model, render
@@ -113,3 +115,44 @@ def test_slightly_skewed_pose_renders_as_its_repaired_rotation(trained):
     a = render(trained, skewed, outputs=("rgb",))
     b = render(trained, validate_pose(skewed), outputs=("rgb",))
     np.testing.assert_array_equal(a["rgb"], b["rgb"])
+
+
+# ------------------------------------------------------------------------------------------------ lenses
+
+
+@pytest.fixture(scope="module")
+def trained_through_a_lens(tmp_path_factory):
+    """The tiny run, its default camera an OPENCV lens (as a checkpoint of a distorted scene stores it)."""
+    run = write_tiny_run(tmp_path_factory.mktemp("lens") / "run")
+    state = torch.load(run / CHECKPOINT, weights_only=False)
+    state["default_intrinsics"]["lens"] = {"model": "OPENCV", "k1": -0.3, "k2": 0.0, "k3": 0.0, "k4": 0.0,
+                                           "p1": 0.01, "p2": 0.0}
+    torch.save(state, run / CHECKPOINT)
+    return run, load_model(run, "cpu")
+
+
+def test_the_default_render_of_a_distorted_run_is_its_undistorted_pinhole_view(trained_through_a_lens, trained):
+    _, lensed = trained_through_a_lens
+    assert lensed.default_intrinsics == Intrinsics(**DEFAULT_INTRINSICS.as_dict(), lens=Lens("OPENCV", k1=-0.3,
+                                                                                            p1=0.01))
+    default = render(lensed, _pose(), outputs=("depth",))["depth"]
+    pinhole = render(trained, _pose(), outputs=("depth",))["depth"]  # same weights (same seed), no lens
+    np.testing.assert_array_equal(default, pinhole)
+    through = render(lensed, _pose(), lensed.default_intrinsics, ("depth",))["depth"]
+    assert np.abs(through - pinhole).max() > 1e-3  # the lens bends the corner rays: other z-depths
+
+
+def test_the_cli_pose_file_asks_for_a_lens_as_post_render_does(trained_through_a_lens, tmp_path):
+    from app.core.render_request import RenderRequest
+    from voxnerf.cli import _read_pose
+
+    run, lensed = trained_through_a_lens
+    doc = {"transform_matrix": _pose().tolist(), "w": 8, "h": 6, "camera_model": "OPENCV", "k2": 0.05}
+    (tmp_path / "pose.json").write_text(json.dumps(doc))
+    _, cli = _read_pose(tmp_path / "pose.json", lensed.default_intrinsics)
+    rest = RenderRequest(job_id="a" * 32, transform_matrix=doc["transform_matrix"], width=8, height=6,
+                         camera_model="OPENCV", k2=0.05).intrinsics(lensed.default_intrinsics)
+    assert cli == rest and cli.lens == Lens("OPENCV", k1=-0.3, k2=0.05, p1=0.01)
+    (tmp_path / "bad.json").write_text(json.dumps({**doc, "camera_model": "OPENCV", "k4": 0.1}))
+    with pytest.raises(RunError, match=r"bad.json: k4: OPENCV has no k4"):
+        _read_pose(tmp_path / "bad.json", lensed.default_intrinsics)

@@ -1,4 +1,4 @@
-"""Scene loading per SCENE_FORMAT.md: splits, intrinsics, downscaling, and one clear error per problem."""
+"""Scene loading per docs/scene-format.md: splits, intrinsics, downscaling, and one clear error per problem."""
 
 import json
 import shutil
@@ -89,7 +89,7 @@ def test_per_frame_intrinsics_and_downscale(tmp_path):
         (lambda m: m.update(test_filenames=["images/nope.png"]), "test_filenames"),
         (lambda m: m.update(eval_splits={"far": ["images/nope.png"]}), "eval_splits.far"),
         (lambda m: m.update(camera_model="FISHEYE"), "frames[0].camera_model"),
-        (lambda m: m.update(camera_model="OPENCV", k1=0.1), "frames[0].k1"),
+        (lambda m: m.update(camera_model="OPENCV", k1="0.1"), "frames[0].k1"),
         (lambda m: m.update(prior_file_path="prior.ply"), "prior_file_path"),
         (lambda m: m.update(prior_sigma=0), "prior_sigma"),
         (lambda m: m.update(depth_unit_scale_factor="mm"), "depth_unit_scale_factor"),
@@ -203,3 +203,187 @@ def test_a_bad_ply_file_path_names_the_key(tmp_path, value, words):
     with pytest.raises(SceneError) as info:
         load_scene(tmp_path / "scene", load_images=False)
     assert info.value.key == "ply_file_path" and words in info.value.message
+
+
+# ------------------------------------------------------------------------------------------------ lens distortion
+# camera_model OPENCV / OPENCV_FISHEYE (nerfstudio), coefficients without camera_model (instant-ngp).
+
+
+def _lens_scene(tmp_path, **top) -> dict:
+    return json.loads(json.dumps(_write_scene(tmp_path, n=4, **top)))
+
+
+def test_opencv_at_the_top_level_gives_every_frame_the_lens(tmp_path):
+    _lens_scene(tmp_path, camera_model="OPENCV", k1=-0.1, k2=0.01, p1=0.001, p2=0.0)
+    scene = load_scene(tmp_path, downscale=2)
+    lens = scene.intrinsics(3).lens
+    assert (lens.model, lens.k1, lens.k2, lens.k3, lens.p1) == ("OPENCV", -0.1, 0.01, 0.0, 0.001)
+    assert scene.intrinsics(3).fl_x == 5.0  # downscaling scales the focal length, never the coefficients
+    assert scene.summary()["camera_models"] == {"OPENCV (camera_model)": 4}
+
+
+def test_a_frame_overrides_the_top_level_model_and_coefficients(tmp_path):
+    meta = _lens_scene(tmp_path, camera_model="OPENCV", k1=-0.1)
+    meta["frames"][1].update(k1=0.2)
+    meta["frames"][2].update(camera_model="OPENCV_FISHEYE", k4=0.01)  # the top level's k1 is OPENCV's, not its own
+    meta["frames"][3].update(camera_model="PINHOLE")
+    _rewrite(tmp_path, meta)
+    scene = load_scene(tmp_path)
+    lenses = [f.intrinsics.lens for f in scene.frames]
+    assert lenses[0].k1 == -0.1 and lenses[1].k1 == 0.2
+    assert (lenses[2].model, lenses[2].k1, lenses[2].k4) == ("OPENCV_FISHEYE", 0.0, 0.01) and lenses[3] is None
+    assert scene.summary()["camera_models"] == {
+        "OPENCV (camera_model)": 2, "OPENCV_FISHEYE (camera_model)": 1, "PINHOLE (camera_model)": 1}
+
+
+def test_instant_ngp_keys(tmp_path):
+    """camera_angle_x instead of fl_x/fl_y, coefficients without camera_model, is_fisheye, aabb_scale, sharpness."""
+    meta = _lens_scene(tmp_path, aabb_scale=16, k1=-0.05, p2=0.001, camera_angle_x=2 * np.arctan(0.4))
+    del meta["fl_x"], meta["fl_y"]
+    for f in meta["frames"]:
+        f["sharpness"] = 42.0
+    meta["frames"][1].update(is_fisheye=True, k1=0.1, k4=0.02, p2=0.0)
+    meta["frames"][2].update(k1=0.0, p2=0.0)
+    _rewrite(tmp_path, meta)
+    scene = load_scene(tmp_path)
+    intr = scene.frames[0].intrinsics
+    assert intr.fl_x == pytest.approx(10.0) and intr.fl_y == pytest.approx(10.0)  # 0.5 * 8 / 0.4, square pixels
+    assert (intr.lens.model, intr.lens.k1, intr.lens.p2) == ("OPENCV", -0.05, 0.001)
+    fisheye = scene.frames[1].intrinsics.lens
+    assert (fisheye.model, fisheye.k1, fisheye.k4) == ("OPENCV_FISHEYE", 0.1, 0.02)
+    assert scene.frames[2].intrinsics.lens is None
+    assert scene.summary()["camera_models"] == {
+        "OPENCV (coefficients without camera_model, as instant-ngp)": 2,
+        "OPENCV_FISHEYE (coefficients without camera_model, as instant-ngp)": 1,
+        "PINHOLE (default)": 1,
+    }
+
+
+def test_camera_angles_give_each_axis_its_focal_length(tmp_path):
+    meta = _lens_scene(tmp_path, camera_angle_x=2 * np.arctan(0.4), camera_angle_y=2 * np.arctan(0.5))
+    del meta["fl_x"], meta["fl_y"]
+    _rewrite(tmp_path, meta)
+    intr = load_scene(tmp_path).frames[0].intrinsics
+    assert (intr.fl_x, intr.fl_y, intr.lens) == (pytest.approx(10.0), pytest.approx(6.0), None)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "key"),
+    [
+        (lambda m: m.update(camera_model="OPENCV", k1=float("nan")), "frames[0].k1"),
+        (lambda m: m.update(camera_model="OPENCV", k2="0.1"), "frames[0].k2"),
+        (lambda m: m.update(camera_model="OPENCV", p1=True), "frames[0].p1"),
+        (lambda m: m.update(camera_model="OPENCV", k4=0.1), "frames[0].k4"),
+        (lambda m: m.update(camera_model="OPENCV_FISHEYE", p2=0.1), "frames[0].p2"),
+        (lambda m: m.update(camera_model="SIMPLE_RADIAL"), "frames[0].camera_model"),
+        (lambda m: m.update(camera_model=7), "frames[0].camera_model"),
+        (lambda m: m["frames"][2].update(camera_model="PINHOLE", k2=0.1), "frames[2].k2"),
+        (lambda m: m.update(camera_model="PINHOLE", k3=0.1), "frames[0].k3"),
+        (lambda m: m.update(k4=0.1), "frames[0].k4"),  # instant-ngp without is_fisheye: OPENCV, which has no k4
+        (lambda m: m.update(is_fisheye="yes", k1=0.1), "frames[0].is_fisheye"),
+        (lambda m: m.update(k1=[0.1]), "frames[0].k1"),
+        (lambda m: (m.pop("fl_x"), m.pop("fl_y"), m.update(camera_angle_x=4.0)), "frames[0].camera_angle_x"),
+    ],
+)
+def test_each_lens_problem_names_file_and_key(tmp_path, mutate, key):
+    meta = _lens_scene(tmp_path)
+    mutate(meta)
+    _rewrite(tmp_path, meta)
+    with pytest.raises(SceneError) as info:
+        load_scene(tmp_path)
+    err = info.value
+    assert err.key == key and err.file.endswith("transforms.json") and key in str(err) and "\n" not in str(err)
+
+
+# --- sensor depth: validity, registration to the image, training frames only -------------------------------
+
+
+def _depth_scene(tmp_path, depth_size=(8, 6), depth_mm=None, **top) -> dict:
+    """A 4-frame scene (frame 0 held out) whose frames carry 16-bit depth maps of ``depth_size`` (w, h)."""
+    meta = _write_scene(tmp_path, n=4, w=8, h=6, depth_unit_scale_factor=0.001, **top)
+    (tmp_path / "depth").mkdir()
+    dw, dh = depth_size
+    for i, frame in enumerate(meta["frames"]):
+        mm = depth_mm if depth_mm is not None else (1000 + 10 * i + np.arange(dw)[None] + 100 * np.arange(dh)[:, None])
+        iio.imwrite(tmp_path / "depth" / f"d{i}.png", np.asarray(mm, np.uint16) * np.ones((dh, dw), np.uint16))
+        frame["depth_file_path"] = f"depth/d{i}.png"
+    meta["test_filenames"] = ["images/f00.png"]
+    _rewrite(tmp_path, meta)
+    return meta
+
+
+def test_depth_is_read_for_training_frames_only(tmp_path):
+    _depth_scene(tmp_path)
+    scene = load_scene(tmp_path)
+    assert scene.depths[0] is None  # held out: never read for training
+    assert [i for i, d in enumerate(scene.depths) if d is not None] == scene.train_indices == [1, 2, 3]
+    assert scene.depths[1][0, 0] == pytest.approx(1.010) and scene.depths[1].dtype == np.float32
+    assert scene.summary()["depth_frames"] == {"all": 4, "train": 3}
+
+
+def test_zero_saturation_and_depth_max_are_no_measurement(tmp_path):
+    meta = _depth_scene(tmp_path, depth_mm=np.array([[0, 65535, 1000, 5000, 1500, 1500, 1500, 1500]] * 6))
+    meta["depth_max"] = 4.0
+    _rewrite(tmp_path, meta)
+    depth = load_scene(tmp_path).depths[1]
+    assert np.isnan(depth[:, :2]).all() and np.isnan(depth[:, 3]).all()  # 0, 65535, and 5 m beyond 4 m
+    assert depth[0, 2] == pytest.approx(1.0) and depth[0, 4] == pytest.approx(1.5)
+
+
+def test_a_smaller_depth_map_with_the_same_aspect_is_scaled_to_the_image(tmp_path):
+    _depth_scene(tmp_path, depth_size=(4, 3))  # 7-Scenes / ScanNet-like: same field of view, fewer pixels
+    depth = load_scene(tmp_path).depths[1]
+    assert depth.shape == (6, 8)
+    # each image pixel takes the depth pixel its centre falls in: column c of the image -> c // 2 of the map
+    expected = 1.010 + np.arange(4)[None].repeat(2, 1) * 0.001 + 0.1 * np.arange(3)[:, None].repeat(2, 0)
+    np.testing.assert_allclose(depth, expected, atol=1e-6)
+
+
+def test_depth_intrinsics_register_another_camera(tmp_path):
+    # The depth camera sees twice the image's field of view: the image covers its middle half.
+    meta = _depth_scene(tmp_path, depth_size=(8, 6))
+    meta["depth_intrinsics"] = {"fl_x": 5.0, "fl_y": 5.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6}
+    _rewrite(tmp_path, meta)
+    depth = load_scene(tmp_path).depths[1]
+    cols = np.floor(5.0 * (np.arange(8) + 0.5 - 4.0) / 10.0 + 4.0).astype(int)
+    rows = np.floor(5.0 * (np.arange(6) + 0.5 - 3.0) / 10.0 + 3.0).astype(int)
+    np.testing.assert_allclose(depth, (1010 + cols[None] + 100 * rows[:, None]) / 1000, atol=1e-6)
+
+
+def test_depth_registration_at_a_downscale_keeps_the_image_grid(tmp_path):
+    _depth_scene(tmp_path, depth_size=(16, 12))
+    scene = load_scene(tmp_path, downscale=2)
+    assert scene.depths[1].shape == scene.images[1].shape[:2] == (3, 4)
+    assert np.isfinite(scene.depths[1]).all()
+
+
+@pytest.mark.parametrize(("size", "top", "words"), [
+    ((8, 8), {}, "a different aspect ratio needs the depth camera's depth_intrinsics"),
+    ((8, 6), {"depth_intrinsics": {"fl_x": 5.0, "fl_y": 5.0, "cx": 4.0, "cy": 3.0, "w": 16, "h": 12}},
+     "but depth_intrinsics say w=16 h=12"),
+])
+def test_a_depth_map_of_the_wrong_size_names_the_file(tmp_path, size, top, words):
+    _depth_scene(tmp_path, depth_size=size, **top)
+    with pytest.raises(SceneError, match=words) as info:
+        load_scene(tmp_path)
+    assert info.value.file.endswith("d1.png") and info.value.key == "size"
+    with pytest.raises(SceneError, match=words):  # the upload check reads every frame's depth, held-out ones too
+        inspect_scene(tmp_path)
+
+
+@pytest.mark.parametrize(("mutate", "key"), [
+    (lambda m: m.update(depth_intrinsics=[1, 2]), "depth_intrinsics"),
+    (lambda m: m.update(depth_intrinsics={"fl_x": 5.0}), "depth_intrinsics.cx"),
+    (lambda m: m["frames"][2].update(depth_intrinsics={"fl_x": -1, "fl_y": 5, "cx": 1, "cy": 1, "w": 8, "h": 6}),
+     "frames[2].depth_intrinsics.fl_x"),
+    (lambda m: m.update(depth_max=0), "depth_max"),
+    (lambda m: m.update(depth_max="far"), "depth_max"),
+    (lambda m: m["frames"][1].update(depth_file_path="depth/missing.png"), "frames[1].depth_file_path"),
+])
+def test_each_depth_problem_names_file_and_key(tmp_path, mutate, key):
+    meta = _depth_scene(tmp_path)
+    mutate(meta)
+    _rewrite(tmp_path, meta)
+    with pytest.raises(SceneError) as info:
+        load_scene(tmp_path)
+    assert info.value.file.endswith("transforms.json") and info.value.key == key

@@ -132,7 +132,7 @@ def test_units_and_placement_leave_the_normalised_scene_bit_identical(room, tmp_
 @pytest.fixture(scope="module")
 def metre_run(room, tmp_path_factory) -> tuple[Path, dict]:
     run = tmp_path_factory.mktemp("runs") / "metres"
-    report = train(room, run, small_config(max_iters=150, rays_per_batch=512, final_eval=False),
+    report = train(room, run, small_config(max_iters=150, rays_per_batch=512, final_eval=False, depth_beta=0.1),
                    progress_bar=False)
     return run, report
 

@@ -1,4 +1,4 @@
-"""voxnerf.synthetic.writer: SCENE_FORMAT.md compliance of the written room, determinism, refused output."""
+"""voxnerf.synthetic.writer: docs/scene-format.md compliance of the written room, determinism, refused output."""
 
 from __future__ import annotations
 

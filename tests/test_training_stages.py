@@ -18,9 +18,9 @@ CPU = torch.device("cpu")
 
 
 def _scene(prior_path=None):
-    frames = [SimpleNamespace(c2w=np.eye(4)), SimpleNamespace(c2w=np.eye(4))]
+    frames = [SimpleNamespace(c2w=np.eye(4), depth_path=None), SimpleNamespace(c2w=np.eye(4), depth_path=None)]
     frames[1].c2w[:3, 3] = [2.0, 0.0, 0.0]
-    return SimpleNamespace(prior_path=prior_path, frames=frames)
+    return SimpleNamespace(prior_path=prior_path, frames=frames, train_indices=[0, 1])
 
 
 def test_seeding_makes_every_generator_repeat():
@@ -39,7 +39,8 @@ def test_seeding_makes_every_generator_repeat():
 def test_a_scene_without_prior_warns_only_when_something_needs_one(cfg, warning):
     found = stages.prior_stage(_scene(), cfg)
     assert found.prior is None and found.record.name == "prior" and not found.record.ran
-    assert found.record.why == "the scene has no prior"
+    needs = warning is not None
+    assert found.record.why == "the scene has no prior" + (" and no training frame has a depth map" if needs else "")
     assert (found.warning is None) if warning is None else (warning in found.warning)
 
 

@@ -29,13 +29,13 @@ class StubModel:
         return SimpleNamespace(origins=origins, dirs=dirs)
 
 
-def _inputs(rays: int, with_depth: bool):
+def _inputs(rays: int, with_depth: bool, target_beta=None):
     g = torch.Generator().manual_seed(0)
     starts = torch.rand(rays, 4, generator=g, requires_grad=True)
     target_t = torch.rand(rays, generator=g) if with_depth else None
     target_ok = torch.ones(rays, dtype=torch.bool) if with_depth else None
     return torch.zeros(rays, 3), torch.ones(rays, 3), starts, starts + 0.1, torch.rand(rays, 3, generator=g), \
-        target_t, target_ok
+        target_t, target_ok, target_beta
 
 
 def test_without_depth_targets_the_loss_is_the_colour_loss():
@@ -66,6 +66,17 @@ def test_the_depth_terms_do_not_depend_on_the_scene_unit():
         assert float(a.detach()) == pytest.approx(float(b.detach()), rel=1e-5)
 
 
+def test_a_per_ray_beta_of_one_is_the_run_beta_and_a_wider_beta_lowers_the_depth_term():
+    cfg = TrainConfig(max_iters=1)
+    rays = 64
+    plain = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(*_inputs(rays, True))
+    ones = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(*_inputs(rays, True, torch.ones(rays)))
+    wide = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(*_inputs(rays, True, torch.full((rays,), 4.0)))
+    assert float(ones[2].detach()) == pytest.approx(float(plain[2].detach()), rel=1e-6)
+    # residuals far beyond beta are in the log branch, beta^2 (1/2 + ln(r / beta)), which grows with beta
+    assert float(wide[2].detach()) > float(plain[2].detach())
+
+
 def test_the_guard_returns_the_loss_and_raises_on_nan_with_the_terms():
     t = torch.tensor
     assert divergence_guard(Losses(t(0.5), t(0.4), t(0.1), t(0.0)), 3) == 0.5
@@ -83,6 +94,8 @@ def _pixels(with_caches: bool) -> TrainingPixels:
     if with_caches:
         pixels.pseudo_t = torch.full((n, h, w), 2.0)
         pixels.pseudo_t[0, 0, 0] = math.nan
+        pixels.depth_t = pixels.pseudo_t
+        pixels.depth_beta_scale = torch.ones(n, h, w)
         pixels.hit_t, pixels.hit = torch.full((n, h, w), 1.5), torch.ones(n, h, w, dtype=torch.bool)
     return pixels
 
@@ -118,8 +131,9 @@ def test_a_batch_carries_rays_samples_and_targets(with_caches):
     assert training and not grad and (hit_t is not None) == with_caches
     if with_caches:
         assert torch.equal(batch.target_ok, torch.isfinite(batch.target_t))
+        assert batch.target_beta.shape == (rays,)
     else:
-        assert batch.target_t is None and batch.target_ok is None
+        assert batch.target_t is None and batch.target_ok is None and batch.target_beta is None
 
 
 def test_losses_zero_the_gradients_then_backpropagate_and_apply_steps():
@@ -131,7 +145,7 @@ def test_losses_zero_the_gradients_then_backpropagate_and_apply_steps():
 
     step = TrainStep(StubModel(), StubOptimizer(log), _pixels(False), TrainConfig(max_iters=1), loss_fn, False,
                      None, torch.Generator())
-    losses = step.losses(Batch(*range(7)))
+    losses = step.losses(Batch(*range(8)))
     assert float(losses.total.detach()) == 6.0 and float(w.grad) == 3.0 and log == [("zero_grad", True)]
     step.apply()
     assert log[-1] == "step"

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -38,9 +38,61 @@ class CameraError(ValueError):
         super().__init__(f"{field}: {message}" if field else message)
 
 
+# Lens models as nerfstudio names them in transforms.json (``camera_model``), with the OpenCV coefficients each
+# one uses; a coefficient a model does not use must be absent or zero.
+PINHOLE, OPENCV, OPENCV_FISHEYE = "PINHOLE", "OPENCV", "OPENCV_FISHEYE"
+CAMERA_MODELS = (PINHOLE, OPENCV, OPENCV_FISHEYE)
+COEFFICIENT_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+MODEL_COEFFICIENTS = {PINHOLE: (), OPENCV: ("k1", "k2", "k3", "p1", "p2"), OPENCV_FISHEYE: ("k1", "k2", "k3", "k4")}
+# The keys that ask a render for a lens (pose file of ``voxnerf render``, ``POST /render``): absent = pinhole.
+LENS_KEYS = ("camera_model", *COEFFICIENT_KEYS)
+
+
+@dataclass(frozen=True)
+class Lens:
+    """OpenCV lens distortion, as nerfstudio's ``camera_model`` (OpenCV's conventions, normalised coordinates).
+
+    ``OPENCV``: ``x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)``, and likewise for y
+    (``p1 (r^2 + 2 y^2) + 2 p2 x y``); ``k4`` must be 0. ``OPENCV_FISHEYE``: ``theta = atan(r)``,
+    ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``, ``x_d = theta_d / r * x``;
+    ``p1, p2`` must be 0. Scaling an image leaves the coefficients unchanged. Invalid values raise
+    :class:`CameraError` naming the coefficient (or ``camera_model``).
+    """
+
+    model: str
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.model not in (OPENCV, OPENCV_FISHEYE):
+            raise CameraError(f"unsupported lens model {short_repr(self.model)} ({OPENCV} or {OPENCV_FISHEYE})",
+                              "camera_model")
+        for key in COEFFICIENT_KEYS:
+            value = finite_number(getattr(self, key), key)
+            if value != 0 and key not in MODEL_COEFFICIENTS[self.model]:
+                raise CameraError(f"{self.model} has no {key} (got {value}; give it 0 or leave it out)", key)
+            object.__setattr__(self, key, value)
+
+    @property
+    def coefficients(self) -> tuple[float, float, float, float, float, float]:
+        """``(k1, k2, k3, k4, p1, p2)``."""
+        return tuple(getattr(self, key) for key in COEFFICIENT_KEYS)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
 @dataclass(frozen=True)
 class Intrinsics:
-    """Pinhole intrinsics in pixels; ``cx, cy`` in continuous pixel coordinates (centre of a WxH image is W/2)."""
+    """Intrinsics in pixels; ``cx, cy`` in continuous pixel coordinates (centre of a WxH image is W/2).
+
+    ``lens`` is None for a pinhole camera; otherwise pixels map to rays through its inverse distortion.
+    A dict for ``lens`` (as :meth:`as_dict` writes it, e.g. in a checkpoint) is read as a :class:`Lens`.
+    """
 
     fl_x: float
     fl_y: float
@@ -48,9 +100,14 @@ class Intrinsics:
     cy: float
     width: int
     height: int
+    lens: Lens | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.lens, dict):
+            object.__setattr__(self, "lens", Lens(**self.lens))
 
     def scaled(self, factor: float) -> Intrinsics:
-        """Intrinsics of the image resized by ``factor`` (0.5 halves the resolution)."""
+        """Intrinsics of the image resized by ``factor`` (0.5 halves the resolution); the lens is unchanged."""
         return Intrinsics(
             self.fl_x * factor,
             self.fl_y * factor,
@@ -58,10 +115,19 @@ class Intrinsics:
             self.cy * factor,
             max(1, int(round(self.width * factor))),
             max(1, int(round(self.height * factor))),
+            self.lens,
         )
 
+    def undistorted(self) -> Intrinsics:
+        """The same camera without its lens: the undistorted (pinhole) view."""
+        return replace(self, lens=None)
+
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The fields as a dict; ``lens`` only when there is one (so a pinhole's dict is what it always was)."""
+        values = asdict(self)
+        if self.lens is None:
+            del values["lens"]
+        return values
 
 
 # ------------------------------------------------------------------------------------------------ numbers
@@ -184,6 +250,48 @@ def validate_pose(value) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ intrinsics
 
 
+def lens_of(model, coefficients: dict) -> Lens | None:
+    """The lens of ``camera_model`` ``model`` with ``coefficients`` (``k1 ... p2`` -> value; absent or None = 0).
+
+    None for ``PINHOLE`` (whose coefficients must all be zero), a :class:`Lens` for ``OPENCV`` and
+    ``OPENCV_FISHEYE``. Raises CameraError naming ``camera_model`` for any other model, or the coefficient at
+    fault (not a finite number, non-zero for a pinhole, not one the model has).
+    """
+    if not isinstance(model, str) or model not in CAMERA_MODELS:
+        raise CameraError(f"unsupported camera model {short_repr(model)} ({', '.join(CAMERA_MODELS)})",
+                          "camera_model")
+    values = {key: finite_number(coefficients[key], key)
+              for key in COEFFICIENT_KEYS if coefficients.get(key) is not None}
+    if model == PINHOLE:
+        for key, value in values.items():
+            if value != 0:
+                raise CameraError(f"distortion ({key}={value}) given with camera_model PINHOLE", key)
+        return None
+    return Lens(model, **values)
+
+
+def resolve_lens(default: Lens | None, camera_model=None, **coefficients) -> Lens | None:
+    """The lens to render through: none (the undistorted pinhole view) unless ``camera_model`` is given.
+
+    With ``camera_model`` ``OPENCV`` or ``OPENCV_FISHEYE``, each coefficient left out (None) is ``default``'s
+    when ``default`` is a lens of that model (the trained camera's), else 0. Coefficients without
+    ``camera_model`` are refused (CameraError naming the coefficient), as are those :func:`lens_of` refuses.
+    """
+    given = {key: value for key, value in coefficients.items() if value is not None}
+    unknown = set(coefficients) - set(COEFFICIENT_KEYS)
+    if unknown:
+        raise TypeError(f"unknown lens coefficients {sorted(unknown)}")
+    if camera_model is None:
+        if given:
+            key = next(iter(given))
+            raise CameraError("give camera_model with distortion coefficients (without it a render is the "
+                              "undistorted pinhole view)", key)
+        return None
+    if default is not None and default.model == camera_model:
+        given = {**{key: getattr(default, key) for key in COEFFICIENT_KEYS}, **given}
+    return lens_of(camera_model, given)
+
+
 def resolve_intrinsics(
     default: Intrinsics,
     *,
@@ -194,6 +302,8 @@ def resolve_intrinsics(
     cx=None,
     cy=None,
     max_pixels: int | None = None,
+    camera_model=None,
+    **coefficients,
 ) -> Intrinsics:
     """The camera to render: given values, the rest from ``default``.
 
@@ -201,8 +311,11 @@ def resolve_intrinsics(
     default's scaled by ``width / default.width`` (x: ``fl_x``, ``cx``) or ``height / default.height``
     (y: ``fl_y``, ``cy``). ``fl_x``, ``fl_y`` must be positive finite numbers, ``cx``, ``cy`` finite numbers,
     ``width``, ``height`` positive whole numbers; bools are refused. ``max_pixels`` bounds ``width x height``
-    of the result. Raises CameraError naming the field at fault.
+    of the result. The lens is :func:`resolve_lens`'s of ``camera_model`` and ``coefficients`` (``k1 k2 k3 k4
+    p1 p2``): without ``camera_model`` the result is a pinhole, the undistorted view of a distorted default.
+    Raises CameraError naming the field at fault.
     """
+    lens = resolve_lens(default.lens, camera_model, **coefficients)
     if (width is None) != (height is None):
         raise CameraError("give width and height together (or neither, for the scene's size)", "width, height")
     w = default.width if width is None else pixel_count(width, "width")
@@ -217,4 +330,5 @@ def resolve_intrinsics(
         cy=default.cy * sy if cy is None else finite_number(cy, "cy"),
         width=w,
         height=h,
+        lens=lens,
     )

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from voxnerf.camera_rules import CameraError, Intrinsics, resolve_intrinsics, validate_pose
+from voxnerf.camera_rules import LENS_KEYS, CameraError, Intrinsics, resolve_intrinsics, validate_pose
 from voxnerf.errors import RunError, VoxNeRFError
 
 
@@ -22,7 +22,8 @@ def _train(args: argparse.Namespace) -> int:
 
     config = TrainConfig(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
-        depth_loss=not args.no_depth_loss, downscale=args.downscale, device=args.device, seed=args.seed,
+        depth_loss=not args.no_depth_loss, depth_source=args.depth_source, downscale=args.downscale,
+        device=args.device, seed=args.seed,
         compile=not args.no_compile, hash_kernel=not args.no_hash_kernel, eval_at=args.eval_at or [],
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
         **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
@@ -31,6 +32,11 @@ def _train(args: argparse.Namespace) -> int:
     if config.max_seconds is None and config.max_iters is None:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
     report = train(args.scene, args.out, config, resume=not args.restart)
+    for stage in report.stages:
+        if stage.name in ("prior", "depth_target"):
+            print(f"{stage.name}: {stage.why}")
+    for warning in report.warnings:
+        print(f"warning: {warning}")
     for name, m in (report.metrics or {}).items():
         print(_metrics_line(name, m))
     print(f"{report.status}: {report.iteration} iterations in {report.train_seconds:.1f} s "
@@ -70,12 +76,14 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 MAX_RENDER_PIXELS = 8192 * 8192
-# Pose-file keys of the intrinsics, by resolve_intrinsics' argument name.
-POSE_FILE_KEYS = {"fl_x": "fl_x", "fl_y": "fl_y", "cx": "cx", "cy": "cy", "width": "w", "height": "h"}
+# Pose-file keys of the intrinsics and the lens, by resolve_intrinsics' argument name.
+POSE_FILE_KEYS = {"fl_x": "fl_x", "fl_y": "fl_y", "cx": "cx", "cy": "cy", "width": "w", "height": "h",
+                  **{key: key for key in LENS_KEYS}}
 
 
 def _read_pose(path: Path, default: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
-    """The pose and camera of a pose file: ``transform_matrix`` and optional ``fl_x fl_y cx cy w h``.
+    """The pose and camera of a pose file: ``transform_matrix``, optional ``fl_x fl_y cx cy w h`` and an optional
+    lens, ``camera_model`` (OPENCV, OPENCV_FISHEYE) with ``k1 k2 k3 k4 p1 p2`` (absent: the pinhole view).
 
     The rules are :mod:`voxnerf.camera_rules`' (those of ``POST /render``); a refusal is a RunError
     ``FILE: KEY: why``.
@@ -165,12 +173,16 @@ def _sample_counts(text: str) -> tuple[int, int]:
 
 def _add_train_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a model on a scene directory")
-    p.add_argument("scene", help="scene directory (SCENE_FORMAT.md)")
+    p.add_argument("scene", help="scene directory (transforms.json and its files; see docs/scene-format.md)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, report.json, eval renders)")
     p.add_argument("--max-seconds", type=float, help="wall-clock bound of the whole command")
     p.add_argument("--max-iters", type=int)
     p.add_argument("--sampler", choices=["voxnerf", "occgrid", "uniform"], default="voxnerf")
-    p.add_argument("--no-depth-loss", action="store_true")
+    p.add_argument("--no-depth-loss", action="store_true", help="leave the depth terms out (as --depth-source none)")
+    p.add_argument("--depth-source", choices=["auto", "sensor", "prior", "none"], default="auto",
+                   help="what the depth loss compares with: the training frames' depth maps (the prior's depth "
+                   "where they have none), the prior's depth, or nothing; auto: sensor when the training frames "
+                   "have depth maps, else prior when there is one")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")

@@ -8,6 +8,7 @@ from pydantic import BaseModel, Field, field_validator
 
 Preset = Literal["cpu", "paper"]
 SamplerName = Literal["voxnerf", "occgrid", "uniform"]
+DepthSource = Literal["auto", "sensor", "prior", "none"]
 MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
@@ -54,7 +55,13 @@ class TrainConfig(BaseModel):
     sampler: SamplerName = "voxnerf"
     max_seconds: float | None = Field(default=None, gt=0, description="wall-clock bound of the whole command")
     max_iters: int | None = Field(default=None, gt=0)
-    depth_loss: bool = True
+    depth_loss: bool = Field(default=True, description="False leaves the depth terms out (as depth_source 'none')")
+    depth_source: DepthSource = Field(
+        default="auto",
+        description="what the depth loss compares with: 'sensor' (the training frames' depth maps where valid, "
+        "the prior's depth elsewhere), 'prior' (the prior's depth only), 'none'; 'auto' is 'sensor' when the "
+        "training frames have depth maps, else 'prior' when there is a prior, else 'none'",
+    )
     downscale: int = Field(default=1, ge=1, le=16)
     device: str = "auto"
     seed: int = 0
@@ -85,7 +92,8 @@ class TrainConfig(BaseModel):
         default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
     )
     depth_beta: float | None = Field(
-        default=None, gt=0, description="log-Huber beta in scene units; default 5 x the prior's sigma (paper: 0.1 m)"
+        default=None, gt=0, description="log-Huber beta in scene units; default 5 x the prior's sigma (paper: 0.1 m), "
+        "and for sensor depth 5 x the depth noise measured at that depth"
     )
     smooth_patches: int = Field(
         default=0,

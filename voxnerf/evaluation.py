@@ -18,7 +18,11 @@ from voxnerf.render import render_normalized
 
 @dataclass
 class EvalView:
-    """A held-out view: name (file stem), c2w [4, 4] normalised units, intrinsics, ground truth uint8 [H, W, 3]."""
+    """A held-out view: name (file stem), c2w [4, 4] normalised units, intrinsics, ground truth uint8 [H, W, 3].
+
+    The intrinsics keep the frame's lens: the view renders through it, so a distorted camera is scored against
+    its own distorted ground-truth image (no image is ever resampled).
+    """
 
     name: str
     c2w: torch.Tensor

@@ -1,10 +1,11 @@
 """The names of the files a scene directory and a run directory hold: one place, no torch (the API imports it).
 
-A scene directory holds ``transforms.json`` (SCENE_FORMAT.md) beside its images; a run directory holds the
-checkpoint, the report and ``eval/<split>/<frame>.png``.
+A scene directory holds ``transforms.json`` (docs/scene-format.md) beside its images; a run directory holds the
+checkpoint, the report, ``eval/<split>/<frame>.png`` and, when the run fused one, its prior.
 """
 
 TRANSFORMS = "transforms.json"
 CHECKPOINT = "checkpoint.pt"
 REPORT = "report.json"
 EVAL_DIR = "eval"
+FUSED_PRIOR = "prior_tsdf.ply"  # the prior a run fused from the scene's depth maps, when it made one

@@ -33,6 +33,7 @@ _RGB_FORMATS = ("PNG", "JPEG", "MPO")  # MPO: multi-picture JPEG written by many
 _MODES_WITHOUT_ALPHA = ("1", "L", "P", "RGB")
 _MODES_WITH_ALPHA = ("LA", "PA", "RGBA")
 _PNG_GRAYSCALE = 0  # PNG colour type of a single-channel image
+PNG_DEPTH_INVALID_MAX = 65535  # the 16-bit maximum: no measurement, like 0
 
 
 class PngHeader(NamedTuple):
@@ -107,7 +108,8 @@ def read_depth(path: Path, unit_scale: float) -> np.ndarray:
 
     ``.npy``: float depth in metres, ``[H, W]`` or ``[H, W, 1]``. Anything else must be a single-channel
     16-bit PNG whose values are multiplied by ``unit_scale`` (``depth_unit_scale_factor``, e.g. 0.001
-    for millimetres). Zero and non-finite values become NaN; a negative depth is an error.
+    for millimetres). Zero, the 16-bit maximum (65535) and non-finite values become NaN; a negative depth is an
+    error.
     """
     path = Path(path)
     if not (np.isfinite(unit_scale) and unit_scale > 0):
@@ -149,7 +151,9 @@ def _read_png_depth(path: Path, unit_scale: float) -> np.ndarray:
         raise SceneError(path, f"cannot decode depth PNG: {err}") from err
     if raw.ndim != 2:
         raise SceneError(path, f"depth PNG decoded to shape {list(raw.shape)}, expected [H, W]")
-    return raw.astype(np.float64) * unit_scale
+    depth = raw.astype(np.float64) * unit_scale
+    depth[raw == PNG_DEPTH_INVALID_MAX] = np.nan  # sensors write their saturation value for "no return"
+    return depth
 
 
 def encode_png(rgb: np.ndarray) -> bytes:
@@ -173,8 +177,8 @@ def encode_gray_png8(values: np.ndarray) -> bytes:
 def encode_depth_png16(depth: np.ndarray, unit_scale: float) -> bytes:
     """16-bit PNG bytes of a float depth map ``[H, W]`` in metres.
 
-    Stored value = round(depth / unit_scale), clipped to [0, 65535]; non-finite depth is stored as 0,
-    the "no depth" value that :func:`read_depth` turns back into NaN.
+    Stored value = round(depth / unit_scale), clipped to [0, 65535]; non-finite depth is stored as 0 and depth
+    beyond the range as 65535, the two "no depth" values that :func:`read_depth` turns back into NaN.
     """
     if not (np.isfinite(unit_scale) and unit_scale > 0):
         raise ValueError(f"unit_scale must be a positive number, got {unit_scale!r}")

@@ -18,25 +18,28 @@ def color_loss(pred: Tensor, target: Tensor) -> Tensor:
     return torch.mean((pred - target) ** 2)
 
 
-def log_huber(residual: Tensor, beta: float) -> Tensor:
+def log_huber(residual: Tensor, beta: float | Tensor) -> Tensor:
     """Elementwise robust loss of |residual|: ``r^2 / 2`` below ``beta``, ``beta^2 (1/2 + ln(r / beta))`` above.
 
+    ``beta`` is a positive number or a positive tensor broadcastable to ``residual`` (a beta per ray).
     Continuous with a continuous first derivative at ``beta`` (both branches give ``beta^2 / 2`` and slope
     ``beta``); grows logarithmically, so outliers of any size (1e6) pull with at most ``beta^2 / r``. Finite for
     every finite input and for inf (inf is clamped to the largest float; the log of the ratio is a difference
     of logs, so it cannot overflow).
     """
     r = residual.abs().nan_to_num(nan=0.0, posinf=torch.finfo(residual.dtype).max)
-    small = torch.clamp(r, max=beta)
-    large = torch.clamp(r, min=beta)
+    if isinstance(beta, Tensor):
+        small, large, log_beta = torch.minimum(r, beta), torch.maximum(r, beta), torch.log(beta)
+    else:
+        small, large, log_beta = torch.clamp(r, max=beta), torch.clamp(r, min=beta), math.log(beta)
     quadratic = 0.5 * small * small
-    logarithmic = beta * beta * (0.5 + torch.log(large) - math.log(beta))
+    logarithmic = beta * beta * (0.5 + torch.log(large) - log_beta)
     return torch.where(r < beta, quadratic, logarithmic)
 
 
-def depth_loss(pred: Tensor, target: Tensor, valid: Tensor, beta: float) -> Tensor:
+def depth_loss(pred: Tensor, target: Tensor, valid: Tensor, beta: float | Tensor) -> Tensor:
     """Mean log-Huber loss over the rays with a valid pseudo depth. pred, target, valid: [R] (target may be NaN
-    where invalid). Zero when no ray is valid."""
+    where invalid); beta a number or [R]. Zero when no ray is valid."""
     residual = torch.where(valid, pred - torch.nan_to_num(target, nan=0.0), torch.zeros_like(pred))
     per_ray = log_huber(residual, beta) * valid
     return per_ray.sum() / valid.sum().clamp_min(1)

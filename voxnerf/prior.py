@@ -116,6 +116,16 @@ def load_prior(
     )
 
 
+def prior_from_mesh(mesh: trimesh.Trimesh, sigma: float, name: str, *, max_points: int = 2_000_000,
+                    seed: int = 0) -> GeometryPrior:
+    """A mesh prior made in memory (e.g. fused from depth maps), as :func:`load_prior` makes one from a file;
+    ``name`` stands for the file in errors."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    finite = np.isfinite(vertices).all(axis=1)
+    return _mesh_prior(Path(name), vertices, np.asarray(mesh.faces, dtype=np.int64), finite,
+                       int((~finite).sum()), sigma, max_points, seed)
+
+
 def estimate_sigma(points: np.ndarray) -> float:
     """Noise standard deviation of a surface sampled by ``points`` [N, 3], in their units.
 

@@ -24,7 +24,12 @@ OUTPUTS = OUTPUT_NAMES
 
 @dataclass
 class TrainedModel:
-    """A model loaded for rendering, with the scene's default camera and depth unit."""
+    """A model loaded for rendering, with the scene's default camera and depth unit.
+
+    ``default_intrinsics`` is the first training camera as trained, its lens included (a checkpoint from before
+    lenses has none). A render that names no lens is the *undistorted* pinhole view of it: see :func:`render`
+    and :func:`voxnerf.camera_rules.resolve_intrinsics` (the rule of the CLI's pose file and ``POST /render``).
+    """
 
     model: VoxNeRFModel
     default_intrinsics: Intrinsics
@@ -44,7 +49,7 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
         model = VoxNeRFModel.from_state_dict(state["model"], dev)
         trained = TrainedModel(
             model,
-            Intrinsics(**state["default_intrinsics"]),
+            Intrinsics(**state["default_intrinsics"]),  # a "lens" dict becomes a Lens
             float(state["depth_unit_scale"]),
             int(state["iteration"]),
             state.get("scene_dir"),
@@ -70,6 +75,8 @@ def render_normalized(
 
     Args:
         c2w: [4, 4] camera-to-world (OpenGL axes), normalised units.
+        intrinsics: the camera; with a lens, each pixel's ray goes through its inverse distortion (the image
+            a distorted camera sees, as evaluation compares with distorted ground truth).
         outputs: subset of ("rgb", "depth", "opacity"); "depth" is z-depth in normalised units.
         chunk: rays per forward pass (default: the config's eval_chunk).
     Returns:
@@ -119,7 +126,9 @@ def render(
         c2w: [4, 4] camera-to-world, OpenGL axes (as in transforms.json), scene units; checked by
             :func:`voxnerf.camera_rules.validate_pose` (the rule of the CLI and the REST API): RunError
             ``c2w: <why>`` when it is refused, re-orthonormalised when slightly off.
-        intrinsics: default: the scene's first training camera at the trained resolution.
+        intrinsics: default: the scene's first training camera at the trained resolution, undistorted (a
+            pinhole with its focal lengths and principal point, even when it was trained through a lens);
+            give an :class:`Intrinsics` with a ``lens`` to render through one.
         outputs: subset of ("rgb", "depth", "opacity"); only these are computed.
     Returns:
         rgb float32 [H, W, 3] in [0, 1] (linear as trained), depth float32 [H, W] z-depth in scene units,
@@ -131,7 +140,7 @@ def render(
         raise RunError(f"c2w: {err}") from None
     model = trained.model
     pose_n = torch.from_numpy(model.transform.c2w_to_normalized(pose)).float()
-    out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics, outputs)
+    out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics.undistorted(), outputs)
     result = {name: value.float().cpu().numpy() for name, value in out.items()}
     if "depth" in result:
         result["depth"] = result["depth"] / model.transform.scale

@@ -1,4 +1,4 @@
-"""Scene loading and validation per SCENE_FORMAT.md (nerfstudio transforms.json plus VoxNeRF's prior keys).
+"""Scene loading and validation per docs/scene-format.md (nerfstudio transforms.json plus VoxNeRF's prior keys).
 
 Every problem raises :class:`SceneError` naming the file and the key. Poses stay in scene units here;
 :class:`SceneTransform` maps them into the canonical box the engine trains in.
@@ -7,9 +7,10 @@ Every problem raises :class:`SceneError` naming the file and the key. Poses stay
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,11 +18,16 @@ import torch
 import torch.nn.functional as F
 
 from voxnerf.camera_rules import (
+    COEFFICIENT_KEYS,
+    OPENCV,
+    OPENCV_FISHEYE,
     REPAIR_WARNING_ABOVE,
     ROTATION_TOLERANCE,
     CameraError,
     Intrinsics,
+    Lens,
     finite_number,
+    lens_of,
     one_line,
     pixel_count,
     positive_number,
@@ -31,9 +37,10 @@ from voxnerf.camera_rules import (
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
 from voxnerf.image_io import image_size, read_depth, read_rgb
+from voxnerf.lens import undistort
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+DISTORTION_KEYS = COEFFICIENT_KEYS  # k1 k2 k3 k4 p1 p2, nerfstudio's (OpenCV's) names
 SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
 DEFAULT_PRIOR_NAME = "prior.ply"
 MAX_IMAGE_SIDE = 65536  # pixels, for w and h
@@ -51,6 +58,8 @@ class Frame:
     c2w: np.ndarray
     intrinsics: Intrinsics
     depth_path: Path | None = None
+    depth_intrinsics: Intrinsics | None = None  # the depth camera's, when ``depth_intrinsics`` gives them
+    camera_model: str = "PINHOLE (default)"  # the lens model (intrinsics.lens) and how it was decided
 
 
 @dataclass
@@ -65,9 +74,10 @@ class Scene:
     prior_sigma: float | None
     depth_unit_scale: float
     prior_key: str | None = None  # where prior_path came from: prior_file_path, ply_file_path or the default name
+    depth_max: float | None = None  # depth beyond this (scene units) is no measurement
     downscale: int = 1
     images: list[np.ndarray | None] | None = None
-    depths: list[np.ndarray | None] | None = None
+    depths: list[np.ndarray | None] | None = None  # training frames only: held-out depth is never read
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -81,15 +91,23 @@ class Scene:
         return names + (["test"] if self.splits.get("test") else [])
 
     def intrinsics(self, index: int) -> Intrinsics:
-        """Intrinsics of frame ``index`` at the loaded resolution."""
+        """Intrinsics of frame ``index`` at the loaded resolution, its lens included (scaling an image leaves
+        the distortion coefficients unchanged)."""
         intr = self.frames[index].intrinsics
         if self.downscale == 1:
             return intr
         w, h = intr.width // self.downscale, intr.height // self.downscale
         return Intrinsics(
             intr.fl_x * w / intr.width, intr.fl_y * h / intr.height,
-            intr.cx * w / intr.width, intr.cy * h / intr.height, w, h,
+            intr.cx * w / intr.width, intr.cy * h / intr.height, w, h, intr.lens,
         )
+
+    def camera_models(self) -> dict[str, int]:
+        """Frames per camera model and how it was decided, e.g. ``{"OPENCV (camera_model)": 40}``."""
+        counts: dict[str, int] = {}
+        for frame in self.frames:
+            counts[frame.camera_model] = counts.get(frame.camera_model, 0) + 1
+        return counts
 
     def summary(self) -> dict:
         """JSON-able description (frames, split sizes, image size, prior file and stated sigma, depth)."""
@@ -102,6 +120,9 @@ class Scene:
                 "file": self.prior_path.name, "sigma": self.prior_sigma, "source": self.prior_key,
             },
             "depth": any(f.depth_path is not None for f in self.frames),
+            "camera_models": self.camera_models(),
+            "depth_frames": {"all": sum(f.depth_path is not None for f in self.frames),
+                             "train": sum(self.frames[i].depth_path is not None for i in self.train_indices)},
             "warnings": list(self.warnings),
         }
 
@@ -163,18 +184,49 @@ def _pixel_count(value, path: Path, key: str) -> int:
     return count
 
 
+def _focal_length(source: dict, fallback: dict, axis: str, size: int, path: Path, where: str) -> float | None:
+    """``fl_<axis>``, else the focal length of instant-ngp's ``camera_angle_<axis>`` (the field of view over
+    ``size`` pixels, radians), else None."""
+    value = source.get(f"fl_{axis}", fallback.get(f"fl_{axis}"))
+    if value is not None:
+        return _positive_number(value, path, f"{where}fl_{axis}")
+    key = f"camera_angle_{axis}"
+    angle = source.get(key, fallback.get(key))
+    if angle is None:
+        return None
+    if _positive_number(angle, path, f"{where}{key}") >= math.pi:
+        raise _fail(path, f"must be a field of view in radians below pi, got {short_repr(angle)}", f"{where}{key}")
+    return 0.5 * size / math.tan(0.5 * float(angle))
+
+
+def _focal_lengths(source: dict, fallback: dict, width: int, height: int, path: Path,
+                   where: str) -> tuple[float, float]:
+    """``(fl_x, fl_y)``. Both are needed, except that an instant-ngp ``camera_angle_x`` (or ``_y``) alone
+    gives both (square pixels)."""
+    fx = _focal_length(source, fallback, "x", width, path, where)
+    fy = _focal_length(source, fallback, "y", height, path, where)
+    angle_only = source.get("fl_x", fallback.get("fl_x")) is None and source.get("fl_y", fallback.get("fl_y")) is None
+    if fx is None and (fy is None or not angle_only):
+        raise _fail(path, "missing (give it, or camera_angle_x, at the top level or in the frame)", f"{where}fl_x")
+    if fy is None and not angle_only:
+        raise _fail(path, "missing (give it at the top level or in the frame)", f"{where}fl_y")
+    return (fx or fy), (fy or fx)
+
+
 def _read_intrinsics(source: dict, fallback: dict, path: Path, where: str) -> Intrinsics:
+    """The pinhole intrinsics of ``source`` (a frame), each key missing there taken from ``fallback``."""
     values = {}
-    for key in INTRINSIC_KEYS:
+    for key in ("cx", "cy", "w", "h"):
         value = source.get(key, fallback.get(key))
         if value is None:
             raise _fail(path, "missing (give it at the top level or in the frame)", f"{where}{key}")
         values[key] = value
     width = _pixel_count(values["w"], path, f"{where}w")
     height = _pixel_count(values["h"], path, f"{where}h")
+    fl_x, fl_y = _focal_lengths(source, fallback, width, height, path, where)
     return Intrinsics(
-        _positive_number(values["fl_x"], path, f"{where}fl_x"),
-        _positive_number(values["fl_y"], path, f"{where}fl_y"),
+        fl_x,
+        fl_y,
         _finite_number(values["cx"], path, f"{where}cx"),
         _finite_number(values["cy"], path, f"{where}cy"),
         width,
@@ -182,25 +234,45 @@ def _read_intrinsics(source: dict, fallback: dict, path: Path, where: str) -> In
     )
 
 
-def _check_camera_model(meta: dict, frame: dict, path: Path, where: str) -> None:
-    model = frame.get("camera_model", meta.get("camera_model", "PINHOLE"))
-    if model not in ("PINHOLE", "OPENCV"):
-        raise _fail(path, f"unsupported camera model {short_repr(model)} (PINHOLE or OPENCV)",
-                    f"{where}camera_model")
-    for key in DISTORTION_KEYS:
-        value = frame.get(key, meta.get(key, 0.0))
-        if value is None:
-            continue
-        if model == "PINHOLE" and key in frame and value != 0:
-            raise _fail(path, "distortion given with camera_model PINHOLE", f"{where}{key}")
-        value = _finite_number(value, path, f"{where}{key}")
-        if value != 0:
-            raise _fail(
-                path,
-                f"lens distortion ({key}={value}) is not supported: undistort the images first "
-                "(e.g. with COLMAP's image_undistorter) and give camera_model PINHOLE",
-                f"{where}{key}",
-            )
+def _lens_checked(model: str, coefficients: dict, path: Path, where: str, context: str = "") -> Lens | None:
+    """:func:`voxnerf.camera_rules.lens_of`, its CameraError as a SceneError naming the key."""
+    try:
+        return lens_of(model, coefficients)
+    except CameraError as err:
+        raise _fail(path, f"{context}{err.message}", f"{where}{err.field}") from None
+
+
+def _instant_ngp_lens(meta: dict, frame: dict, path: Path, where: str) -> tuple[Lens | None, str]:
+    """Coefficients without ``camera_model``, read as instant-ngp reads them: any non-zero coefficient makes
+    the camera ``OPENCV``, or ``OPENCV_FISHEYE`` when ``is_fisheye`` is true; all zero (or none) is a pinhole."""
+    fisheye = frame.get("is_fisheye", meta.get("is_fisheye", False))
+    if not isinstance(fisheye, bool):
+        raise _fail(path, f"must be true or false, got {short_repr(fisheye)}", f"{where}is_fisheye")
+    values = {key: frame.get(key, meta.get(key)) for key in DISTORTION_KEYS}
+    numbers = {key: _finite_number(v, path, f"{where}{key}") for key, v in values.items() if v is not None}
+    if not any(numbers.values()):
+        return None, "PINHOLE (default)"
+    model = OPENCV_FISHEYE if fisheye else OPENCV
+    context = f"no camera_model, so read as {model} (is_fisheye {str(fisheye).lower()}): "
+    lens = _lens_checked(model, numbers, path, where, context)
+    return lens, f"{model} (coefficients without camera_model, as instant-ngp)"
+
+
+def _check_camera_model(meta: dict, frame: dict, path: Path, where: str) -> tuple[Lens | None, str]:
+    """The frame's lens (None: a pinhole) and its summary line, e.g. ``"OPENCV (camera_model)"``.
+
+    ``camera_model`` and the coefficients ``k1 k2 k3 k4 p1 p2`` may be given at the top level or in the frame
+    (the frame's keys win); a frame whose ``camera_model`` differs from the top level's does not inherit the
+    top level's coefficients. Without ``camera_model`` the coefficients are read as instant-ngp does
+    (:func:`_instant_ngp_lens`). Keys are named ``frames[i].<key>`` wherever they were given.
+    """
+    own = frame.get("camera_model")
+    model = own if own is not None else meta.get("camera_model")
+    if model is None:
+        return _instant_ngp_lens(meta, frame, path, where)
+    inherit = own is None or own == meta.get("camera_model")
+    values = {key: frame.get(key, meta.get(key) if inherit else None) for key in DISTORTION_KEYS}
+    return _lens_checked(model, values, path, where), f"{model} (camera_model)"
 
 
 def _read_pose(value, path: Path, key: str, reorthonormalised: list[tuple[str, float]]) -> np.ndarray:
@@ -325,11 +397,26 @@ def _read_frame(root: Path, meta: dict, i: int, raw, json_path: Path, seen: set[
         raise SceneError(json_path, "missing", key=f"{where}transform_matrix")
     c2w = _read_pose(raw["transform_matrix"], json_path, f"{where}transform_matrix", reorthonormalised)
     intr = _read_intrinsics(raw, meta, json_path, where)
-    _check_camera_model(meta, raw, json_path, where)
-    depth_path = None
+    lens, camera_model = _check_camera_model(meta, raw, json_path, where)
+    intr = replace(intr, lens=lens)
+    depth_path = depth_intr = None
     if raw.get("depth_file_path") is not None:
         depth_path = _resolve_inside(root, raw["depth_file_path"], json_path, f"{where}depth_file_path")
-    return Frame(file_path, image_path, c2w, intr, depth_path)
+        depth_intr = _read_depth_intrinsics(raw, meta, json_path, where)
+    return Frame(file_path, image_path, c2w, intr, depth_path, depth_intr, camera_model)
+
+
+def _read_depth_intrinsics(raw: dict, meta: dict, path: Path, where: str) -> Intrinsics | None:
+    """``depth_intrinsics`` of the frame, else of the top level: the depth camera's fl_x fl_y cx cy w h."""
+    if raw.get("depth_intrinsics") is not None:
+        value, key = raw["depth_intrinsics"], f"{where}depth_intrinsics"
+    elif meta.get("depth_intrinsics") is not None:
+        value, key = meta["depth_intrinsics"], "depth_intrinsics"
+    else:
+        return None
+    if not isinstance(value, dict):
+        raise _fail(path, "must be an object with fl_x, fl_y, cx, cy, w, h", key)
+    return _read_intrinsics(value, {}, path, f"{key}.")
 
 
 def _read_frames(root: Path, meta: dict, json_path: Path, warnings: list[str]) -> list[Frame]:
@@ -381,12 +468,15 @@ def _check_image_sizes(frames: list[Frame], json_path: Path, downscale: int) -> 
 
 
 def _load_pixels(scene: Scene) -> None:
-    """Decode the images and depth maps of the frames some split uses, at the scene's downscale."""
+    """Decode the images of the frames some split uses and the depth maps of the training frames (registered
+    to their images), at the scene's downscale."""
     used = {i for idx in scene.splits.values() for i in idx}
+    train = set(scene.train_indices)
     scene.images = [_downscale_rgb(read_rgb(f.image_path), scene.downscale) if i in used else None
                     for i, f in enumerate(scene.frames)]
     scene.depths = [
-        None if f.depth_path is None or i not in used else _read_depth_at(f, scene.depth_unit_scale, scene.downscale)
+        None if f.depth_path is None or i not in train else
+        _read_depth_at(f, scene.depth_unit_scale, scene.downscale, scene.depth_max)
         for i, f in enumerate(scene.frames)
     ]
 
@@ -397,9 +487,10 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
     Args:
         path: scene directory holding ``transforms.json``.
         downscale: integer factor; images (area-averaged) and intrinsics are reduced by it.
-        load_images: read the images (uint8 [H/d, W/d, 3]) and depth maps (float32 metres, NaN invalid) of
-            every frame that a split uses (``None`` for the rest: a 1000-frame scan with 125 frames in its
-            splits decodes 125); otherwise only the image headers are checked.
+        load_images: read the images (uint8 [H/d, W/d, 3]) of every frame that a split uses and the depth maps
+            (float32 metres, NaN invalid, registered to the image) of the training frames (``None`` for the
+            rest: a 1000-frame scan with 125 frames in its splits decodes 125 images); otherwise only the image
+            headers are checked.
     Raises:
         SceneError: one per problem, naming the file and the key.
     """
@@ -411,10 +502,13 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
     frames = _read_frames(root, meta, json_path, warnings)
     splits = _read_splits(meta, [f.file_path for f in frames], json_path)
     depth_scale = _positive_number(meta.get("depth_unit_scale_factor", 0.001), json_path, "depth_unit_scale_factor")
+    depth_max = None
+    if meta.get("depth_max") is not None:
+        depth_max = _positive_number(meta["depth_max"], json_path, "depth_max")
     prior_path, prior_sigma, prior_key = _read_prior_keys(root, meta, json_path, warnings)
     _check_image_sizes(frames, json_path, downscale)
-    scene = Scene(root.resolve(), frames, splits, prior_path, prior_sigma, depth_scale, prior_key, downscale,
-                  warnings=warnings)
+    scene = Scene(root.resolve(), frames, splits, prior_path, prior_sigma, depth_scale, prior_key, depth_max,
+                  downscale, warnings=warnings)
     if load_images:
         _load_pixels(scene)
     return scene
@@ -430,16 +524,50 @@ def _downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
     return x[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
 
 
-def _read_depth_at(frame: Frame, unit_scale: float, factor: int) -> np.ndarray:
-    """float32 [H // f, W // f] metres; NaN where invalid (a block with no valid pixel)."""
+ASPECT_TOLERANCE = 0.01  # a depth map without depth_intrinsics must have its image's aspect ratio to within 1 %
+
+
+def read_depth_map(frame: Frame, unit_scale: float, depth_max: float | None) -> tuple[np.ndarray, Intrinsics]:
+    """A frame's depth map at its own size and the depth camera's intrinsics.
+
+    Depth: float32 [h, w] scene units, NaN where invalid (0, the 16-bit maximum, NaN, beyond ``depth_max``).
+    The camera is ``depth_intrinsics`` when given (the file must have its size, and it is a pinhole); else the
+    image's camera (lens included), scaled when the depth map is smaller or larger but covers the same field of
+    view (same aspect ratio).
+    """
     depth = read_depth(frame.depth_path, unit_scale)
-    if depth.shape != (frame.intrinsics.height, frame.intrinsics.width):
-        raise SceneError(
-            frame.depth_path,
-            f"depth map is {depth.shape[1]}x{depth.shape[0]}, image is "
-            f"{frame.intrinsics.width}x{frame.intrinsics.height}",
-            key="size",
-        )
+    if depth_max is not None:
+        depth[depth > depth_max] = np.nan
+    h, w = depth.shape
+    colour, given = frame.intrinsics, frame.depth_intrinsics
+    if given is not None:
+        if (w, h) != (given.width, given.height):
+            raise SceneError(frame.depth_path, f"depth map is {w}x{h} but depth_intrinsics say "
+                             f"w={given.width} h={given.height}", key="size")
+        return depth, given
+    if (w, h) == (colour.width, colour.height):
+        return depth, colour
+    if abs(w * colour.height / (h * colour.width) - 1.0) > ASPECT_TOLERANCE:
+        raise SceneError(frame.depth_path, f"depth map is {w}x{h}, image is {colour.width}x{colour.height}: "
+                         "a different aspect ratio needs the depth camera's depth_intrinsics", key="size")
+    return depth, Intrinsics(colour.fl_x * w / colour.width, colour.fl_y * h / colour.height,
+                             colour.cx * w / colour.width, colour.cy * h / colour.height, w, h, colour.lens)
+
+
+def _read_depth_at(frame: Frame, unit_scale: float, factor: int, depth_max: float | None = None) -> np.ndarray:
+    """float32 [H // f, W // f] scene units on the image's pixel grid; NaN where invalid.
+
+    A depth map on the image's own camera is area-averaged over its valid pixels (NaN for a block with none);
+    one from another camera (another size, or ``depth_intrinsics``) is registered by its intrinsics: each
+    pixel takes the depth pixel its centre falls in (nearest, so no depth is invented across an edge).
+    """
+    depth, camera = read_depth_map(frame, unit_scale, depth_max)
+    if camera == frame.intrinsics:
+        return _area_average_depth(depth, factor)
+    return _register_depth(depth, camera, frame.intrinsics, factor)
+
+
+def _area_average_depth(depth: np.ndarray, factor: int) -> np.ndarray:
     if factor == 1:
         return depth
     h, w = depth.shape[0] // factor, depth.shape[1] // factor
@@ -449,6 +577,27 @@ def _read_depth_at(frame: Frame, unit_scale: float, factor: int) -> np.ndarray:
     count = F.avg_pool2d(valid.float(), factor)
     out = torch.where(count > 0, total / count.clamp_min(1e-12), torch.full_like(total, float("nan")))
     return out[0, 0].numpy()
+
+
+def _register_depth(depth: np.ndarray, camera: Intrinsics, image: Intrinsics, factor: int) -> np.ndarray:
+    """``depth`` (on ``camera``, same pose) sampled at the pixel centres of ``image`` reduced by ``factor``.
+
+    Both cameras share the lens when the depth camera is the image's scaled; a pinhole depth camera
+    (``depth_intrinsics``) beside a distorted image is reached through the image's inverse distortion.
+    """
+    w, h = image.width // factor, image.height // factor
+    sx, sy = w / image.width, h / image.height
+    y, x = np.meshgrid((np.arange(h) + 0.5 - image.cy * sy) / (image.fl_y * sy),
+                       (np.arange(w) + 0.5 - image.cx * sx) / (image.fl_x * sx), indexing="ij")
+    if image.lens is not None and camera.lens is None:
+        xy = torch.from_numpy(np.stack([x, y], axis=-1))
+        xy = undistort(xy, torch.tensor(image.lens.coefficients, dtype=torch.float64), image.lens.model).numpy()
+        x, y = xy[..., 0], xy[..., 1]
+    cols = np.floor(camera.fl_x * x + camera.cx).astype(np.int64)
+    rows = np.floor(camera.fl_y * y + camera.cy).astype(np.int64)
+    inside = (rows >= 0) & (rows < camera.height) & (cols >= 0) & (cols < camera.width)
+    picked = depth[np.clip(rows, 0, camera.height - 1), np.clip(cols, 0, camera.width - 1)]
+    return np.where(inside, picked, np.float32(np.nan)).astype(np.float32)
 
 
 def inspect_scene(path: str | Path) -> dict:
@@ -462,7 +611,7 @@ def inspect_scene(path: str | Path) -> dict:
     for frame in scene.frames:
         read_rgb(frame.image_path)
         if frame.depth_path is not None:
-            _read_depth_at(frame, scene.depth_unit_scale, 1)
+            read_depth_map(frame, scene.depth_unit_scale, scene.depth_max)
     summary = scene.summary()
     if scene.prior_path is not None:
         prior = load_prior(scene.prior_path, scene.prior_sigma)

@@ -12,11 +12,20 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from app.core.jobstore import ID_RE
-from voxnerf.camera_rules import CameraError, Intrinsics, resolve_intrinsics, validate_pose
+from voxnerf.camera_rules import (
+    CAMERA_MODELS,
+    COEFFICIENT_KEYS,
+    CameraError,
+    Intrinsics,
+    resolve_intrinsics,
+    resolve_lens,
+    validate_pose,
+)
 from voxnerf.outputs import MEDIA_TYPES, OUTPUT_NAMES
 
 OutputName = Literal[tuple(OUTPUT_NAMES)]  # rgb, depth, opacity
 FormatName = Literal[tuple(MEDIA_TYPES)]  # png, exr
+CameraModel = Literal[CAMERA_MODELS]  # PINHOLE, OPENCV, OPENCV_FISHEYE
 MAX_SIDE = 16384
 
 
@@ -28,6 +37,11 @@ class RenderRequest(BaseModel):
     sRGB-encoded colour), ``depth`` (16-bit, in the scene's ``depth_unit_scale_factor`` units) or ``opacity``
     (8-bit gray). EXR holds any of them as float32 channels R, G, B, Z (depth, scene units) and A (opacity).
     Default outputs: ``["rgb"]`` for PNG, all three for EXR.
+
+    Without ``camera_model`` the view is a pinhole: for a scene trained through a lens, its undistorted view.
+    ``camera_model`` ``OPENCV`` (``k1 k2 k3 p1 p2``) or ``OPENCV_FISHEYE`` (``k1 k2 k3 k4``) renders through
+    that lens, as nerfstudio defines it; a coefficient left out is the trained camera's when it has that model,
+    else 0 (:func:`voxnerf.camera_rules.resolve_intrinsics`, the rule of ``voxnerf render`` too).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -42,10 +56,17 @@ class RenderRequest(BaseModel):
     fl_y: float | None = Field(None, gt=0)
     cx: float | None = None
     cy: float | None = None
+    camera_model: CameraModel | None = Field(None, description="lens to render through; absent: pinhole")
+    k1: float | None = None
+    k2: float | None = None
+    k3: float | None = None
+    k4: float | None = None
+    p1: float | None = None
+    p2: float | None = None
     format: FormatName = "png"
     outputs: list[OutputName] | None = None
 
-    @field_validator("fl_x", "fl_y", "cx", "cy")
+    @field_validator("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2")
     @classmethod
     def _finite(cls, value: float | None) -> float | None:
         if value is not None and not math.isfinite(value):
@@ -77,6 +98,20 @@ class RenderRequest(BaseModel):
             )
         return self
 
+    @model_validator(mode="after")
+    def _lens(self) -> RenderRequest:
+        """The lens rule without the trained camera (coefficients need camera_model, a model takes only its own
+        coefficients); the worker applies it again with the trained camera's lens."""
+        try:
+            resolve_lens(None, self.camera_model, **self.coefficients())
+        except CameraError as err:
+            raise ValueError(str(err)) from None
+        return self
+
+    def coefficients(self) -> dict[str, float | None]:
+        """``k1 k2 k3 k4 p1 p2`` as given (None: left out)."""
+        return {key: getattr(self, key) for key in COEFFICIENT_KEYS}
+
     @property
     def media_type(self) -> str:
         return MEDIA_TYPES[self.format]
@@ -98,4 +133,6 @@ class RenderRequest(BaseModel):
             cx=self.cx,
             cy=self.cy,
             max_pixels=max_pixels,
+            camera_model=self.camera_model,
+            **self.coefficients(),
         )

@@ -1,4 +1,4 @@
-"""Synthetic indoor test scene: a textured, furnished room ray-cast on the CPU, written as SCENE_FORMAT.md.
+"""Synthetic indoor test scene: a textured, furnished room ray-cast on the CPU, written as docs/scene-format.md.
 
 World frame: metres, +Z up, the room spans ``x in [-W/2, W/2]``, ``y in [-D/2, D/2]``, ``z in [0, H]``.
 Cameras are camera-to-world in the OpenGL / nerfstudio convention (camera looks along -Z, +Y up, +X right).

@@ -1,4 +1,5 @@
-"""Ray casting the room: closest hits with open3d, Lambertian shading with shadow rays, pinhole views.
+"""Ray casting the room: closest hits with open3d, Lambertian shading with shadow rays, pinhole views (optionally
+through an OpenCV lens, :mod:`voxnerf.lens`: each pixel's ray goes through the inverse distortion).
 
 Cameras are camera-to-world in the OpenGL / nerfstudio convention (camera looks along -Z, +Y up, +X right).
 Images are Lambertian: ambient light plus the room's point lights with shadow rays, supersampled, returned as
@@ -9,7 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
+import torch
 
+from voxnerf.camera_rules import Lens
+from voxnerf.lens import LensBatch, lens_directions
 from voxnerf.synthetic.geometry import RoomGeometry
 from voxnerf.synthetic.textures import PATTERNS
 
@@ -17,6 +21,8 @@ AMBIENT = 0.22
 LIGHT_FALLOFF_M = 2.5
 """Metres at which a point light's irradiance halves (``1 / (1 + (d / LIGHT_FALLOFF_M)^2)``)."""
 SHADOW_OFFSET_M = 1e-3
+MIN_LENS_COS = 0.05
+"""A lens whose rays reach ``acos(MIN_LENS_COS)`` (87 degrees) off the optical axis is refused (z-depth rays)."""
 
 
 def _linear_to_srgb(x: np.ndarray) -> np.ndarray:
@@ -83,21 +89,37 @@ def shade(geom: RoomGeometry, origins: np.ndarray, dirs: np.ndarray) -> np.ndarr
     return radiance
 
 
-def _pixel_rays(c2w: np.ndarray, fl: float, cx: float, cy: float, px: np.ndarray, py: np.ndarray):
+def _undistorted(lens: Lens, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undistorted pinhole coordinates (OpenCV axes) of distorted normalised ``u, v`` [N], in float64."""
+    uv = torch.from_numpy(np.stack([u, v], axis=-1).astype(np.float64))
+    d = lens_directions(uv, LensBatch.of([lens], dtype=torch.float64)).numpy()
+    if d[:, 2].min() < MIN_LENS_COS:
+        raise ValueError(f"the lens {lens} sees more than {np.degrees(np.arccos(MIN_LENS_COS)):.0f} degrees off axis")
+    return d[:, 0] / d[:, 2], d[:, 1] / d[:, 2]
+
+
+def _pixel_rays(c2w: np.ndarray, fl: float, cx: float, cy: float, px: np.ndarray, py: np.ndarray,
+                lens: Lens | None = None):
     """World rays through continuous pixel coordinates ``(px, py)`` [N]; dirs have camera z-component -1.
 
     The ray parameter of a hit is therefore its z-depth along the camera's -Z axis (OpenGL convention).
+    With a ``lens`` the pixel's normalised coordinates go through its inverse distortion first.
     """
     right, up, back = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2]
-    # Camera direction ((px - cx) / fl, -(py - cy) / fl, -1) rotated to world, without a (slow here) BLAS call.
-    dirs = ((px - cx) / fl)[:, None] * right - ((py - cy) / fl)[:, None] * up - back
+    if lens is None:
+        # Camera direction ((px - cx) / fl, -(py - cy) / fl, -1) rotated to world, without a (slow here) BLAS call.
+        dirs = ((px - cx) / fl)[:, None] * right - ((py - cy) / fl)[:, None] * up - back
+    else:
+        x, y = _undistorted(lens, (px - cx) / fl, (py - cy) / fl)
+        dirs = x[:, None] * right - y[:, None] * up - back
     return np.broadcast_to(c2w[:3, 3], dirs.shape).copy(), dirs
 
 
 def render_view(
-    geom: RoomGeometry, c2w: np.ndarray, fl: float, cx: float, cy: float, w: int, h: int, supersample: int = 2
+    geom: RoomGeometry, c2w: np.ndarray, fl: float, cx: float, cy: float, w: int, h: int, supersample: int = 2,
+    lens: Lens | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Render one pinhole view of the room.
+    """Render one view of the room: a pinhole, or a pinhole behind ``lens`` (colour and depth through it).
 
     Args:
         c2w: [4, 4] camera-to-world, OpenGL convention (camera looks along -Z, +Y up), metres.
@@ -113,11 +135,11 @@ def render_view(
     c2w = np.asarray(c2w, np.float64)
     offsets = (np.arange(supersample) + 0.5) / supersample
     py, px, oy, ox = np.meshgrid(np.arange(h), np.arange(w), offsets, offsets, indexing="ij")
-    origins, dirs = _pixel_rays(c2w, fl, cx, cy, (px + ox).ravel(), (py + oy).ravel())
+    origins, dirs = _pixel_rays(c2w, fl, cx, cy, (px + ox).ravel(), (py + oy).ravel(), lens)
     radiance = shade(geom, origins, dirs)
     rgb = _linear_to_srgb(radiance.reshape(h, w, supersample * supersample, 3).mean(axis=2))
     cy_grid, cx_grid = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
-    origins, dirs = _pixel_rays(c2w, fl, cx, cy, cx_grid.ravel(), cy_grid.ravel())
+    origins, dirs = _pixel_rays(c2w, fl, cx, cy, cx_grid.ravel(), cy_grid.ravel(), lens)
     t, _, _ = _cast(geom, origins, dirs)
     depth = np.where(np.isfinite(t), t, 0.0).reshape(h, w)
     return rgb.astype(np.float32), depth.astype(np.float32)

@@ -1,4 +1,4 @@
-"""Writing the room as a SCENE_FORMAT.md scene: transforms.json, sRGB and depth PNGs, the prior and true mesh."""
+"""Writing the room as a docs/scene-format.md scene: transforms.json, sRGB and depth PNGs, the prior and true mesh."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ import imageio.v3 as iio
 import numpy as np
 import trimesh
 
+from voxnerf.camera_rules import COEFFICIENT_KEYS, MODEL_COEFFICIENTS, CameraError, Lens, lens_of
 from voxnerf.synthetic.cameras import FrameSplits, camera_path, split_frames
 from voxnerf.synthetic.geometry import RoomGeometry
 from voxnerf.synthetic.priors import PRIOR_KINDS, noisy_mesh_prior, sample_point_prior
@@ -44,6 +45,20 @@ class RoomSpec:
     supersample: int = 2
     seed: int = 0
     hfov_deg: float = HORIZONTAL_FOV_DEG
+    lens: dict | None = None
+    """A lens to render through, as transforms.json gives it: ``{"camera_model": "OPENCV", "k1": ...}``
+    (``OPENCV`` or ``OPENCV_FISHEYE`` with nerfstudio's coefficient names); None: a pinhole."""
+
+    def camera_lens(self) -> Lens | None:
+        """:attr:`lens` as a :class:`Lens`; ValueError naming the bad key."""
+        if self.lens is None:
+            return None
+        if not isinstance(self.lens, dict) or set(self.lens) - {"camera_model", *COEFFICIENT_KEYS}:
+            raise ValueError(f"RoomSpec.lens must hold camera_model and k1 k2 k3 k4 p1 p2 only, got {self.lens!r}")
+        try:
+            return lens_of(self.lens.get("camera_model"), self.lens)
+        except CameraError as err:
+            raise ValueError(f"RoomSpec.lens: {err}") from None
 
     def validate(self) -> None:
         """ValueError naming the first bad field."""
@@ -58,6 +73,7 @@ class RoomSpec:
             )
         if not 10.0 <= self.hfov_deg <= 120.0:
             raise ValueError(f"RoomSpec.hfov_deg must be in [10, 120], got {self.hfov_deg!r}")
+        self.camera_lens()
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
@@ -103,6 +119,10 @@ def _write_scene(root: Path, spec: RoomSpec, splits: FrameSplits) -> None:
     w, h = spec.width, spec.height
     fl = (w / 2) / math.tan(math.radians(spec.hfov_deg) / 2)
     meta: dict = {"camera_model": "PINHOLE", "fl_x": fl, "fl_y": fl, "cx": w / 2, "cy": h / 2, "w": w, "h": h}
+    lens = spec.camera_lens()
+    if lens is not None:  # nerfstudio's keys: the model and every coefficient it has
+        meta["camera_model"] = lens.model
+        meta.update({key: getattr(lens, key) for key in MODEL_COEFFICIENTS[lens.model]})
     if spec.write_depth:
         meta["depth_unit_scale_factor"] = DEPTH_UNIT_SCALE
     meta["frames"] = _write_frames(root, spec, geom, splits.used, fl)
@@ -123,7 +143,7 @@ def _write_frames(root: Path, spec: RoomSpec, geom: RoomGeometry, indices: list[
     frames = []
     for i in indices:
         name = f"frame-{i:06d}.png"
-        rgb, depth = render_view(geom, poses[i], fl, w / 2, h / 2, w, h, spec.supersample)
+        rgb, depth = render_view(geom, poses[i], fl, w / 2, h / 2, w, h, spec.supersample, spec.camera_lens())
         _write_png(root / "images" / name, np.round(rgb * 255).astype(np.uint8))
         frame = {"file_path": f"images/{name}", "transform_matrix": np.round(poses[i], 8).tolist()}
         if spec.write_depth:
@@ -164,13 +184,21 @@ def _write_prior(root: Path, spec: RoomSpec, geom: RoomGeometry) -> dict | None:
     return None
 
 
+def _spec_record(spec: RoomSpec) -> dict:
+    """``asdict(spec)``, without ``lens`` when there is none (so a pinhole scene's files stay as they were)."""
+    record = asdict(spec)
+    if record["lens"] is None:
+        del record["lens"]
+    return record
+
+
 def _generator_record(spec: RoomSpec, splits: FrameSplits, geom: RoomGeometry, prior_info: dict | None) -> dict:
     """transforms.json ``voxnerf_synthetic``: how the scene was made and where its objects are."""
     return {
         "seed": spec.seed,
         "room_size": list(geom.room_size),
         "world_up": [0.0, 0.0, 1.0],
-        "spec": asdict(spec),
+        "spec": _spec_record(spec),
         "gt_mesh_file_path": "gt_mesh.ply",
         "prior": prior_info,
         "split_frame_indices": asdict(splits),

@@ -10,6 +10,7 @@ import torch
 
 from voxnerf.cameras import camera_rays
 from voxnerf.config import TrainConfig
+from voxnerf.lens import LensBatch
 from voxnerf.model import VoxNeRFModel
 from voxnerf.samplers import RayBundle
 from voxnerf.scene import Scene, SceneTransform
@@ -22,15 +23,20 @@ class TrainingPixels:
     """Training images and per-pixel caches on the training device.
 
     images uint8 [N, H, W, 3]; c2w float32 [N, 4, 4] normalised; intr float32 [N, 4] (fl_x, fl_y, cx, cy);
+    lens: the frames' lenses (coefficients float32 [N, 6], model codes int64 [N]), None when every frame is a
+    pinhole (the rays then cost what they always did);
     pseudo_t / hit_t float32 [N, H, W] ray distances (normalised; NaN where invalid), hit bool [N, H, W].
     """
 
     images: torch.Tensor
     c2w: torch.Tensor
     intr: torch.Tensor
+    lens: LensBatch | None = None
     pseudo_t: torch.Tensor | None = None
     hit_t: torch.Tensor | None = None
     hit: torch.Tensor | None = None
+    depth_t: torch.Tensor | None = None  # [N, H, W] the depth loss's target (normalised ray distance, NaN: none)
+    depth_beta_scale: torch.Tensor | None = None  # [N, H, W] each pixel's log-Huber beta over the run's
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -38,9 +44,10 @@ class TrainingPixels:
         return n, h, w
 
     def rays(self, img: torch.Tensor, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Rays of the given pixels: origins, dirs [R, 3], normalised units."""
+        """Rays of the given pixels (through their frame's lens): origins, dirs [R, 3], normalised units."""
         k = self.intr[img]
-        origins, dirs, _ = camera_rays(self.c2w[img], k[:, 0], k[:, 1], k[:, 2], k[:, 3], px, py)
+        lens = None if self.lens is None else self.lens.select(img)
+        origins, dirs, _ = camera_rays(self.c2w[img], k[:, 0], k[:, 1], k[:, 2], k[:, 3], px, py, lens)
         return origins, dirs
 
 
@@ -57,6 +64,7 @@ def training_pixels(scene: Scene, transform: SceneTransform, device: torch.devic
         images,
         torch.from_numpy(c2w).float().to(device),
         torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intr], dtype=torch.float32, device=device),
+        LensBatch.of([k.lens for k in intr], device),
     )
 
 
@@ -101,3 +109,20 @@ def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, ge
         py = torch.cat([py, (y0[:, None] + dy.reshape(1, -1)).reshape(-1)])
         px = torch.cat([px, (x0[:, None] + dx.reshape(1, -1)).reshape(-1)])
     return img, py, px
+
+
+def sensor_ray_distance(pixels: TrainingPixels, z: torch.Tensor, scale: float, chunk: int = 262_144) -> torch.Tensor:
+    """Ray distances [N, H, W] (normalised units) of the z-depths ``z`` [N, H, W] (scene units, along each
+    camera's -Z axis; NaN where invalid) of the training pixels: ``t = z * scale / cos``, ``cos`` the angle
+    between the pixel's ray and the camera's axis."""
+    n, h, w = pixels.shape
+    z_flat = z.reshape(-1)
+    t_all = torch.empty(n * h * w, device=z.device)
+    flat = torch.arange(n * h * w, device=z.device)
+    for i in range(0, n * h * w, chunk):
+        f = flat[i : i + chunk]
+        img, rem = f // (h * w), f % (h * w)
+        _, dirs = pixels.rays(img, rem // w, rem % w)
+        cos = (dirs * -pixels.c2w[img, :3, 2]).sum(-1) / torch.linalg.vector_norm(dirs, dim=-1)
+        t_all[i : i + chunk] = z_flat[f] * scale / cos.clamp_min(1e-6)
+    return t_all.view(n, h, w)

@@ -92,6 +92,7 @@ class TrainReport(BaseModel):
     octree: dict[str, Any] | None = None
     warnings: list[str] = []
     depth_beta: float | None = None
+    depth: dict[str, Any] | None = None
     metrics: dict[str, Any] | None = None
     error: str | None = None
     iteration: int = 0

@@ -41,7 +41,7 @@ from voxnerf.training.evals import EvalViews, eval_views_of, final_eval, progres
 from voxnerf.training.loop import Limits, LoopState, run_loop
 from voxnerf.training.pixels import TrainingPixels, training_pixels
 from voxnerf.training.records import StageRecord, TrainReport
-from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, PAPER_BETA, TrainStep, make_loss_fn
+from voxnerf.training.step import PAPER_BETA, TrainStep, make_loss_fn
 
 
 @dataclass
@@ -66,6 +66,7 @@ class Setup:
     pixels: TrainingPixels
     octree: SparseVoxelOctree | None
     use_depth: bool
+    depth_beta: float | None = None  # scene units, when the depth loss is used
 
 
 def train(
@@ -104,10 +105,10 @@ def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Set
     loaded = stages.load_scene_stage(scene_dir, cfg)
     report.scene = loaded.scene.summary()
     events.stage(loaded.record, 0)
-    found = stages.prior_stage(loaded.scene, cfg)
+    found = stages.prior_stage(loaded.scene, cfg, run.dir)
     events.stage(found.record, 0)
     if found.prior is not None:
-        report.prior = found.prior.summary()
+        report.prior = found.prior.summary() | ({"fused": found.fused.summary()} if found.fused else {})
     if found.warning:
         report.warnings.append(found.warning)
     events.stage(stages.hash_kernel_stage(cfg, run.device), 0)
@@ -116,12 +117,12 @@ def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Set
         report.history.extend(built.history)
         report.resumed_from_iteration = built.iteration
     pixels = training_pixels(loaded.scene, built.transform, run.device)
-    return _set_up_geometry(run, loaded.scene, found.prior, built, pixels)
+    return _set_up_geometry(run, loaded.scene, found, built, pixels)
 
 
-def _set_up_geometry(run: Run, scene: Scene, prior: GeometryPrior | None, built: stages.ModelStage,
+def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: stages.ModelStage,
                      pixels: TrainingPixels) -> Setup:
-    """Stages octree, pseudo_depth, first_hit_cache (the per-pixel caches land in ``pixels``)."""
+    """Stages octree, pseudo_depth, depth_target, first_hit_cache (the per-pixel caches land in ``pixels``)."""
     cfg, report, events, iteration = run.cfg, run.report, run.events, built.iteration
     tree = stages.octree_stage(cfg, built.prior_n, pixels, built.model, run.device)
     if tree.octree is not None:
@@ -133,10 +134,15 @@ def _set_up_geometry(run: Run, scene: Scene, prior: GeometryPrior | None, built:
     if depth.warning:
         report.warnings.append(depth.warning)
     events.stage(depth.record, iteration)
+    target = stages.depth_target_stage(cfg, scene, found.prior, found.fused, pixels, built.transform)
+    pixels.depth_t, pixels.depth_beta_scale = target.target_t, target.beta_scale
+    if target.summary is not None:
+        report.depth = target.summary
+    events.stage(target.record, iteration)
     hits = stages.first_hit_stage(tree.octree, pixels, built.model)
     pixels.hit_t, pixels.hit = hits.hit_t, hits.hit
     events.stage(hits.record, iteration)
-    return Setup(scene, prior, built, pixels, tree.octree, cfg.depth_loss and built.prior_n is not None)
+    return Setup(scene, found.prior, built, pixels, tree.octree, target.target_t is not None, target.beta)
 
 
 def _patches(cfg: TrainConfig, setup: Setup) -> tuple[bool, int, int]:
@@ -150,7 +156,7 @@ def _make_step(run: Run, setup: Setup) -> tuple[TrainStep, stages.CompileStage]:
     """The loss (depth beta in the report), the compile stage, the sampler and the batch generator."""
     cfg, model, iteration = run.cfg, setup.built.model, setup.built.iteration
     use_patches, patch, n_patch_rays = _patches(cfg, setup)
-    beta = cfg.depth_beta or (DEPTH_BETA_PER_SIGMA * setup.prior.sigma if setup.prior is not None else PAPER_BETA)
+    beta = setup.depth_beta or PAPER_BETA
     run.report.depth_beta = beta if setup.use_depth else None
     compiled = stages.compile_stage(cfg, make_loss_fn(model, cfg, beta, n_patch_rays, patch))
     if compiled.record is not None:

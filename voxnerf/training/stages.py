@@ -8,22 +8,26 @@ from __future__ import annotations
 
 import random
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from voxnerf import hash_kernel
+from voxnerf import hash_kernel, lens
+from voxnerf.camera_rules import Intrinsics
 from voxnerf.config import TrainConfig
+from voxnerf.depth_fusion import DepthNoise, DepthView, FusedPrior, FusionError, fit_noise, fuse_depth_prior
+from voxnerf.errors import SceneError
+from voxnerf.files import FUSED_PRIOR, TRANSFORMS
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree, coverage_octree
-from voxnerf.prior import GeometryPrior, load_prior
+from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
-from voxnerf.scene import Scene, SceneTransform, load_scene
-from voxnerf.training.pixels import TrainingPixels, per_pixel
+from voxnerf.scene import Scene, SceneTransform, load_scene, read_depth_map
+from voxnerf.training.pixels import TrainingPixels, per_pixel, sensor_ray_distance
 from voxnerf.training.records import EvalRecord, StageRecord
-from voxnerf.training.step import LossFn
+from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, PAPER_BETA, LossFn
 
 MIN_PRIOR_COVERAGE = 0.05  # below this fraction of training pixels seeing the prior, the report warns
 COVERAGE_RAYS = 65_536  # training rays that choose the sampler octree's leaf (voxnerf.octree.coverage_octree)
@@ -57,24 +61,74 @@ class PriorStage:
     record: StageRecord
     prior: GeometryPrior | None
     warning: str | None = None  # the sampler or the depth loss needs a prior the scene lacks
+    fused: FusedPrior | None = None  # the prior was fused from the training frames' depth maps
 
 
-def prior_stage(scene: Scene, cfg: TrainConfig) -> PriorStage:
+def prior_stage(scene: Scene, cfg: TrainConfig, run_dir: Path | None = None) -> PriorStage:
+    """The scene's prior file; without one, the TSDF fusion of the training frames' depth maps (written to
+    ``run_dir/prior_tsdf.ply`` when a run directory is given); without either, none."""
     t0 = time.perf_counter()
     needs_prior = cfg.sampler == "voxnerf" or cfg.depth_loss
-    if scene.prior_path is None:
-        record = _record("prior", False, "the scene has no prior", t0)
-        if not needs_prior:
-            return PriorStage(record, None)
-        return PriorStage(record, None, (
-            f"sampler {cfg.sampler!r}{' and the depth loss' if cfg.depth_loss else ''} need a prior; "
-            "the scene has none, so sampling falls back to the occupancy grid and no depth loss is used"))
-    prior = load_prior(scene.prior_path, scene.prior_sigma, seed=cfg.seed)
-    why = "sets the scene box" + (" and guides sampling / depth" if needs_prior else " only (not needed else)")
-    if scene.prior_key == "ply_file_path":
-        why += f"; from nerfstudio's ply_file_path ({scene.prior_path.name}), no prior_file_path given"
-    return PriorStage(_record("prior", True, f"{prior.kind} prior, sigma {prior.sigma:.4g} "
-                              f"({'estimated' if prior.sigma_estimated else 'given'}); {why}", t0), prior)
+    why_needed = "sets the scene box" + (" and guides sampling / depth" if needs_prior else " only (not needed else)")
+    if scene.prior_path is not None:
+        prior = load_prior(scene.prior_path, scene.prior_sigma, seed=cfg.seed)
+        why = why_needed
+        if scene.prior_key == "ply_file_path":
+            why += f"; from nerfstudio's ply_file_path ({scene.prior_path.name}), no prior_file_path given"
+        return PriorStage(_record("prior", True, f"{prior.kind} prior, sigma {prior.sigma:.4g} "
+                                  f"({'estimated' if prior.sigma_estimated else 'given'}); {why}", t0), prior)
+    depth_frames = [i for i in scene.train_indices if scene.frames[i].depth_path is not None]
+    if needs_prior and depth_frames:
+        try:
+            fused = fuse_depth_prior(training_depth_views(scene, depth_frames))
+        except FusionError as err:
+            return _no_prior(cfg, f"no prior file, and the depth maps make none: {err}", t0, needs_prior)
+        prior = prior_from_mesh(fused.mesh, fused.sigma, FUSED_PRIOR, seed=cfg.seed)
+        if run_dir is not None:
+            fused.mesh.export(Path(run_dir) / FUSED_PRIOR)
+        why = f"no prior file; {fused.describe()} ({fused.noise.describe()}); {why_needed}"
+        return PriorStage(_record("prior", True, why, t0), prior, fused=fused)
+    why = "the scene has no prior" + (" and no training frame has a depth map" if needs_prior else "")
+    return _no_prior(cfg, why, t0, needs_prior)
+
+
+def _no_prior(cfg: TrainConfig, why: str, t0: float, needs_prior: bool) -> PriorStage:
+    record = _record("prior", False, why, t0)
+    if not needs_prior:
+        return PriorStage(record, None)
+    return PriorStage(record, None, (
+        f"sampler {cfg.sampler!r}{' and the depth loss' if cfg.depth_loss else ''} need a prior; "
+        "the scene has none, so sampling falls back to the occupancy grid and no depth loss is used"))
+
+
+def training_depth_views(scene: Scene, indices: list[int]) -> list[DepthView]:
+    """The depth maps of the given training frames at their own resolution, with their cameras and poses."""
+    train = set(scene.train_indices)
+    views = []
+    for i in indices:
+        if i not in train:  # held-out depth never makes the prior
+            raise ValueError(f"frame {i} is not a training frame")
+        depth, camera = read_depth_map(scene.frames[i], scene.depth_unit_scale, scene.depth_max)
+        if camera.lens is not None:
+            depth, camera = pinhole_depth(depth, camera)
+        views.append(DepthView(depth, camera, scene.frames[i].c2w))
+    return views
+
+
+def pinhole_depth(depth: np.ndarray, camera: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
+    """A distorted camera's depth map [H, W] resampled (nearest) onto the pinhole camera with the same
+    ``fl cx cy`` and size, for fusion (a z-depth does not change under the lens: only where it is seen)."""
+    v, u = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64),
+                          torch.arange(camera.width, dtype=torch.float64), indexing="ij")
+    xy = torch.stack([(u + 0.5 - camera.cx) / camera.fl_x, (v + 0.5 - camera.cy) / camera.fl_y], dim=-1)
+    coeffs = torch.tensor(camera.lens.coefficients, dtype=torch.float64)
+    uv = lens.distort(xy, coeffs, camera.lens.model)
+    cols = torch.floor(uv[..., 0] * camera.fl_x + camera.cx).long()
+    rows = torch.floor(uv[..., 1] * camera.fl_y + camera.cy).long()
+    inside = (cols >= 0) & (cols < camera.width) & (rows >= 0) & (rows < camera.height)
+    picked = torch.from_numpy(depth)[rows.clamp(0, camera.height - 1), cols.clamp(0, camera.width - 1)]
+    out = torch.where(inside, picked, torch.full_like(picked, float("nan")))
+    return out.numpy().astype(np.float32), replace(camera, lens=None)
 
 
 def hash_kernel_stage(cfg: TrainConfig, device: torch.device) -> StageRecord:
@@ -198,8 +252,9 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
                        octree: SparseVoxelOctree | None, pixels: TrainingPixels, model: VoxNeRFModel,
                        device: torch.device) -> PseudoDepthStage:
     t0 = time.perf_counter()
-    if not (cfg.depth_loss and prior_n is not None):
-        why = "depth loss disabled" if not cfg.depth_loss else "no prior to render depth from"
+    if not (cfg.depth_loss and cfg.depth_source != "none" and prior_n is not None):
+        why = ("depth loss disabled" if not cfg.depth_loss else "depth_source 'none'" if cfg.depth_source == "none"
+               else "no prior to render depth from")
         return PseudoDepthStage(_record("pseudo_depth", False, why, t0), None)
     # Leaves of the prior's sigma (the paper's) give the most accurate point-cloud depths, whatever leaf
     # the sampler's octree settled on.
@@ -216,6 +271,109 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
                    "placement and prior_sigma")
     why = f"depth loss: prior ray-cast for every training pixel ({valid:.1%} valid)"
     return PseudoDepthStage(_record("pseudo_depth", True, why, t0), pseudo_t, warning)
+
+
+def depth_source(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None) -> tuple[str, str]:
+    """What the depth loss compares with ('sensor', 'prior' or 'none') and why (``TrainConfig.depth_source``).
+
+    Raises SceneError when 'sensor' is asked for and no training frame has a depth map.
+    """
+    has_sensor = any(scene.depths[i] is not None for i in scene.train_indices)
+    if not cfg.depth_loss or cfg.depth_source == "none":
+        return "none", "depth loss disabled" if not cfg.depth_loss else "depth_source 'none'"
+    if cfg.depth_source == "auto":
+        if has_sensor:
+            return "sensor", "auto: the training frames have depth maps"
+        return ("prior", "auto: no depth maps, the prior's depth") if prior is not None else (
+            "none", "auto: no depth maps and no prior")
+    if cfg.depth_source == "sensor" and not has_sensor:
+        raise SceneError(scene.root / TRANSFORMS, "depth_source 'sensor' needs depth maps, and no training frame "
+                         "has one", key="depth_file_path")
+    if cfg.depth_source == "prior" and prior is None:
+        return "none", "depth_source 'prior' but there is no prior"
+    return cfg.depth_source, f"depth_source {cfg.depth_source!r}"
+
+
+@dataclass
+class DepthTargetStage:
+    """The depth loss's target per training pixel and its log-Huber beta.
+
+    ``target_t`` [N, H, W] normalised ray distances (NaN where none); ``beta_scale`` [N, H, W] each pixel's beta
+    over ``beta`` (None: ``beta`` everywhere); ``beta`` in scene units; ``summary`` for the report.
+    """
+
+    record: StageRecord
+    target_t: torch.Tensor | None = None
+    beta_scale: torch.Tensor | None = None
+    beta: float | None = None
+    summary: dict | None = None
+
+
+BETA_SCALE_RANGE = (0.1, 10.0)  # a pixel's beta stays within these factors of the run's
+
+
+def depth_target_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, fused: FusedPrior | None,
+                       pixels: TrainingPixels, transform: SceneTransform) -> DepthTargetStage:
+    """Sensor depth where it is valid and the prior's depth elsewhere ('sensor'), the prior's ('prior'), or none.
+
+    For sensor depth, beta follows the depth noise: ``DEPTH_BETA_PER_SIGMA x sigma(z)``, sigma measured against
+    the fused prior (fused) or the prior's depth along the same rays (a prior file), unless ``depth_beta`` is
+    set.
+    """
+    t0 = time.perf_counter()
+    source, why = depth_source(cfg, scene, prior)
+    if source == "none":
+        return DepthTargetStage(_record("depth_target", False, why, t0))
+    base_sigma = prior.sigma if prior is not None else None
+    if source == "prior":
+        beta = cfg.depth_beta or DEPTH_BETA_PER_SIGMA * base_sigma
+        valid = float(torch.isfinite(pixels.pseudo_t).float().mean())
+        summary = {"source": "prior", "why": why, "prior_fraction": valid, "beta": beta}
+        return DepthTargetStage(_record("depth_target", True, f"{why}: the prior's depth on {valid:.1%} of "
+                                        "training pixels", t0), pixels.pseudo_t, None, beta, summary)
+    z = torch.from_numpy(np.stack([_depth_or_nan(scene, i, pixels.shape[1:]) for i in scene.train_indices]))
+    z = z.to(pixels.images.device)
+    sensor_t = sensor_ray_distance(pixels, z, transform.scale)
+    noise = fused.noise if fused is not None else measure_noise_against(sensor_t, pixels.pseudo_t, z, transform,
+                                                                         base_sigma)
+    sensor_ok = torch.isfinite(sensor_t)
+    target = sensor_t if pixels.pseudo_t is None else torch.where(sensor_ok, sensor_t, pixels.pseudo_t)
+    summary = {"source": "sensor", "why": why, "sensor_fraction": float(sensor_ok.float().mean()),
+               "prior_fraction": float((~sensor_ok & torch.isfinite(target)).float().mean())}
+    text = (f"{why}: sensor depth on {summary['sensor_fraction']:.1%} of training pixels, the prior's on "
+            f"{summary['prior_fraction']:.1%}; ")
+    if cfg.depth_beta or noise is None:
+        beta = cfg.depth_beta or (DEPTH_BETA_PER_SIGMA * base_sigma if base_sigma else PAPER_BETA)
+        rule = "given (depth_beta)" if cfg.depth_beta else "no surface to measure the depth noise against"
+        summary |= {"beta": beta, "beta_rule": rule}
+        return DepthTargetStage(_record("depth_target", True, text + f"beta {beta:.4g}: {rule}", t0), target,
+                                None, beta, summary)
+    base_sigma = base_sigma or noise.at_median
+    beta = DEPTH_BETA_PER_SIGMA * base_sigma
+    beta_scale = torch.where(sensor_ok, (noise.s0 + noise.s2 * z * z) / base_sigma, torch.ones_like(z))
+    summary |= {"noise": noise.as_dict(), "beta": beta, "beta_rule": f"{DEPTH_BETA_PER_SIGMA:g} x sigma(z)"}
+    text += f"beta {DEPTH_BETA_PER_SIGMA:g} x sigma(z), {noise.describe()}"
+    return DepthTargetStage(_record("depth_target", True, text, t0), target,
+                            beta_scale.clamp(*BETA_SCALE_RANGE), beta, summary)
+
+
+def _depth_or_nan(scene: Scene, index: int, shape: tuple[int, int]) -> np.ndarray:
+    depth = scene.depths[index]
+    return np.full(shape, np.nan, np.float32) if depth is None else depth.astype(np.float32)
+
+
+def measure_noise_against(sensor_t: torch.Tensor, prior_t: torch.Tensor | None, z: torch.Tensor,
+                          transform: SceneTransform, prior_sigma: float | None) -> DepthNoise | None:
+    """Depth noise of the sensor against the prior's depth along the same rays (scene units); None without a
+    prior or when no pixel has both."""
+    if prior_t is None or prior_sigma is None:
+        return None
+    both = torch.isfinite(sensor_t) & torch.isfinite(prior_t)
+    cos = z[both] * transform.scale / sensor_t[both]  # z per unit of ray distance
+    residual = ((sensor_t[both] - prior_t[both]) / transform.scale * cos).double().cpu().numpy()
+    depth = z[both].double().cpu().numpy()
+    keep = np.abs(residual) < DEPTH_BETA_PER_SIGMA * prior_sigma
+    return fit_noise(depth[keep], residual[keep], prior_sigma) if keep.any() else None
 
 
 @dataclass

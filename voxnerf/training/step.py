@@ -29,6 +29,7 @@ class Batch(NamedTuple):
     target_rgb: torch.Tensor
     target_t: torch.Tensor | None
     target_ok: torch.Tensor | None
+    target_beta: torch.Tensor | None  # [R] each ray's beta over the run's (None: the run's beta everywhere)
 
 
 class Losses(NamedTuple):
@@ -48,18 +49,20 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
 
     ``beta`` is in scene units. The depth terms compare depths in units of ``beta / 0.1``: for the paper's
     beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
-    so lambda_d keeps its meaning whatever the scene's units and normalisation.
+    so lambda_d keeps its meaning whatever the scene's units and normalisation. A ray's ``target_beta`` scales
+    its beta (sensor depth is trusted less far away).
     """
     lam, to_units = cfg.lambda_depth, PAPER_BETA / (beta * model.transform.scale)
 
-    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok):
+    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta):
         out = model.render_samples(origins, dirs, starts, ends)
         lc = color_loss(out["rgb"], target_rgb)
         total = lc
         ld = lreg = torch.zeros((), device=origins.device)
         if target_t is not None:
             depth = out["depth"] * to_units
-            ld = depth_loss(depth, target_t * to_units, target_ok, PAPER_BETA)
+            ray_beta = PAPER_BETA if target_beta is None else PAPER_BETA * target_beta
+            ld = depth_loss(depth, target_t * to_units, target_ok, ray_beta)
             if n_patch_rays:
                 d = depth[-n_patch_rays:].view(-1, patch, patch)
                 m = target_ok[-n_patch_rays:].view(-1, patch, patch)
@@ -99,11 +102,13 @@ class TrainStep:
         with torch.no_grad():
             starts, ends = self.sampler(rays, True)
         target_rgb = pixels.images[img, py, px].float() / 255.0
-        target_t = target_ok = None
-        if pixels.pseudo_t is not None:
-            target_t = pixels.pseudo_t[img, py, px]
+        target_t = target_ok = target_beta = None
+        if pixels.depth_t is not None:
+            target_t = pixels.depth_t[img, py, px]
             target_ok = torch.isfinite(target_t)
-        return Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok)
+        if pixels.depth_beta_scale is not None:
+            target_beta = pixels.depth_beta_scale[img, py, px]
+        return Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta)
 
     def losses(self, batch: Batch) -> Losses:
         losses = Losses(*self.loss_fn(*batch))
