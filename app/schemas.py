@@ -51,7 +51,32 @@ class SceneSummary(BaseModel):
     image_size: list[int] = Field(description="[width, height] of the first training image, pixels")
     prior: PriorSummary | None
     depth: bool = Field(description="whether frames carry sensor depth maps")
+    depth_frames: dict[str, int] | None = Field(
+        None, description="frames with a depth map: all, and training frames (whose depth makes the prior when "
+        "there is no prior file, and supervises training)")
+    camera_models: dict[str, int] | None = Field(
+        None, description="frames per camera model and how it was decided, e.g. {\"OPENCV (camera_model)\": 40}")
     warnings: list[str] = []
+
+
+class ImportSummary(BaseModel):
+    """What an importer (:mod:`voxnerf.importers`) made of a COLMAP or ScanNet upload."""
+
+    model_config = ConfigDict(extra="allow")
+
+    format: Literal["colmap", "scannet"]
+    frames: int = Field(description="frames written")
+    skipped: dict[str, int] = Field(description="frames left out, counted by reason (missing image, invalid pose)")
+    camera_models: list[str] = Field(description="camera models, e.g. 'SIMPLE_RADIAL -> OPENCV' (COLMAP -> ours)")
+    depth_frames: int = Field(description="frames with a sensor depth map")
+    prior: dict[str, Any] | None = Field(
+        description="the point cloud made from COLMAP's points3D: file, points, sigma (scene units) and the rule "
+        "that estimated it; null without one"
+    )
+    splits: dict[str, Any] | None = Field(
+        description="the split rule's parameters and frames per split when splits=paper; null without"
+    )
+    notes: list[str] = []
 
 
 class SceneOut(BaseModel):
@@ -60,15 +85,21 @@ class SceneOut(BaseModel):
     created_at: datetime
     size_bytes: int
     summary: SceneSummary
+    imported: ImportSummary | None = Field(
+        None, description="for a COLMAP or ScanNet upload, what its importer wrote; null for a scene directory"
+    )
 
     @classmethod
     def from_row(cls, row) -> SceneOut:
+        summary = dict(row.summary)
+        imported = summary.pop("imported", None)
         return cls(
             id=row.id,
             name=row.name,
             created_at=_utc(row.created_at),
             size_bytes=row.size_bytes,
-            summary=SceneSummary.model_validate(row.summary),
+            summary=SceneSummary.model_validate(summary),
+            imported=ImportSummary.model_validate(imported) if imported is not None else None,
         )
 
 

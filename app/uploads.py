@@ -9,6 +9,9 @@ Order of checks, each refusing with :class:`UploadError` (an HTTP status and a o
 2. extraction into a private staging directory under ``data_dir``, never writing more bytes than declared;
 3. every image and ``.npy`` header, before any pixel is decoded: declared width x height over
    ``max_image_pixels``;
+   an archive without ``transforms.json`` holding a COLMAP model (``sparse/0/cameras.bin|txt``) or a ScanNet
+   export (``color/ pose/ intrinsic/``) is extracted beside the staging scene and written into it by the
+   matching importer (:mod:`voxnerf.importers`), optionally with the paper's splits (form field ``splits``);
 4. :func:`voxnerf.scene.inspect_scene`: the engine's own validation of transforms.json, images (sizes
    must match the intrinsics), depth maps and the prior (imported when an upload is validated, so that the
    API process does not load torch until then);
@@ -42,11 +45,15 @@ from app.core.settings import Settings
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
 from voxnerf.image_io import image_size
+from voxnerf.importers import PaperSplitRule, detect_layout, run_import
 
 ALLOWED_SUFFIXES = frozenset(
     {".json", ".png", ".jpg", ".jpeg", ".npy", ".ply", ".obj", ".mtl", ".glb", ".off"}
 )
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg"})
+IMPORT_SUFFIXES = frozenset({".txt", ".bin"})  # COLMAP models and ScanNet poses: only in an import layout
+SPLIT_RULES = {"paper": PaperSplitRule()}
+RAW_DIR = "raw"  # beside the staging scene: an import layout as uploaded, before its importer runs
 SUPPORTED_COMPRESSION = frozenset(
     {zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA}
 )
@@ -116,13 +123,22 @@ def _ignored(name: str) -> bool:
     return name.startswith(IGNORED_PREFIXES) or PurePosixPath(name).name in IGNORED_NAMES
 
 
-def _check_suffix(path: PurePosixPath) -> None:
-    if path.suffix.lower() not in ALLOWED_SUFFIXES:
+def _check_suffix(path: PurePosixPath, also: frozenset[str] = frozenset()) -> None:
+    if path.suffix.lower() not in ALLOWED_SUFFIXES | also:
         raise UploadError(
             415,
             f"entry {_clip(str(path))}: unsupported file type {path.suffix or '(none)'!r}; "
-            f"allowed: {', '.join(sorted(ALLOWED_SUFFIXES))}",
+            f"allowed: {', '.join(sorted(ALLOWED_SUFFIXES | also))}",
         )
+
+
+def _layout_of(paths: list[PurePosixPath]) -> str | None:
+    """``"colmap"`` or ``"scannet"`` for an archive to import, None for a scene (``.txt``/``.bin`` refused)."""
+    layout = None if PurePosixPath(TRANSFORMS) in paths else detect_layout(paths)
+    if layout is None:
+        for path in paths:
+            _check_suffix(path)
+    return layout
 
 
 def _strip_common_folder(paths: list[PurePosixPath]) -> list[PurePosixPath]:
@@ -135,8 +151,11 @@ def _strip_common_folder(paths: list[PurePosixPath]) -> list[PurePosixPath]:
     return paths
 
 
-def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfile.ZipInfo, PurePosixPath]]:
-    """Which entries to extract where; raises UploadError for anything unsafe. Reads only the directory."""
+def _plan_zip(
+    archive: zipfile.ZipFile, settings: Settings
+) -> tuple[list[tuple[zipfile.ZipInfo, PurePosixPath]], str | None]:
+    """Which entries to extract where, and the layout to import (None: a scene); raises UploadError for anything
+    unsafe. Reads only the directory."""
     infos = archive.infolist()
     if len(infos) > 2 * settings.max_files:
         raise UploadError(
@@ -150,7 +169,8 @@ def _plan_zip(archive: zipfile.ZipFile, settings: Settings) -> list[tuple[zipfil
         if target in seen:
             raise UploadError(422, f"entry {_clip(str(target))} appears twice")
         seen.add(target)
-    return [(info, target) for (info, _), target in zip(planned, targets, strict=True)]
+    plan = [(info, target) for (info, _), target in zip(planned, targets, strict=True)]
+    return plan, _layout_of(targets)
 
 
 def _entry_path(info: zipfile.ZipInfo) -> PurePosixPath | None:
@@ -173,7 +193,7 @@ def _entry_path(info: zipfile.ZipInfo) -> PurePosixPath | None:
         raise UploadError(
             422, f"entry {_clip(info.filename)}: unsupported compression method {info.compress_type}"
         )
-    _check_suffix(path)
+    _check_suffix(path, IMPORT_SUFFIXES)  # .txt and .bin: refused by _layout_of unless the archive is imported
     return path
 
 
@@ -235,14 +255,16 @@ def _copy_limited(src: BinaryIO, dst: Path, limit: int, name: str) -> int:
     return written
 
 
-def _extract_zip(source: BinaryIO, root: Path, settings: Settings) -> int:
+def _extract_zip(source: BinaryIO, root: Path, settings: Settings) -> tuple[int, str | None]:
+    """Bytes written and the layout to import: a scene goes to ``root``, an import layout beside it (RAW_DIR)."""
     try:
         with zipfile.ZipFile(source) as archive:
-            plan = _plan_zip(archive, settings)
+            plan, layout = _plan_zip(archive, settings)
+            dest = root if layout is None else root.parent / RAW_DIR
             total = 0
             for info, target in plan:
                 with archive.open(info) as src:
-                    total += _copy_limited(src, root / target, info.file_size, info.filename)
+                    total += _copy_limited(src, dest / target, info.file_size, info.filename)
     except UploadError:
         raise
     except (
@@ -255,7 +277,50 @@ def _extract_zip(source: BinaryIO, root: Path, settings: Settings) -> int:
         ValueError,
     ) as err:
         raise UploadError(422, f"corrupt or unreadable zip archive: {err}") from None
-    return total
+    return total, layout
+
+
+def _tree_size(root: Path) -> int:
+    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+
+
+def _import_layout(layout: str, root: Path, settings: Settings, rule: PaperSplitRule | None) -> tuple[int, dict]:
+    """Write the extracted ``layout`` (in RAW_DIR beside ``root``) into ``root`` with its importer.
+
+    Returns the scene's size and the importer's summary; UploadError (422) naming the file at fault.
+    """
+    raw = root.parent / RAW_DIR
+    _check_declared_sizes(raw, settings)
+    try:
+        imported = run_import(layout, raw, root, rule)
+    except SceneError as err:
+        raise UploadError(422, f"{layout} import: {_hide_staging(str(err), raw)}") from None
+    except Exception as err:  # a reader deep in pycolmap or Pillow choked on hostile bytes: the upload's fault
+        log.warning("%s import refused by an unexpected %s", layout, type(err).__name__, exc_info=True)
+        raise UploadError(422, _hide_staging(f"{layout} import failed: {type(err).__name__}: {err}", raw)) from None
+    shutil.rmtree(raw, ignore_errors=True)
+    return _tree_size(root), imported
+
+
+def _unpack(source: BinaryIO, root: Path, settings: Settings, rule: PaperSplitRule | None) -> int | tuple[int, dict]:
+    """Extract the zip into ``root``, or import it there when it holds a COLMAP model or a ScanNet export."""
+    total, layout = _extract_zip(source, root, settings)
+    if layout is None:
+        if rule is not None:
+            raise UploadError(
+                422, "splits: only a COLMAP or ScanNet upload takes splits; a transforms.json scene names its own"
+            )
+        return total
+    return _import_layout(layout, root, settings, rule)
+
+
+def split_rule(value: object) -> PaperSplitRule | None:
+    """The split rule the form field ``splits`` names (absent or empty: none); UploadError (422) otherwise."""
+    if value is None or value == "":
+        return None
+    if not isinstance(value, str) or value not in SPLIT_RULES:
+        raise UploadError(422, f"splits: expected one of {', '.join(SPLIT_RULES)}, got {_clip(str(value))}")
+    return SPLIT_RULES[value]
 
 
 def _write_parts(parts: Iterable[tuple[str, BinaryIO]], root: Path, settings: Settings) -> int:
@@ -338,7 +403,11 @@ def _validate_staged(root: Path, settings: Settings, name: str) -> dict:
     from voxnerf.scene import inspect_scene
 
     if not (root / TRANSFORMS).is_file():
-        raise UploadError(422, f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder)")
+        raise UploadError(
+            422,
+            f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder), nor a COLMAP "
+            "model (sparse/0/cameras.bin|txt) or a ScanNet export (color/, pose/, intrinsic/) to import",
+        )
     _check_declared_sizes(root, settings)
     try:
         return inspect_scene(root)
@@ -364,8 +433,9 @@ def _commit(settings: Settings, root: Path, name: str, summary: dict, size: int)
     return StoredScene(scene_id, size, summary)
 
 
-def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> StoredScene:
-    """Stage a scene with ``fill(root) -> bytes written``, validate it, and move it into ``scenes_dir``.
+def store_scene(settings: Settings, name: str, fill: Callable[[Path], int | tuple[int, dict]]) -> StoredScene:
+    """Stage a scene with ``fill(root) -> bytes written`` (or ``(bytes, importer's summary)`` for an import),
+    validate it, and move it into ``scenes_dir``; the importer's summary is the scene summary's ``imported``.
 
     Returns the new scene (its row added to the job store); raises UploadError leaving nothing stored.
     """
@@ -374,16 +444,20 @@ def store_scene(settings: Settings, name: str, fill: Callable[[Path], int]) -> S
     root = staging / "scene"
     root.mkdir()
     try:
-        size = fill(root)
+        filled = fill(root)
+        size, imported = filled if isinstance(filled, tuple) else (filled, None)
         summary = _validate_staged(root, settings, name)
+        if imported is not None:
+            summary["imported"] = imported
         return _commit(settings, root, name, summary, size)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def store_zip(settings: Settings, name: str, source: BinaryIO) -> StoredScene:
-    """Store the scene in a zip archive (a seekable binary file)."""
-    return store_scene(settings, name, lambda root: _extract_zip(source, root, settings))
+def store_zip(settings: Settings, name: str, source: BinaryIO, splits: PaperSplitRule | None = None) -> StoredScene:
+    """Store the scene in a zip archive (a seekable binary file): a scene directory, or a COLMAP model or
+    ScanNet export to import (with ``splits``, the paper's splits; see :func:`split_rule`)."""
+    return store_scene(settings, name, lambda root: _unpack(source, root, settings, splits))
 
 
 def store_parts(settings: Settings, name: str, parts: list[tuple[str, BinaryIO]]) -> StoredScene:

@@ -1,4 +1,4 @@
-"""Command line: ``voxnerf train | eval | render | synth | serve | worker``.
+"""Command line: ``voxnerf train | eval | render | synth | import | serve | worker``.
 
 Errors the user can fix print one line (``voxnerf: error: <file>: <key>: <message>``) and exit with 2.
 """
@@ -139,6 +139,20 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _import(args: argparse.Namespace) -> int:
+    from voxnerf.importers import PaperSplitRule, describe, import_colmap, import_scannet
+
+    splits = PaperSplitRule() if args.splits == "paper" else None
+    if args.layout == "colmap":
+        summary = import_colmap(args.dir, args.out, splits, images=args.images)
+    else:
+        summary = import_scannet(args.dir, args.out, splits)
+    for line in describe(summary):
+        print(line)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def _serve(args: argparse.Namespace) -> int:
     from app.serve import serve
 
@@ -238,6 +252,22 @@ def _add_synth_command(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_synth)
 
 
+def _add_import_command(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import", help="write a COLMAP model or a ScanNet export as a scene (docs/scene-format.md)",
+                       description="Write a COLMAP sparse model or a ScanNet export as a scene in the project's "
+                       "format; see docs/scene-format.md.")
+    layouts = p.add_subparsers(dest="layout", required=True)
+    colmap = layouts.add_parser("colmap", help="a COLMAP sparse model (sparse/0, sparse or DIR; text or binary)")
+    colmap.add_argument("--images", help="the image folder (default DIR/images)")
+    scannet = layouts.add_parser("scannet", help="ScanNet's exported color/ depth/ pose/ intrinsic/ folders")
+    for q in (colmap, scannet):
+        q.add_argument("dir", metavar="DIR")
+        q.add_argument("--out", required=True, metavar="SCENE", help="scene directory to write (absent or empty)")
+        q.add_argument("--splits", choices=["paper"],
+                       help="write the paper's train / interpolation / extrapolation splits (default: none)")
+        q.set_defaults(func=_import)
+
+
 def _add_serve_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="start the REST API with an embedded worker")
     p.add_argument("--host", default="127.0.0.1")
@@ -259,6 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_eval_command(sub)
     _add_render_command(sub)
     _add_synth_command(sub)
+    _add_import_command(sub)
     _add_serve_command(sub)
     _add_worker_command(sub)
     return parser

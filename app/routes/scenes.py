@@ -30,7 +30,9 @@ UPLOAD_BODY = {
                     "file": {
                         "type": "string",
                         "format": "binary",
-                        "description": "a .zip of the scene directory",
+                        "description": "a .zip of the scene directory (transforms.json), or of a COLMAP "
+                        "project (sparse/0 or sparse with cameras.bin|txt, and images/) or a ScanNet export "
+                        "(color/, depth/, pose/, intrinsic/), imported into a scene; see docs/scene-format.md",
                     },
                     "files": {
                         "type": "array",
@@ -39,6 +41,12 @@ UPLOAD_BODY = {
                         "(transforms.json, images/0001.png, prior.ply...)",
                     },
                     "name": {"type": "string", "description": "display name (default: the zip's file name)"},
+                    "splits": {
+                        "type": "string",
+                        "enum": ["paper"],
+                        "description": "for a COLMAP or ScanNet zip: write the paper's train / interpolation / "
+                        "extrapolation splits (default: none, the loader's default split applies)",
+                    },
                 },
             }
         }
@@ -51,12 +59,21 @@ def _display_name(value: object, fallback: str) -> str:
     return "".join(ch for ch in text if ch.isprintable())[:255] or "scene"
 
 
+def _split_rule(value: object, is_zip: bool):
+    """The form field ``splits`` as an importer's split rule; 422 for a bad value or a files upload."""
+    rule = uploads.split_rule(value)  # UploadError: answered as 422 by app.main's handler
+    if rule is not None and not is_zip:
+        raise HTTPException(422, "splits: only a zip of a COLMAP project or a ScanNet export takes splits")
+    return rule
+
+
 @router.post(
     "/scenes",
     status_code=201,
     response_model=SceneOut,
     openapi_extra={"requestBody": UPLOAD_BODY},
-    summary="Upload a scene (zip in field 'file', or its files in fields 'files')",
+    summary="Upload a scene (zip in field 'file', or its files in fields 'files'); COLMAP and ScanNet zips are "
+    "imported",
 )
 async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
     form = await request.form(max_files=settings.max_files + 1, max_fields=8, max_part_size=64 * 1024)
@@ -67,10 +84,11 @@ async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
             raise HTTPException(
                 422, "send either a zip in field 'file' or the scene's files in 'files', not both"
             )
+        splits = _split_rule(form.get("splits"), isinstance(archive, UploadFile))
         if isinstance(archive, UploadFile):
             stem = (archive.filename or "scene").rsplit("/", 1)[-1].removesuffix(".zip")
             stored = await run_in_threadpool(
-                uploads.store_zip, settings, _display_name(form.get("name"), stem), archive.file
+                uploads.store_zip, settings, _display_name(form.get("name"), stem), archive.file, splits
             )
         elif parts:
             named = [(p.filename or "", p.file) for p in parts]
