@@ -24,6 +24,7 @@ samples_sweep = importlib.import_module("samples_sweep")
 prior_noise_sweep = importlib.import_module("prior_noise_sweep")
 docs_section = importlib.import_module("docs_section")
 optimizer_step = importlib.import_module("optimizer_step")
+depth_sources = importlib.import_module("depth_sources")
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -265,3 +266,31 @@ def test_optimizer_step_benchmark_fills_its_section(tmp_path, monkeypatch):
     rows = [line for line in page.read_text().splitlines() if line.startswith("| preset")]
     assert len(rows) == 3 and all(line.endswith("x |") for line in rows)
     assert "old" not in page.read_text() and page.read_text().startswith("notes\n")
+
+
+def test_depth_sources_variants_drop_the_prior_and_the_depth_without_copying(room: Path, tmp_path: Path) -> None:
+    plain = depth_sources.variant_scene(room, tmp_path / "plain", prior=False, depth=False)
+    meta = json.loads((plain / "transforms.json").read_text())
+    assert not any(key in meta for key in depth_sources.PRIOR_KEYS)
+    assert not any("depth_file_path" in f for f in meta["frames"]) and not list(plain.glob("*.ply"))
+    image = meta["frames"][0]["file_path"]
+    assert (plain / image).stat().st_ino == (room / image).stat().st_ino  # a hard link, not a copy
+    kept = json.loads((depth_sources.variant_scene(room, tmp_path / "kept", True, True) / "transforms.json")
+                      .read_text())
+    assert kept == json.loads((room / "transforms.json").read_text())
+
+
+def test_depth_sources_quick(room: Path, tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    args = [str(room), "--seconds", "120", "--downscale", "1", "--out", str(out), "--train-args",
+            "--no-compile --max-iters 3"]
+    assert depth_sources.main(args) == 0
+    results = json.loads((out / "results.json").read_text())["results"]
+    assert list(results) == list(depth_sources.VARIANTS)
+    assert "from nerfstudio" not in results["a_prior_file"]["prior"]
+    assert results["b_fused_prior"]["prior"].startswith("no prior file; ")
+    assert results["c_fused_prior_sensor"]["depth_target"].startswith("depth_source 'sensor'")
+    assert results["d_plain"]["prior"].startswith("the scene has no prior and no training frame has a depth map")
+    assert all(r["iterations"] == 3 for r in results.values())
+    table = (out / "table.md").read_text()
+    assert all(f"| {name} | 3 |" in table for name in depth_sources.VARIANTS)
