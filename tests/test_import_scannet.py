@@ -209,3 +209,34 @@ def test_cli_prints_summary_and_one_line_errors(small_export, tmp_path, capsys):
     assert err.count("\n") == 0 and "scene: the output must not exist" in err and err.startswith("voxnerf: error:")
     assert main(["import", "scannet", str(tmp_path / "missing"), "--out", str(tmp_path / "other")]) == 2
     assert capsys.readouterr().err.strip() == f"voxnerf: error: {tmp_path / 'missing'}: not a directory"
+
+
+@needs_redkitchen
+def test_a_smaller_depth_camera_is_registered_to_the_colour_images(small_export, tmp_path):
+    """ScanNet's depth (640x480) is smaller than its colour (1296x968): here the depth maps are halved to
+    320x240 with their own intrinsics; the imported scene registers them to the colour pixels on load."""
+    import imageio.v3 as iio
+
+    from voxnerf.scene import load_scene
+
+    originals = {}
+    for path in (small_export / "depth").iterdir():
+        originals[int(path.stem)] = iio.imread(path)
+        iio.imwrite(path, originals[int(path.stem)][::2, ::2])
+    k_depth = K_7SCENES.copy()
+    k_depth[:2, :3] /= 2
+    np.savetxt(small_export / "intrinsic" / "intrinsic_depth.txt", k_depth, fmt="%.6f")
+    import_scannet(small_export, tmp_path / "scene")
+    meta = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    assert meta["depth_intrinsics"] == {"fl_x": 292.5, "fl_y": 292.5, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240}
+    scene = load_scene(tmp_path / "scene")
+    checked = 0
+    for i in scene.train_indices:
+        if scene.depths[i] is None:
+            continue
+        halved = originals[frame_number(scene.frames[i].file_path.replace("images/", "frame-"))][::2, ::2]
+        expected = np.repeat(np.repeat(halved, 2, axis=0), 2, axis=1).astype(np.float64) * 0.001
+        expected[expected == 0] = np.nan
+        np.testing.assert_allclose(scene.depths[i], expected, rtol=1e-6)
+        checked += 1
+    assert checked > 0

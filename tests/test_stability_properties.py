@@ -315,3 +315,25 @@ def test_first_hit_never_nan_for_extreme_rays(seed, log_origin, zero_axes):
     assert not torch.isnan(t).any() and (t >= 0).all()
     t_ref, hit_ref = slab_reference(svo, o, d, np.zeros(64, np.float32), np.full(64, 3e38, np.float32))
     np.testing.assert_array_equal(hit.numpy(), hit_ref)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    betas=st.lists(st.floats(1e-6, 1e3), min_size=1, max_size=40),
+    log_residual=st.floats(-12, 6),
+    seed=st.integers(0, 2**16),
+)
+def test_log_huber_with_a_beta_per_ray_is_each_ray_s_scalar_loss(betas, log_residual, seed):
+    """Sensor depth gives every ray its own beta: the tensor form equals the scalar form ray by ray, finite, with
+    finite gradients."""
+    g = torch.Generator().manual_seed(seed)
+    n = len(betas)
+    residual = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 2 * 10.0 ** log_residual
+    residual.requires_grad_(True)
+    beta = torch.tensor(betas, dtype=torch.float64)
+    values = log_huber(residual, beta)
+    values.sum().backward()
+    assert torch.isfinite(values).all() and torch.isfinite(residual.grad).all()
+    for i in range(n):
+        scalar = log_huber(residual[i : i + 1].detach(), float(beta[i]))
+        assert float(values[i]) == pytest.approx(float(scalar[0]), rel=1e-12, abs=1e-300)

@@ -183,3 +183,23 @@ def test_held_out_depth_never_enters_the_prior_or_training(depth_room, tmp_path)
     assert clean_mesh == (tmp_path / "corrupted" / FUSED_PRIOR).read_bytes()
     for key, value in runs["clean"].items():
         assert torch.equal(value, runs["corrupted"][key]), key
+
+
+def test_depth_maps_without_a_valid_pixel_leave_the_scene_prior_less_and_say_why(tmp_path):
+    (tmp_path / "images").mkdir()
+    (tmp_path / "depth").mkdir()
+    frames = []
+    for i in range(3):
+        iio.imwrite(tmp_path / "images" / f"f{i}.png", np.full((6, 8, 3), 40 * i, np.uint8))
+        iio.imwrite(tmp_path / "depth" / f"d{i}.png", np.zeros((6, 8), np.uint16))  # 0: no measurement
+        pose = np.eye(4)
+        pose[0, 3] = 0.1 * i
+        frames.append({"file_path": f"images/f{i}.png", "depth_file_path": f"depth/d{i}.png",
+                       "transform_matrix": pose.tolist()})
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames}))
+    found = stages.prior_stage(load_scene(tmp_path), TrainConfig(max_iters=1))
+    assert found.prior is None and not found.record.ran
+    assert found.record.why == ("no prior file, and the depth maps make none: the depth maps of the 2 training "
+                                "frames hold no valid depth")
+    assert "need a prior; the scene has none" in found.warning
