@@ -72,3 +72,42 @@ def test_training_images_of_different_sizes_are_refused():
     scene = SimpleNamespace(train_indices=[0, 1], images=[np.zeros((4, 5, 3)), np.zeros((5, 4, 3))])
     with pytest.raises(ValueError, match="differ in size"):
         training_pixels(scene, None, torch.device("cpu"))
+
+
+def test_lens_rays_from_the_direction_table_equal_the_inverse_model():
+    """Frames with lenses look their rays up in a table of each distinct camera (two here, three frames)."""
+    from voxnerf.camera_rules import Lens
+    from voxnerf.lens import LensBatch
+    from voxnerf.training.pixels import direction_table
+
+    n, h, w = 3, 12, 16
+    intr = torch.tensor([[14.0, 15.0, 8.2, 5.9]] * n)
+    lenses = [Lens("OPENCV", k1=-0.2, k2=0.03, p1=0.002), Lens("OPENCV_FISHEYE", k1=0.05, k2=-0.01),
+              Lens("OPENCV", k1=-0.2, k2=0.03, p1=0.002)]
+    lens = LensBatch.of(lenses)
+    g = torch.Generator().manual_seed(1)
+    c2w = torch.linalg.qr(torch.randn(n, 3, 3, generator=g))[0]
+    poses = torch.eye(4).repeat(n, 1, 1)
+    poses[:, :3, :3], poses[:, :3, 3] = c2w, torch.randn(n, 3, generator=g)
+    table = direction_table(intr, lens, h, w)
+    assert table.dirs.shape == (2, h, w, 3) and table.camera.tolist()[0] == table.camera.tolist()[2]
+    img = torch.randint(0, n, (500,), generator=g)
+    py, px = torch.randint(0, h, (500,), generator=g), torch.randint(0, w, (500,), generator=g)
+    images = torch.zeros(n, h, w, 3, dtype=torch.uint8)
+    looked_up = TrainingPixels(images, poses, intr, lens, directions=table).rays(img, py, px)
+    computed = TrainingPixels(images, poses, intr, lens).rays(img, py, px)
+    for a, b in zip(looked_up, computed, strict=True):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=0)
+    assert direction_table(intr, None, h, w) is None
+
+
+def test_a_direction_table_past_its_memory_bound_is_not_built(monkeypatch):
+    from voxnerf.camera_rules import Lens
+    from voxnerf.lens import LensBatch
+    from voxnerf.training import pixels
+
+    monkeypatch.setattr(pixels, "MAX_DIRECTION_TABLE_BYTES", 2 * 12 * 16 * 3 * 4 - 1)  # one byte short of two
+    intr = torch.tensor([[14.0, 15.0, 8.0, 6.0], [14.0, 15.0, 8.5, 6.0]])
+    lens = LensBatch.of([Lens("OPENCV", k1=-0.1)] * 2)
+    assert pixels.direction_table(intr, lens, 12, 16) is None
+    assert pixels.direction_table(intr[:1], LensBatch.of([Lens("OPENCV", k1=-0.1)]), 12, 16) is not None

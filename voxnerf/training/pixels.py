@@ -16,6 +16,39 @@ from voxnerf.samplers import RayBundle
 from voxnerf.scene import Scene, SceneTransform
 
 PixelIndex = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # img, py, px [R] each
+MAX_DIRECTION_TABLE_BYTES = 256 * 2**20  # beyond this the lens's inverse runs per batch instead
+
+
+@dataclass
+class DirectionTable:
+    """Unit ray directions in camera axes (OpenGL) of every pixel of each distinct camera of the training frames:
+    ``dirs`` float32 [C, H, W, 3], ``camera`` int64 [N] (each frame's). Looking them up replaces the lens's
+    Newton iterations in every batch."""
+
+    dirs: torch.Tensor
+    camera: torch.Tensor
+
+
+def direction_table(intr: torch.Tensor, lens: LensBatch | None, h: int, w: int) -> DirectionTable | None:
+    """The table of frames with intrinsics ``intr`` [N, 4] and lenses ``lens``; None without a lens or when it
+    would exceed :data:`MAX_DIRECTION_TABLE_BYTES`."""
+    if lens is None:
+        return None
+    keys = torch.cat([intr, lens.coeffs.to(intr.dtype), lens.codes[:, None].to(intr.dtype)], dim=1)
+    unique, camera = torch.unique(keys, dim=0, return_inverse=True)
+    if unique.shape[0] * h * w * 3 * 4 > MAX_DIRECTION_TABLE_BYTES:
+        return None
+    py, px = torch.meshgrid(torch.arange(h, device=intr.device), torch.arange(w, device=intr.device), indexing="ij")
+    py, px = py.reshape(-1), px.reshape(-1)
+    eye = torch.eye(4, device=intr.device)
+    tables = []
+    for c in range(unique.shape[0]):
+        frame = int(torch.nonzero(camera == c)[0, 0])
+        k = intr[frame]
+        one = lens.select(torch.tensor([frame], device=intr.device))
+        _, dirs, _ = camera_rays(eye, k[0], k[1], k[2], k[3], px, py, one)
+        tables.append(dirs.view(h, w, 3))
+    return DirectionTable(torch.stack(tables), camera)
 
 
 @dataclass
@@ -37,6 +70,7 @@ class TrainingPixels:
     hit: torch.Tensor | None = None
     depth_t: torch.Tensor | None = None  # [N, H, W] the depth loss's target (normalised ray distance, NaN: none)
     depth_beta_scale: torch.Tensor | None = None  # [N, H, W] each pixel's log-Huber beta over the run's
+    directions: DirectionTable | None = None  # the lens rays of every pixel, when the frames have lenses
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -45,6 +79,10 @@ class TrainingPixels:
 
     def rays(self, img: torch.Tensor, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Rays of the given pixels (through their frame's lens): origins, dirs [R, 3], normalised units."""
+        if self.directions is not None:
+            d_cam = self.directions.dirs[self.directions.camera[img], py, px]
+            dirs = torch.einsum("nij,nj->ni", self.c2w[img, :3, :3], d_cam)
+            return self.c2w[img, :3, 3].contiguous(), dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)
         k = self.intr[img]
         lens = None if self.lens is None else self.lens.select(img)
         origins, dirs, _ = camera_rays(self.c2w[img], k[:, 0], k[:, 1], k[:, 2], k[:, 3], px, py, lens)
@@ -60,12 +98,10 @@ def training_pixels(scene: Scene, transform: SceneTransform, device: torch.devic
     images = torch.from_numpy(np.stack([scene.images[i] for i in idx])).to(device)
     c2w = np.stack([transform.c2w_to_normalized(scene.frames[i].c2w) for i in idx])
     intr = [scene.intrinsics(i) for i in idx]
-    return TrainingPixels(
-        images,
-        torch.from_numpy(c2w).float().to(device),
-        torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intr], dtype=torch.float32, device=device),
-        LensBatch.of([k.lens for k in intr], device),
-    )
+    intr_t = torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intr], dtype=torch.float32, device=device)
+    lens = LensBatch.of([k.lens for k in intr], device)
+    return TrainingPixels(images, torch.from_numpy(c2w).float().to(device), intr_t, lens,
+                          directions=direction_table(intr_t, lens, *images.shape[1:3]))
 
 
 def per_pixel(
