@@ -17,6 +17,7 @@ from voxnerf.depth_fusion import (
     fuse_depth_prior,
     fuse_tsdf,
 )
+from voxnerf.synthetic.cameras import look_at_c2w
 
 ROOM = trimesh.creation.box(extents=(4.0, 3.0, 2.5))  # the inside of a 4 x 3 x 2.5 m room, centred at 0
 CAMERA = Intrinsics(fl_x=120.0, fl_y=120.0, cx=80.0, cy=60.0, width=160, height=120)
@@ -26,12 +27,7 @@ S0, S2 = 0.004, 0.003  # the simulated sensor: sigma(z) = 4 mm + 3 mm/m^2 z^2
 def _look(yaw: float, pitch: float, position) -> np.ndarray:
     """camera-to-world (OpenGL axes) looking along yaw / pitch (radians) from ``position``."""
     forward = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, position
-    return c2w
+    return look_at_c2w(np.asarray(position, dtype=np.float64), forward)
 
 
 def _true_depth(c2w: np.ndarray, camera: Intrinsics = CAMERA) -> np.ndarray:

@@ -203,3 +203,17 @@ def test_depth_maps_without_a_valid_pixel_leave_the_scene_prior_less_and_say_why
     assert found.record.why == ("no prior file, and the depth maps make none: the depth maps of the 2 training "
                                 "frames hold no valid depth")
     assert "need a prior; the scene has none" in found.warning
+
+
+def test_sensor_depth_without_depth_maps_is_refused_when_the_scene_loads(tmp_path):
+    """The mismatch is found before any set-up work (prior, octree, pseudo depth) is spent."""
+    (tmp_path / "images").mkdir()
+    frames = []
+    for i in range(3):
+        iio.imwrite(tmp_path / "images" / f"f{i}.png", np.full((6, 8, 3), 40 * i, np.uint8))
+        frames.append({"file_path": f"images/f{i}.png", "transform_matrix": np.eye(4).tolist()})
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames}))
+    with pytest.raises(SceneError, match="depth_source 'sensor' needs depth maps"):
+        stages.load_scene_stage(tmp_path, TrainConfig(max_iters=1, depth_source="sensor"))
+    assert stages.load_scene_stage(tmp_path, TrainConfig(max_iters=1)).record.ran  # auto: no depth, no error

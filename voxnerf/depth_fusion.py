@@ -218,16 +218,6 @@ def canonical_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices[order], faces, process=False)
 
 
-def mesh_depth(mesh: trimesh.Trimesh, view: DepthView, pixels: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """z-depth of ``mesh`` at the given pixels (rows, cols) of ``view``; inf where the ray misses."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(mesh.faces, np.uint32)))
-    return _cast_z(scene, view, pixels)
-
-
 def _cast_z(scene, view: DepthView, pixels: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     import open3d as o3d
 

@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import io
 import os
+import shutil
 import struct
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import imageio.v3 as iio
 import numpy as np
@@ -25,6 +27,8 @@ import OpenEXR
 from PIL import Image
 
 from voxnerf.errors import SceneError
+
+T = TypeVar("T")
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 EXR_MAGIC = b"\x76\x2f\x31\x01"  # 0x762f3101, stored little-endian as the first 4 bytes of every EXR file
@@ -226,6 +230,29 @@ def decode_exr(data: bytes) -> dict[str, np.ndarray]:
         return {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
     except (RuntimeError, OSError) as err:
         raise ValueError(f"cannot decode EXR: {err}") from err
+
+
+def build_dir_atomic(out: Path, fill: Callable[[Path], T], check: Callable[[Path], None]) -> T:
+    """Build a directory with ``fill(tmp)`` in a fresh directory beside ``out`` and rename it to ``out``.
+
+    ``check(out)`` raises unless ``out`` may be written (e.g. absent or empty); it runs before and again just
+    before the rename. When anything raises, the temporary directory is removed and ``out`` left as it was.
+    Returns what ``fill`` returns.
+    """
+    out = Path(out)
+    check(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        result = fill(tmp)
+        check(out)
+        if out.exists():
+            out.rmdir()
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return result
 
 
 def write_atomic(path: Path, data: bytes) -> None:

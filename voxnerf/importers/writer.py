@@ -7,9 +7,7 @@ OpenCV -> OpenGL camera-axes flip, the point-cloud PLY, image-header checks and 
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 
@@ -17,7 +15,7 @@ import numpy as np
 
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
-from voxnerf.image_io import image_size, write_atomic
+from voxnerf.image_io import build_dir_atomic, image_size, write_atomic
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplying a camera-to-world pose by this flips the camera's Y and Z axes: OpenCV (x right, y down,
@@ -37,20 +35,7 @@ def build_scene(out: Path, fill: Callable[[Path], dict]) -> dict:
 
     Nothing is left behind when ``fill`` raises: the temporary directory is removed and ``out`` untouched.
     """
-    out = Path(out)
-    check_out_dir(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
-        summary = fill(tmp)
-        check_out_dir(out)
-        if out.exists():
-            out.rmdir()
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return summary
+    return build_dir_atomic(Path(out), fill, check_out_dir)
 
 
 def safe_name(name: str, listed_in: Path) -> PurePosixPath:

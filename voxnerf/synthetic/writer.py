@@ -4,10 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -17,6 +14,7 @@ import numpy as np
 import trimesh
 
 from voxnerf.camera_rules import COEFFICIENT_KEYS, MODEL_COEFFICIENTS, CameraError, Lens, lens_of
+from voxnerf.image_io import build_dir_atomic
 from voxnerf.synthetic.cameras import FrameSplits, camera_path, split_frames
 from voxnerf.synthetic.geometry import RoomGeometry
 from voxnerf.synthetic.priors import PRIOR_KINDS, noisy_mesh_prior, sample_point_prior
@@ -99,17 +97,7 @@ def make_room_scene(out_dir: Path, spec: RoomSpec | None = None) -> Path:
     out_dir = Path(out_dir)
     _check_out_dir(out_dir)
     splits = split_frames(spec.n_frames, spec.train_every, spec.n_gaps, spec.gap_len)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
-    try:
-        _write_scene(tmp, spec, splits)
-        _check_out_dir(out_dir)
-        if out_dir.exists():
-            out_dir.rmdir()
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    build_dir_atomic(out_dir, lambda tmp: _write_scene(tmp, spec, splits), _check_out_dir)
     return out_dir
 
 

@@ -20,6 +20,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.depth_fusion import DepthNoise, DepthView, FusedPrior, FusionError, fit_noise, fuse_depth_prior
 from voxnerf.errors import SceneError
 from voxnerf.files import FUSED_PRIOR, TRANSFORMS
+from voxnerf.image_io import write_atomic
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree, coverage_octree
 from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
@@ -52,6 +53,7 @@ class SceneStage:
 def load_scene_stage(scene_dir: str | Path, cfg: TrainConfig) -> SceneStage:
     t0 = time.perf_counter()
     scene = load_scene(scene_dir, downscale=cfg.downscale)
+    check_sensor_depth(cfg, scene)  # before any set-up work, not after it
     why = f"{len(scene.frames)} frames, {len(scene.train_indices)} for training"
     return SceneStage(_record("load_scene", True, why, t0), scene)
 
@@ -85,7 +87,7 @@ def prior_stage(scene: Scene, cfg: TrainConfig, run_dir: Path | None = None) -> 
             return _no_prior(cfg, f"no prior file, and the depth maps make none: {err}", t0, needs_prior)
         prior = prior_from_mesh(fused.mesh, fused.sigma, FUSED_PRIOR, seed=cfg.seed)
         if run_dir is not None:
-            fused.mesh.export(Path(run_dir) / FUSED_PRIOR)
+            write_atomic(Path(run_dir) / FUSED_PRIOR, fused.mesh.export(file_type="ply"))
         why = f"no prior file; {fused.describe()} ({fused.noise.describe()}); {why_needed}"
         return PriorStage(_record("prior", True, why, t0), prior, fused=fused)
     why = "the scene has no prior" + (" and no training frame has a depth map" if needs_prior else "")
@@ -273,11 +275,20 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
     return PseudoDepthStage(_record("pseudo_depth", True, why, t0), pseudo_t, warning)
 
 
+def check_sensor_depth(cfg: TrainConfig, scene: Scene) -> None:
+    """SceneError when ``depth_source`` 'sensor' is asked for and no training frame has a depth map."""
+    wants_sensor = cfg.depth_loss and cfg.depth_source == "sensor"
+    if wants_sensor and all(scene.depths[i] is None for i in scene.train_indices):
+        raise SceneError(scene.root / TRANSFORMS, "depth_source 'sensor' needs depth maps, and no training frame "
+                         "has one", key="depth_file_path")
+
+
 def depth_source(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None) -> tuple[str, str]:
     """What the depth loss compares with ('sensor', 'prior' or 'none') and why (``TrainConfig.depth_source``).
 
     Raises SceneError when 'sensor' is asked for and no training frame has a depth map.
     """
+    check_sensor_depth(cfg, scene)
     has_sensor = any(scene.depths[i] is not None for i in scene.train_indices)
     if not cfg.depth_loss or cfg.depth_source == "none":
         return "none", "depth loss disabled" if not cfg.depth_loss else "depth_source 'none'"
@@ -286,9 +297,6 @@ def depth_source(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None) ->
             return "sensor", "auto: the training frames have depth maps"
         return ("prior", "auto: no depth maps, the prior's depth") if prior is not None else (
             "none", "auto: no depth maps and no prior")
-    if cfg.depth_source == "sensor" and not has_sensor:
-        raise SceneError(scene.root / TRANSFORMS, "depth_source 'sensor' needs depth maps, and no training frame "
-                         "has one", key="depth_file_path")
     if cfg.depth_source == "prior" and prior is None:
         return "none", "depth_source 'prior' but there is no prior"
     return cfg.depth_source, f"depth_source {cfg.depth_source!r}"
