@@ -11,6 +11,7 @@ import torch
 from voxnerf.cameras import Intrinsics
 from voxnerf.config import TrainConfig
 from voxnerf.image_io import encode_png, write_atomic
+from voxnerf.inference import FAST
 from voxnerf.metrics import LPIPS, LPIPS_UNAVAILABLE, evaluate_images
 from voxnerf.model import VoxNeRFModel
 from voxnerf.render import render_normalized
@@ -46,13 +47,15 @@ def evaluate_views(
     cfg: TrainConfig,
     out_dir: Path | None = None,
     lpips: bool = True,
+    path: str = "fast",
 ) -> dict[str, dict]:
-    """Render every view of every split and score it.
+    """Render every view of every split (on the render ``path``, see :func:`voxnerf.render.render_normalized`)
+    and score it.
 
-    Returns ``{split: {"psnr", "ssim", "lpips" (None if unavailable or not asked), "lpips_note"?,
-    "views": [{"name", "psnr", "ssim", "lpips"}]}}`` (means at the top); LPIPS is also left out, with a note
-    saying why, when a view is smaller than its network accepts. Writes ``out_dir/<split>/<name>.png`` when
-    ``out_dir`` is given.
+    Returns ``{split: {"psnr", "ssim", "lpips" (None if unavailable or not asked), "lpips_note"?, "renderer",
+    "views": [{"name", "psnr", "ssim", "lpips"}]}}`` (means at the top; ``renderer`` says which path rendered
+    them); LPIPS is also left out, with a note saying why, when a view is smaller than its network accepts.
+    Writes ``out_dir/<split>/<name>.png`` when ``out_dir`` is given.
     """
     lp = lpips_model() if lpips else None
     note = LPIPS_UNAVAILABLE if lpips and lp is None else None
@@ -64,7 +67,7 @@ def evaluate_views(
     for split, split_views in views.items():
         preds, gts = [], []
         for view in split_views:
-            rgb = render_normalized(model, view.c2w, view.intrinsics, ("rgb",), cfg.eval_chunk)["rgb"]
+            rgb = render_normalized(model, view.c2w, view.intrinsics, ("rgb",), path=path)["rgb"]
             rgb = rgb.float().cpu().clamp(0.0, 1.0)
             preds.append(rgb)
             gts.append(view.image.float() / 255.0)
@@ -73,7 +76,8 @@ def evaluate_views(
                 write_atomic(out_dir / split / f"{view.name}.png", encode_png(rgb.numpy()))
         scores = evaluate_images(preds, gts, lp)
         mean = scores["mean"]
-        entry = {"psnr": mean["psnr"], "ssim": mean["ssim"], "lpips": mean["lpips"], "views": [
+        renderer = FAST.describe() if path == "fast" else "full: every sample of every ray"
+        entry = {"psnr": mean["psnr"], "ssim": mean["ssim"], "lpips": mean["lpips"], "renderer": renderer, "views": [
             {"name": v.name, "psnr": scores["psnr"][i], "ssim": scores["ssim"][i],
              "lpips": None if scores["lpips"] is None else scores["lpips"][i]}
             for i, v in enumerate(split_views)

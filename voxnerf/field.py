@@ -177,3 +177,28 @@ class RadianceField(nn.Module):
         density = trunc_exp(h[:, 0])
         rgb = torch.sigmoid(self.color_mlp(torch.cat([spherical_harmonics_deg4(dirs), h[:, 1:]], dim=-1)))
         return density, rgb
+
+    # The same field split for inference (voxnerf.inference): the colour MLP's first layer is linear in
+    # cat([SH(d), geo]), so its direction part is computed once per ray instead of once per sample.
+
+    def geometry(self, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """[N, 3] normalised positions -> (density [N], geometry features [N, GEO_FEATURES])."""
+        h = self.density_mlp(self.encoding((positions + 1.0) * 0.5))
+        return trunc_exp(h[:, 0]), h[:, 1:]
+
+    def direction_features(self, dirs: Tensor) -> Tensor:
+        """[R, 3] unit directions -> [R, hidden]: the direction part of the colour MLP's first layer, bias
+        included."""
+        first = self.color_mlp[0]
+        n_sh = first.in_features - self.GEO_FEATURES
+        return nn.functional.linear(spherical_harmonics_deg4(dirs), first.weight[:, :n_sh], first.bias)
+
+    def color(self, geo: Tensor, direction_features: Tensor) -> Tensor:
+        """Colour [N, 3] in [0, 1] from geometry features [N, GEO_FEATURES] and the direction features [N, hidden]
+        of each sample's ray: ``forward``'s colour, up to float rounding."""
+        first = self.color_mlp[0]
+        n_sh = first.in_features - self.GEO_FEATURES
+        x = torch.addmm(direction_features, geo, first.weight[:, n_sh:].t()).relu_()
+        for layer in self.color_mlp[2:-1]:
+            x = layer(x)
+        return torch.sigmoid(self.color_mlp[-1](x))

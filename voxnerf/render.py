@@ -16,10 +16,13 @@ from voxnerf.cameras import Intrinsics, image_rays
 from voxnerf.devices import resolve_device
 from voxnerf.errors import RunError
 from voxnerf.files import CHECKPOINT
+from voxnerf.inference import FAST, render_rays_fast
 from voxnerf.model import VoxNeRFModel
 from voxnerf.outputs import OUTPUT_NAMES
 
 OUTPUTS = OUTPUT_NAMES
+RENDER_PATHS = ("fast", "full")
+FAST_CHUNK = 1 << 16  # rays per call of the fast path (it composites them in cache-sized blocks)
 
 
 @dataclass
@@ -70,6 +73,7 @@ def render_normalized(
     intrinsics: Intrinsics,
     outputs: Sequence[str] = OUTPUTS,
     chunk: int | None = None,
+    path: str = "fast",
 ) -> dict[str, Tensor]:
     """Render one view whose pose is already in normalised units.
 
@@ -78,17 +82,23 @@ def render_normalized(
         intrinsics: the camera; with a lens, each pixel's ray goes through its inverse distortion (the image
             a distorted camera sees, as evaluation compares with distorted ground truth).
         outputs: subset of ("rgb", "depth", "opacity"); "depth" is z-depth in normalised units.
-        chunk: rays per forward pass (default: the config's eval_chunk).
+        chunk: rays per forward pass (default: :data:`FAST_CHUNK` on the fast path, the config's eval_chunk
+            on the full one).
+        path: ``"fast"`` (:mod:`voxnerf.inference`: front to back, rays stop when opaque, no compiling) or
+            ``"full"`` (every sample of every ray, compiled when the config says so: the training-time path).
     Returns:
         the requested outputs, rgb [H, W, 3] and depth/opacity [H, W], float32 on the model's device.
     """
     unknown = set(outputs) - set(OUTPUTS)
     if unknown:
         raise RunError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
-    chunk = chunk or int(model.config.eval_chunk)
+    if path not in RENDER_PATHS:
+        raise RunError(f"unknown render path {path!r}; choose from {list(RENDER_PATHS)}")
+    fast = path == "fast"
+    chunk = chunk or (FAST_CHUNK if fast else int(model.config.eval_chunk))
     origins, dirs, z_per_t = image_rays(c2w.to(model.device, torch.float32), intrinsics)
     n = origins.shape[0]
-    compiled = bool(model.config.compile)
+    compiled = bool(model.config.compile) and not fast
     if compiled and n % chunk:  # pad with copies of the last ray so every chunk has the compiled shape
         pad = chunk - n % chunk
         origins = torch.cat([origins, origins[-1:].expand(pad, 3)])
@@ -97,13 +107,12 @@ def render_normalized(
     parts: dict[str, list[Tensor]] = {name: [] for name in outputs}
     for i in range(0, n, chunk):
         rays = model.ray_bundle(origins[i : i + chunk], dirs[i : i + chunk])
-        out = model.render_rays(rays, sampler, compiled=compiled)
-        if "rgb" in parts:
-            parts["rgb"].append(out["rgb"])
-        if "depth" in parts:
-            parts["depth"].append(out["depth"])
-        if "opacity" in parts:
-            parts["opacity"].append(out["opacity"])
+        if fast:
+            out = render_rays_fast(model, rays, sampler, FAST)
+        else:
+            out = model.render_rays(rays, sampler, compiled=compiled)
+        for name, values in parts.items():
+            values.append(out[name])
     h, w = intrinsics.height, intrinsics.width
     result = {}
     for name, values in parts.items():
@@ -119,6 +128,7 @@ def render(
     c2w: np.ndarray | Tensor,
     intrinsics: Intrinsics | None = None,
     outputs: Sequence[str] = OUTPUTS,
+    path: str = "fast",
 ) -> dict[str, np.ndarray]:
     """Render a pose given in scene units.
 
@@ -130,8 +140,9 @@ def render(
             pinhole with its focal lengths and principal point, even when it was trained through a lens);
             give an :class:`Intrinsics` with a ``lens`` to render through one.
         outputs: subset of ("rgb", "depth", "opacity"); only these are computed.
+        path: ``"fast"`` or ``"full"``, see :func:`render_normalized`.
     Returns:
-        rgb float32 [H, W, 3] in [0, 1] (linear as trained), depth float32 [H, W] z-depth in scene units,
+        rgb float32 [H, W, 3] in [0, 1] (sRGB-encoded, as the images it was trained on), depth float32 [H, W] z-depth in scene units,
         opacity float32 [H, W].
     """
     try:
@@ -140,7 +151,7 @@ def render(
         raise RunError(f"c2w: {err}") from None
     model = trained.model
     pose_n = torch.from_numpy(model.transform.c2w_to_normalized(pose)).float()
-    out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics.undistorted(), outputs)
+    out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics.undistorted(), outputs, path=path)
     result = {name: value.float().cpu().numpy() for name, value in out.items()}
     if "depth" in result:
         result["depth"] = result["depth"] / model.transform.scale

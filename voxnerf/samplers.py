@@ -218,14 +218,15 @@ class VoxNeRFSampler:
         device, r = rays.origins.device, len(rays)
         std = math.sqrt(3.0) * self.octree.leaf_size
         half = self.half_window
+        rows = r if stratified else 1  # bin centres are the same for every ray: [1, n], broadcast
         # Truncated normal by inverse CDF of stratified quantiles in [Phi(-3), Phi(3)].
-        u = _stratified_unit(r, self.n_importance, stratified, device)
+        u = _stratified_unit(rows, self.n_importance, stratified, device)
         q = torch.special.ndtri(_PHI_LO + u * (_PHI_HI - _PHI_LO))
         t_imp = z[:, None] + std * q
         # Uniform on [near, z - half] U [z + half, far].
         before = (z - half - rays.near).clamp_min(0.0)
         after = (rays.far - (z + half)).clamp_min(0.0)
-        s = _stratified_unit(r, self.n_rest, stratified, device) * (before + after)[:, None]
+        s = _stratified_unit(rows, self.n_rest, stratified, device) * (before + after)[:, None]
         t_rest = torch.where(
             s < before[:, None], rays.near[:, None] + s, (z + half)[:, None] + (s - before[:, None])
         )

@@ -1,0 +1,146 @@
+"""voxnerf.inference: the fast path composites exactly what the full path does up to its stated bounds, skips
+what cannot change a pixel, stays finite on stiff fields, and runs the MLPs in bfloat16 only where asked."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from voxnerf.config import TrainConfig
+from voxnerf.errors import RunError
+from voxnerf.inference import FastSettings, FieldRunner, field_runner, native_bfloat16, render_rays_fast
+from voxnerf.model import VoxNeRFModel
+from voxnerf.octree import SparseVoxelOctree
+from voxnerf.render import render_normalized
+from voxnerf.scene import SceneTransform
+
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+SMALL = dict(compile=False, hash_kernel=False, hash_levels=4, hash_log2_size=12, hidden_dim=16,
+             occgrid_resolution=8)
+EXACT = FastSettings(min_transmittance=1e-30, min_weight=0.0, skip_empty=False, precision="float32", block=7)
+
+
+def _model(sampler: str = "voxnerf", density_bias: float = 0.0, seed: int = 0) -> VoxNeRFModel:
+    torch.manual_seed(seed)
+    cfg = TrainConfig(max_iters=1, sampler=sampler, **SMALL)
+    points = torch.rand(400, 3) * 1.2 - 0.6
+    octree = SparseVoxelOctree.from_points(points, 0.05) if sampler == "voxnerf" else None
+    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), BOX * 0.8, octree, torch.device("cpu"))
+    with torch.no_grad():
+        model.field.density_mlp[-1].bias[0] += density_bias
+        model.field.encoding.table.uniform_(-1.0, 1.0)  # a field with structure, not a near-constant one
+    return model
+
+
+def _rays(model: VoxNeRFModel, n: int = 64, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    origins = torch.rand(n, 3, generator=g) * 0.4 - 0.2
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    return model.ray_bundle(origins, dirs)
+
+
+@pytest.mark.parametrize("sampler", ["voxnerf", "occgrid", "uniform"])
+def test_without_skipping_the_fast_path_is_the_full_path(sampler):
+    model = _model(sampler)
+    rays = _rays(model)
+    full = model.render_rays(rays, model.sampler())
+    fast = render_rays_fast(model, rays, model.sampler(), EXACT)
+    for name in ("rgb", "depth", "opacity"):
+        assert torch.allclose(fast[name], full[name].detach(), atol=2e-6), name
+
+
+def test_the_runner_splits_the_field_without_changing_it():
+    model = _model()
+    x = torch.rand(50, 3) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    density, rgb = model.field(x, d)
+    runner = FieldRunner(model.field, torch.float32)
+    density_r, geo = runner.geometry(x)
+    rgb_r = runner.color(geo, runner.direction_features(d))
+    assert torch.allclose(density_r, density.detach(), rtol=1e-5)
+    assert torch.allclose(rgb_r, rgb.detach(), atol=1e-6)
+
+
+def test_opaque_rays_stop_early_and_lose_less_than_the_bound():
+    model = _model(density_bias=6.0)  # density ~ e^6 per unit: opaque within a few samples
+    rays = _rays(model)
+    full = model.render_rays(rays, model.sampler())
+    runner = field_runner(model, "float32")
+    evaluated = []
+    geometry = runner.geometry
+    runner.geometry = lambda x: (evaluated.append(len(x)), geometry(x))[1]
+    settings = FastSettings(min_transmittance=1e-4, min_weight=1e-4, skip_empty=False, precision="float32")
+    fast = render_rays_fast(model, rays, model.sampler(), settings)
+    samples = len(rays) * model.config.samples_per_ray
+    assert sum(evaluated) < 0.5 * samples  # most samples lie behind the first opaque ones
+    bound = settings.min_transmittance + model.config.samples_per_ray * settings.min_weight
+    assert (fast["rgb"] - full["rgb"].detach()).abs().max() <= bound + 1e-6
+
+
+def test_samples_below_the_weight_bound_get_no_colour_and_cost_at_most_the_bound():
+    model = _model(density_bias=-6.0)  # nearly transparent: every weight is tiny
+    rays = _rays(model)
+    full = model.render_rays(rays, model.sampler())
+    settings = FastSettings(min_transmittance=1e-30, min_weight=1e-2, skip_empty=False, precision="float32")
+    fast = render_rays_fast(model, rays, model.sampler(), settings)
+    bound = model.config.samples_per_ray * settings.min_weight
+    assert (fast["rgb"] - full["rgb"].detach()).abs().max() <= bound
+    assert torch.allclose(fast["opacity"], full["opacity"].detach(), atol=1e-6)  # weights are all counted
+
+
+def test_empty_cells_of_the_occupancy_grid_are_skipped():
+    model = _model("occgrid")
+    model.grid.occupied.zero_()  # nothing occupied: no sample is evaluated, every ray shows the background
+    rays = _rays(model)
+    out = render_rays_fast(model, rays, model.sampler(), FastSettings(precision="float32"))
+    assert torch.equal(out["opacity"], torch.zeros(len(rays)))
+    assert torch.allclose(out["rgb"], model.background.expand(len(rays), 3))
+    assert torch.equal(out["depth"], rays.far)
+
+
+@pytest.mark.parametrize("bias", [60.0, float("inf"), float("nan")])
+def test_stiff_and_broken_densities_stay_finite(bias):
+    model = _model(density_bias=0.0)
+    with torch.no_grad():
+        model.field.density_mlp[-1].bias[0] = bias
+    out = render_rays_fast(model, _rays(model), model.sampler(), FastSettings(precision="float32"))
+    for name, value in out.items():
+        assert torch.isfinite(value).all(), name
+    assert (out["opacity"] <= 1.0).all() and (out["opacity"] >= 0.0).all()
+
+
+def test_bfloat16_runs_the_mlps_in_bfloat16_and_stays_close():
+    model = _model()
+    rays = _rays(model)
+    full = model.render_rays(rays, model.sampler())
+    settings = FastSettings(min_transmittance=1e-30, min_weight=0.0, skip_empty=False, precision="bfloat16")
+    fast = render_rays_fast(model, rays, model.sampler(), settings)
+    assert field_runner(model, "bfloat16").color_geo_t.dtype == torch.bfloat16
+    assert (fast["rgb"] - full["rgb"].detach()).abs().max() < 3e-2
+
+
+def test_auto_precision_is_bfloat16_only_where_the_device_has_it():
+    model = _model()
+    expected = torch.bfloat16 if native_bfloat16(torch.device("cpu")) else torch.float32
+    assert field_runner(model, "auto").dtype == expected
+    assert field_runner(model, "auto") is field_runner(model, "auto")  # built once per model
+    with pytest.raises(ValueError, match="precision"):
+        field_runner(model, "half")
+
+
+def test_render_normalized_takes_either_path_and_refuses_others():
+    from voxnerf.cameras import Intrinsics
+
+    model = _model()
+    intr = Intrinsics(fl_x=10.0, fl_y=10.0, cx=6.0, cy=4.0, width=12, height=8)
+    c2w = torch.eye(4)
+    fast = render_normalized(model, c2w, intr, path="fast")
+    full = render_normalized(model, c2w, intr, path="full")
+    assert fast["rgb"].shape == full["rgb"].shape == (8, 12, 3)
+    # The default fast settings: differences stay below their bounds (bfloat16 MLPs where native).
+    assert (fast["rgb"] - full["rgb"]).abs().max() < 3e-2
+    assert (fast["depth"] - full["depth"]).abs().max() < 3e-2 * math.sqrt(3) * 2
+    with pytest.raises(RunError, match="render path"):
+        render_normalized(model, c2w, intr, path="slow")

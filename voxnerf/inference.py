@@ -1,0 +1,218 @@
+"""The fast inference path: the trained sampler's intervals, evaluated front to back with bounded skipping.
+
+The full path (:meth:`voxnerf.model.VoxNeRFModel.render_rays`) evaluates density and colour at every sample of
+every ray. This path takes the same intervals from the same sampler and composites them with the same rule
+(:mod:`voxnerf.rendering`), but walks the samples front to back, one column of the dense ``[R, S]`` packing at a
+time, and evaluates only what can change the pixel:
+
+- a ray stops once its transmittance is below ``min_transmittance`` (early ray termination): what it leaves
+  out weighs less than that in total;
+- a sample whose weight is below ``min_weight`` gets no colour evaluation (its colour counts as black): at most
+  ``min_weight`` of brightness per sample;
+- with ``skip_empty``, samples in cells of the occupancy grid marked empty get density 0 without evaluating the
+  field (the grid is the one training kept; a grid that was never updated marks everything occupied);
+- the colour MLP's direction input is folded in once per ray (:meth:`RadianceField.direction_features`).
+
+It needs no ``torch.compile`` (a one-pose render pays nothing to compile) and runs alike on CPU and CUDA. All
+geometry is in normalised units.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from voxnerf.field import spherical_harmonics_deg4, trunc_exp
+from voxnerf.rendering import MAX_OPTICAL_DEPTH
+from voxnerf.samplers import RayBundle
+
+
+@dataclass(frozen=True)
+class FastSettings:
+    """The bounds of the fast path's skipping (see the module doc)."""
+
+    min_transmittance: float = 1e-4
+    min_weight: float = 1e-4
+    skip_empty: bool = True
+    block: int = 8192  # rays composited together
+    precision: str = "auto"  # of the MLPs: auto (bfloat16 where native), float32 or bfloat16
+
+    def describe(self) -> str:
+        empty = ", empty cells skipped" if self.skip_empty else ""
+        return (f"fast: rays stop below transmittance {self.min_transmittance:g}, no colour below weight "
+                f"{self.min_weight:g}{empty}")
+
+
+FAST = FastSettings()
+PRECISIONS = ("auto", "float32", "bfloat16")
+
+
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether ``device`` multiplies bfloat16 matrices natively (a CUDA GPU that supports it, a CPU with
+    AVX512-BF16 or AMX); elsewhere bfloat16 is emulated and slower than float32."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    try:
+        return bool(torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
+    except AttributeError:  # a torch without these probes
+        return False
+
+
+class FieldRunner:
+    """The field's MLPs for inference in one dtype: float32, or bfloat16 where the device has it natively.
+
+    The hash encoding stays float32 (the same features as training); its output, the MLPs' weights and
+    activations are cast to ``dtype``; density and colour come back as float32.
+    """
+
+    def __init__(self, field, dtype: torch.dtype) -> None:
+        self.field, self.dtype = field, dtype
+        self.density_layers = [_cast(layer, dtype) for layer in field.density_mlp if isinstance(layer, nn.Linear)]
+        color = [_cast(layer, dtype) for layer in field.color_mlp if isinstance(layer, nn.Linear)]
+        n_sh = color[0].in_features - field.GEO_FEATURES
+        self.color_dir = (color[0].weight[:, :n_sh].contiguous(), color[0].bias)
+        self.color_geo_t = color[0].weight[:, n_sh:].t().contiguous()
+        self.color_layers = color[1:]
+
+    def geometry(self, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """[N, 3] normalised positions -> (density [N] float32, geometry features [N, 15] in ``dtype``)."""
+        x = self.field.encoding((positions + 1.0) * 0.5).to(self.dtype)
+        for layer in self.density_layers[:-1]:
+            x = layer(x).relu_()
+        h = self.density_layers[-1](x)
+        return trunc_exp(h[:, 0].float()), h[:, 1:]
+
+    def direction_features(self, dirs: Tensor) -> Tensor:
+        """[R, 3] unit directions -> [R, hidden] in ``dtype``: the direction part of the colour MLP's first
+        layer, bias included."""
+        weight, bias = self.color_dir
+        return nn.functional.linear(spherical_harmonics_deg4(dirs).to(self.dtype), weight, bias)
+
+    def color(self, geo: Tensor, direction_features: Tensor) -> Tensor:
+        """[N, 3] float32 colour in [0, 1] of samples with geometry features ``geo`` [N, 15] whose rays have
+        ``direction_features`` [N, hidden]."""
+        x = torch.addmm(direction_features, geo, self.color_geo_t).relu_()
+        for layer in self.color_layers[:-1]:
+            x = layer(x).relu_()
+        return torch.sigmoid(self.color_layers[-1](x).float())
+
+
+def _cast(layer: nn.Linear, dtype: torch.dtype) -> nn.Linear:
+    copy = nn.Linear(layer.in_features, layer.out_features, device=layer.weight.device, dtype=dtype)
+    with torch.no_grad():
+        copy.weight.copy_(layer.weight)
+        copy.bias.copy_(layer.bias)
+    return copy.requires_grad_(False)
+
+
+def field_runner(model, precision: str = "auto") -> FieldRunner:
+    """The model's :class:`FieldRunner` for ``precision`` (auto: bfloat16 where native), built once per model
+    and precision. A runner holds copies of the MLP weights: rebuild the model after changing its field."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if precision == "auto":
+        precision = "bfloat16" if native_bfloat16(model.device) else "float32"
+    key = ("field_runner", precision)
+    if key not in model._compiled:
+        model._compiled[key] = FieldRunner(model.field, getattr(torch, precision))
+    return model._compiled[key]
+
+
+@torch.no_grad()
+def render_rays_fast(model, rays: RayBundle, sampler, settings: FastSettings = FAST) -> dict[str, Tensor]:
+    """Render a ray batch like ``model.render_rays(rays, sampler)``: ``rgb`` [R, 3], ``depth`` [R] (ray
+    distance, normalised units), ``opacity`` [R], float32 on the rays' device.
+
+    The rays are walked in blocks of ``settings.block`` (each column of a block is a few MB: it stays in cache).
+    """
+    starts, ends = sampler(rays, False)
+    occupied = _occupied(model, rays, 0.5 * (starts + ends)) if settings.skip_empty else None
+    runner = field_runner(model, settings.precision)
+    dir_features = runner.direction_features(rays.dirs)
+    parts = []
+    for i in range(0, len(rays), settings.block):
+        block = slice(i, i + settings.block)
+        acc = _Composite.empty(len(rays.origins[block]), starts.device)
+        for j in range(starts.shape[1]):
+            acc.add_column(runner, rays.origins[block], rays.dirs[block], starts[block, j], ends[block, j],
+                           dir_features[block], None if occupied is None else occupied[block, j], settings)
+        parts.append(acc.finish(starts[block, 0], ends[block, -1], model.background))
+    rgb, opacity, depth = (torch.cat(values) for values in zip(*parts, strict=True))
+    return {"rgb": rgb, "depth": depth, "opacity": opacity}
+
+
+@dataclass
+class _Composite:
+    """Running front-to-back sums of a block of rays [B]: optical depth before the next column, colour [B, 3],
+    weight and weighted distance."""
+
+    optical: Tensor
+    rgb: Tensor
+    weight: Tensor
+    depth: Tensor
+
+    @staticmethod
+    def empty(b: int, device: torch.device) -> _Composite:
+        zeros = functools.partial(torch.zeros, device=device)
+        return _Composite(zeros(b), zeros(b, 3), zeros(b), zeros(b))
+
+    def add_column(self, runner: FieldRunner, origins: Tensor, dirs: Tensor, start: Tensor, end: Tensor,
+                   dir_features: Tensor, occupied: Tensor | None, settings: FastSettings) -> None:
+        """Composite one interval per ray (``start``, ``end`` [B]) behind what is already summed, evaluating
+        the field only for live rays (not yet opaque, and in an occupied cell when ``occupied`` [B] is given)."""
+        live = self.optical < -math.log(settings.min_transmittance)
+        if occupied is not None:
+            live &= occupied
+        idx = _subset(live)
+        if idx is not None and idx.numel() == 0:
+            return
+        t = _take(0.5 * (start + end), idx)
+        density, geo = runner.geometry(_take(origins, idx) + t[:, None] * _take(dirs, idx))
+        tau = torch.nan_to_num(density * _take(end - start, idx).clamp_min(0.0), nan=0.0, posinf=MAX_OPTICAL_DEPTH)
+        tau = tau.clamp_(0.0, MAX_OPTICAL_DEPTH)
+        weight = torch.exp(-_take(self.optical, idx)) * -torch.expm1(-tau)
+        _add(self.optical, idx, tau)
+        _add(self.weight, idx, weight)
+        _add(self.depth, idx, weight * t)
+        lit = _subset(weight >= settings.min_weight)
+        if lit is not None and lit.numel() == 0:
+            return
+        rays_lit = idx if lit is None else lit if idx is None else idx[lit]  # rays of the lit samples
+        color = runner.color(_take(geo, lit), _take(dir_features, rays_lit))
+        _add(self.rgb, rays_lit, _take(weight, lit)[:, None] * color)
+
+    def finish(self, near: Tensor, far: Tensor, background: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(rgb [B, 3], opacity [B], depth [B]): the residual light is the background's and lies at ``far``,
+        depth clamped to [near, far] (as :func:`voxnerf.rendering.volume_render` does)."""
+        opacity = self.weight.clamp(0.0, 1.0)
+        residual = 1.0 - opacity
+        rgb = self.rgb + residual[:, None] * background
+        depth = torch.minimum(torch.maximum(self.depth + residual * far, near), far)
+        return rgb, opacity, depth
+
+
+def _subset(mask: Tensor) -> Tensor | None:
+    """Indices of ``mask``'s true entries, or None when all are true (then callers use whole tensors)."""
+    return None if bool(mask.all()) else mask.nonzero().squeeze(-1)
+
+
+def _take(values: Tensor, idx: Tensor | None) -> Tensor:
+    return values if idx is None else values[idx]
+
+
+def _add(target: Tensor, idx: Tensor | None, values: Tensor) -> None:
+    if idx is None:
+        target += values
+    else:
+        target.index_add_(0, idx, values)
+
+
+def _occupied(model, rays: RayBundle, mids: Tensor) -> Tensor:
+    """[R, S] bool: whether each sample's cell of the occupancy grid is occupied."""
+    r, s = mids.shape
+    points = rays.origins[:, None, :] + mids[..., None] * rays.dirs[:, None, :]
+    return model.grid.is_occupied(points.reshape(-1, 3)).view(r, s)
