@@ -6,7 +6,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from voxnerf.image_io import decode_exr, read_png_header
+from voxnerf.image_io import decode_exr, read_png_header, srgb_to_linear
 from voxnerf.outputs import (
     FORMATS,
     MEDIA_TYPES,
@@ -87,10 +87,20 @@ def test_exr_holds_float32_channels(images, outputs, channels):
     assert sorted(decoded) == channels
     for name, array in decoded.items():
         assert array.dtype == np.float32 and array.shape == (H, W), name
-    expected = {"R": images["rgb"][..., 0], "G": images["rgb"][..., 1], "B": images["rgb"][..., 2],
+    linear = srgb_to_linear(images["rgb"])
+    expected = {"R": linear[..., 0], "G": linear[..., 1], "B": linear[..., 2],
                 "Z": images["depth"], "A": images["opacity"]}
     for name in channels:
         np.testing.assert_array_equal(decoded[name], expected[name])
+
+
+def test_exr_colour_is_linear_light_decoded_from_the_srgb_the_model_renders():
+    rgb = np.array([[[0.0, 0.04045, 0.5]], [[1.0, 0.2, 0.8]]], dtype=np.float32)  # [2, 1, 3]
+    decoded = decode_exr(encode_outputs({"rgb": rgb}, "exr", ["rgb"], SCALE))
+    assert decoded["R"][0, 0] == 0.0 and decoded["R"][1, 0] == pytest.approx(1.0)
+    assert decoded["G"][0, 0] == pytest.approx(0.04045 / 12.92)  # the linear toe
+    assert decoded["B"][0, 0] == pytest.approx(0.21404, abs=1e-5)  # sRGB 0.5 is about 21% of the light
+    assert decoded["G"][1, 0] < 0.2 and decoded["B"][1, 0] < 0.8  # decoding darkens every mid-tone
 
 
 def test_exr_depth_is_in_scene_units_whatever_the_depth_unit(images):

@@ -194,6 +194,13 @@ def encode_depth_png16(depth: np.ndarray, unit_scale: float) -> bytes:
     return iio.imwrite("<bytes>", u16, extension=".png")
 
 
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] (what images and the model's colour hold) -> linear light, float32, by the
+    sRGB transfer function of IEC 61966-2-1 (values outside [0, 1] are clipped first)."""
+    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
 def encode_exr(channels: dict[str, np.ndarray]) -> bytes:
     """Single-part scanline EXR bytes (ZIP compressed) with one FLOAT (32-bit) channel per name.
 

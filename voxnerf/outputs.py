@@ -4,7 +4,8 @@ numpy only (no torch): the service imports it.
 
 PNG holds one output: ``rgb`` as 8-bit colour, ``depth`` as 16-bit in ``depth_unit_scale`` units (scene
 units per stored unit, the scene's ``depth_unit_scale_factor``), ``opacity`` as 8-bit gray (one channel).
-EXR holds any of them as float32 channels ``R G B`` (rgb), ``Z`` (z-depth, scene units) and ``A`` (opacity).
+EXR holds any of them as float32 channels ``R G B`` (rgb as *linear* light: the model's sRGB-encoded colour,
+decoded with the sRGB transfer function, as EXR readers expect), ``Z`` (z-depth, scene units) and ``A`` (opacity).
 The CLI writes a PNG render as one file per output: ``IMG.png`` (rgb), ``IMG_depth.png``, ``IMG_opacity.png``.
 """
 
@@ -15,7 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from voxnerf.image_io import encode_depth_png16, encode_exr, encode_gray_png8, encode_png, write_atomic
+from voxnerf.image_io import (
+    encode_depth_png16,
+    encode_exr,
+    encode_gray_png8,
+    encode_png,
+    srgb_to_linear,
+    write_atomic,
+)
 
 OUTPUT_NAMES = ("rgb", "depth", "opacity")
 MEDIA_TYPES = {"png": "image/png", "exr": "image/x-exr"}
@@ -54,7 +62,7 @@ def encode_outputs(
         return encode_gray_png8(images["opacity"])
     channels: dict[str, np.ndarray] = {}
     if "rgb" in outputs:
-        rgb = np.asarray(images["rgb"])
+        rgb = srgb_to_linear(images["rgb"])
         channels.update(R=rgb[..., 0], G=rgb[..., 1], B=rgb[..., 2])
     if "depth" in outputs:
         channels["Z"] = images["depth"]
