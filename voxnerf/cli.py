@@ -108,6 +108,53 @@ def _read_pose(path: Path, default: Intrinsics) -> tuple[np.ndarray, Intrinsics]
 
 
 def _render(args: argparse.Namespace) -> int:
+    """``voxnerf render``: one image (``--pose``, ``--frame``) or a path (``--camera-path``, ``--path``)."""
+    mode = _render_mode(args)
+    _check_render_flags(args, mode)
+    if mode in ("pose", "frame"):
+        return _render_image(args, mode)
+    return _render_camera_path(args, mode)
+
+
+# Flags of `voxnerf render` that only some modes use: flag (argparse dest) -> those modes.
+RENDER_FLAG_MODES = {
+    "dataparser_transforms": ("camera_path",),
+    "frames": ("interpolate", "orbit"),
+    "fps": ("interpolate", "orbit"),
+    "seconds": ("interpolate", "orbit"),
+    "keyframes": ("interpolate",),
+    "radius": ("orbit",),
+    "height_above": ("orbit",),
+    "width": ("interpolate", "orbit", "frame"),
+    "height": ("interpolate", "orbit", "frame"),
+    "scene": ("interpolate", "orbit", "frame"),
+    "with_lens": ("frame",),
+    "format": ("camera_path", "interpolate", "orbit"),
+}
+DEFAULT_PATH_SECONDS = 10.0
+DEFAULT_PATH_FPS = 30.0
+# Arguments of voxnerf.camera_path's functions, by the flag that gives them.
+PATH_ARG_FLAGS = {"n_frames": "--frames", "fps": "--fps", "radius": "--radius", "height": "--height-above",
+                  "poses": "the training cameras", "up": "the training cameras' up axes"}
+
+
+def _render_mode(args: argparse.Namespace) -> str:
+    """``pose``, ``frame``, ``camera_path``, ``interpolate`` or ``orbit`` (argparse makes them exclusive)."""
+    for mode in ("pose", "frame", "camera_path"):
+        if getattr(args, mode) is not None:
+            return mode
+    return args.path
+
+
+def _check_render_flags(args: argparse.Namespace, mode: str) -> None:
+    for dest, modes in RENDER_FLAG_MODES.items():
+        if getattr(args, dest) not in (None, False) and mode not in modes:
+            flags = " / ".join("--path " + m if m in ("interpolate", "orbit") else "--" + m.replace("_", "-")
+                               for m in modes)
+            raise RunError(f"--{dest.replace('_', '-')}: applies to {flags} only")
+
+
+def _render_image(args: argparse.Namespace, mode: str) -> int:
     from voxnerf.outputs import encode_files, format_of, write_files
     from voxnerf.render import load_model, render
 
@@ -117,7 +164,10 @@ def _render(args: argparse.Namespace) -> int:
     except ValueError:
         raise RunError(f"{out}: output must end in .png or .exr") from None
     trained = load_model(args.run, args.device)
-    pose, intr = _read_pose(Path(args.pose), trained.default_intrinsics)
+    if mode == "pose":
+        pose, intr = _read_pose(Path(args.pose), trained.default_intrinsics)
+    else:
+        pose, intr = _scene_frame(args, trained)
     outputs = ["rgb"] + (["depth"] if args.depth else []) + (["opacity"] if args.opacity else [])
     images = render(trained, pose, intr, outputs)
     files = encode_files(out, images, outputs, trained.depth_unit_scale)
@@ -126,6 +176,127 @@ def _render(args: argparse.Namespace) -> int:
         if path != out:
             print(f"wrote {path}")
     print(f"wrote {out} ({intr.width}x{intr.height})")
+    return 0
+
+
+def _run_scene(args: argparse.Namespace, trained):
+    """The scene the run trained on (``--scene`` overrides), loaded without its images."""
+    from voxnerf.scene import load_scene
+
+    scene_dir = args.scene or trained.scene_dir
+    if not scene_dir:
+        raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
+    return load_scene(scene_dir, load_images=False)
+
+
+def _find_frame(scene, name: str):
+    """The frame whose ``file_path``, file name or stem is ``name``; RunError naming ``--frame`` otherwise."""
+    matches = [f for f in scene.frames if name in (f.file_path, Path(f.file_path).name, Path(f.file_path).stem)]
+    if len(matches) == 1:
+        return matches[0]
+    where = scene.root / "transforms.json"
+    if matches:
+        raise RunError(f"--frame: {name!r} names {len(matches)} frames of {where} "
+                       f"({', '.join(f.file_path for f in matches[:3])}...): give its file_path")
+    examples = ", ".join(f.file_path for f in scene.frames[:3])
+    raise RunError(f"--frame: no frame {name!r} in {where} (give a file_path or its stem, e.g. {examples})")
+
+
+def _sized(args: argparse.Namespace, camera: Intrinsics) -> Intrinsics:
+    """``camera`` (lens dropped) scaled to ``--width``/``--height`` by the pose-file rule."""
+    try:
+        return resolve_intrinsics(camera.undistorted(), width=args.width, height=args.height,
+                                  max_pixels=MAX_RENDER_PIXELS)
+    except CameraError as err:
+        raise RunError(f"--width, --height: {err.message}") from None
+
+
+def _scene_frame(args: argparse.Namespace, trained) -> tuple[np.ndarray, Intrinsics]:
+    """Pose and camera of the scene's frame ``--frame`` at its image size (or ``--width``/``--height``): its
+    undistorted pinhole view, or through its lens with ``--with-lens`` (pixel for pixel the captured image)."""
+    from dataclasses import replace
+
+    frame = _find_frame(_run_scene(args, trained), args.frame)
+    camera = _sized(args, frame.intrinsics)
+    return frame.c2w, replace(camera, lens=frame.intrinsics.lens) if args.with_lens else camera
+
+
+def _frame_count(args: argparse.Namespace) -> tuple[int, float]:
+    """Frames and fps of a generated path: ``--frames``, or ``--seconds`` (default 10) at ``--fps`` (30)."""
+    from voxnerf.camera_path import MAX_FRAMES, check_frame_count
+    from voxnerf.camera_rules import as_finite
+
+    fps = DEFAULT_PATH_FPS if args.fps is None else args.fps
+    if args.frames is not None and args.seconds is not None:
+        raise RunError("--frames, --seconds: give one of them")
+    seconds = DEFAULT_PATH_SECONDS if args.seconds is None else args.seconds
+    if as_finite(fps) is None or fps <= 0 or as_finite(seconds) is None or seconds <= 0:
+        raise RunError(f"--fps, --seconds: must be positive numbers, got {fps:g} fps, {seconds:g} s")
+    total = seconds * fps
+    n_frames = args.frames if args.frames is not None else round(total) if total <= MAX_FRAMES else total
+    check_frame_count(n_frames, MAX_FRAMES, key="--frames" if args.frames is not None else "--seconds")
+    return n_frames, fps
+
+
+def _training_poses(args: argparse.Namespace, trained) -> np.ndarray:
+    """Training cameras ``[K, 4, 4]`` (scene units) in capture order (transforms.json's), ``--keyframes`` of
+    them evenly spaced when given."""
+    scene = _run_scene(args, trained)
+    poses = np.stack([scene.frames[i].c2w for i in sorted(scene.train_indices)])
+    if args.keyframes is not None:
+        if args.keyframes < 2:
+            raise RunError(f"--keyframes: must be at least 2, got {args.keyframes}")
+        poses = poses[np.unique(np.round(np.linspace(0, len(poses) - 1, args.keyframes)).astype(int))]
+    return poses
+
+
+def _generated_path(args: argparse.Namespace, mode: str, trained):
+    """The ``--path interpolate`` or ``--path orbit`` camera path of the run's training cameras."""
+    from voxnerf.camera_path import CameraPathError, interpolate_path, mean_up, orbit_defaults, orbit_path
+
+    n_frames, fps = _frame_count(args)
+    camera = _sized(args, trained.default_intrinsics)
+    poses = _training_poses(args, trained)
+    try:
+        if mode == "interpolate":
+            return interpolate_path(poses, camera, n_frames=n_frames, fps=fps)
+        up = mean_up(poses)
+        center, radius = orbit_defaults(poses, up)
+        if args.radius is None and radius < 1e-6:
+            raise RunError("--radius: the training cameras lie on one vertical line (no default radius); give it")
+        return orbit_path(center, radius=radius if args.radius is None else args.radius,
+                          height=args.height_above or 0.0, n_frames=n_frames, intrinsics=camera, fps=fps, up=up)
+    except CameraPathError as err:
+        raise RunError(f"{PATH_ARG_FLAGS.get(err.key, err.key)}: {err.message}") from None
+
+
+def _render_camera_path(args: argparse.Namespace, mode: str) -> int:
+    """Render ``--camera-path`` or ``--path`` to a video or a frames directory, with a progress bar."""
+    from tqdm import tqdm
+
+    from voxnerf.camera_path import read_nerfstudio
+    from voxnerf.render import load_model
+    from voxnerf.video import check_request, format_of, render_path
+
+    out = Path(args.out)
+    if out.suffix.lower() in (".png", ".exr"):
+        raise RunError(f"{out}: a path renders to VIDEO.mp4 or a frames directory (see --format)")
+    fmt = format_of(out, args.format)
+    trained = load_model(args.run, args.device)
+    if mode == "camera_path":
+        transforms = args.dataparser_transforms and Path(args.dataparser_transforms)
+        path = read_nerfstudio(Path(args.camera_path), dataparser_transforms=transforms, max_pixels=MAX_RENDER_PIXELS)
+    else:
+        path = _generated_path(args, mode, trained)
+    outputs = ["rgb"] + (["depth"] if args.depth else []) + (["opacity"] if args.opacity else [])
+    check_request(path, out, outputs, fmt)
+    with tqdm(total=len(path), unit="frame", desc="render", file=sys.stderr) as bar:
+        result = render_path(trained, path, out, outputs=outputs, fmt=fmt,
+                             on_frame=lambda done, total: bar.update(done - bar.n))
+    width, height = path.size
+    print(f"wrote {result.out} ({result.frames} frames, {width}x{height}, {path.fps:g} fps) in "
+          f"{result.seconds:.1f} s")
+    print(f"wrote {result.path_file}")
     return 0
 
 
@@ -228,14 +399,46 @@ def _add_eval_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_render_command(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("render", help="render a camera pose to PNG or EXR")
-    p.add_argument("run")
-    p.add_argument("--pose", required=True,
-                   help="JSON with transform_matrix and optional fl_x fl_y cx cy, w h (together)")
-    p.add_argument("--out", required=True, help="IMG.png or IMG.exr")
-    p.add_argument("--depth", action="store_true", help="also render depth (EXR channel Z, or IMG_depth.png)")
+    p = sub.add_parser(
+        "render", help="render a pose, a scene frame or a camera path (PNG, EXR, MP4 or a frames directory)",
+        description="Render one image (--pose, --frame) to IMG.png or IMG.exr, or a camera path (--camera-path, "
+        "--path) to VIDEO.mp4 (H.264) or a frames directory (frame_00000.png ..., with camera_path.json). "
+        "Poses are in the scene's units; see docs/engine.md, 'Camera paths and video'.")
+    p.add_argument("run", help="run directory (its checkpoint.pt)")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--pose", help="JSON with transform_matrix and optional fl_x fl_y cx cy, w h (together)")
+    what.add_argument("--frame", metavar="NAME",
+                      help="the scene's own camera NAME (a frame's file_path or its stem), undistorted")
+    what.add_argument("--camera-path", metavar="PATH.json",
+                      help="a nerfstudio camera path (its viewer's Render export): camera_path[] with "
+                      "camera_to_world and fov, render_width, render_height, fps, seconds")
+    what.add_argument("--path", choices=["interpolate", "orbit"],
+                      help="interpolate: through the training cameras in capture order; orbit: around their "
+                      "centre, looking at it")
+    p.add_argument("--out", required=True, help="IMG.png | IMG.exr (--pose, --frame); VIDEO.mp4 or a frames "
+                   "directory, absent or empty (--camera-path, --path)")
+    p.add_argument("--depth", action="store_true",
+                   help="also render depth (EXR channel Z, or IMG_depth.png / frame_00000_depth.png, 16-bit)")
     p.add_argument("--opacity", action="store_true",
                    help="also render opacity (EXR channel A, or IMG_opacity.png as 8-bit gray)")
+    p.add_argument("--format", choices=["png", "exr"], help="files of a frames directory (default png)")
+    p.add_argument("--dataparser-transforms", metavar="FILE",
+                   help="--camera-path: the nerfstudio run's dataparser_transforms.json, mapping the viewer's "
+                   "poses back to the scene's units")
+    p.add_argument("--scene", help="scene directory (default: the one the run trained on) for --frame and --path")
+    p.add_argument("--with-lens", action="store_true",
+                   help="--frame: render through the frame's lens distortion, as the camera captured it")
+    p.add_argument("--frames", type=int, help="--path: number of frames (default: --seconds x --fps)")
+    p.add_argument("--seconds", type=float, help=f"--path: duration (default {DEFAULT_PATH_SECONDS:g})")
+    p.add_argument("--fps", type=float, help=f"--path: frames per second (default {DEFAULT_PATH_FPS:g})")
+    p.add_argument("--keyframes", type=int, metavar="N",
+                   help="--path interpolate: through N training cameras evenly spaced in capture order (default all)")
+    p.add_argument("--width", type=int, help="--path, --frame: image width (with --height; default the run's camera)")
+    p.add_argument("--height", type=int, help="--path, --frame: image height (with --width)")
+    p.add_argument("--radius", type=float,
+                   help="--path orbit: radius in scene units (default: the cameras' mean distance from their centre)")
+    p.add_argument("--height-above", type=float, metavar="Z",
+                   help="--path orbit: height of the circle above the centre along the cameras' up (default 0)")
     p.add_argument("--device", default="auto")
     p.set_defaults(func=_render)
 
