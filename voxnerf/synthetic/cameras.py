@@ -13,16 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from voxnerf.camera_path import look_at
+
 
 def look_at_c2w(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """Camera-to-world [4, 4] (OpenGL: -Z along ``forward``, +Y toward world +Z, +X right), no roll."""
-    f = forward / np.linalg.norm(forward)
-    right = np.cross(f, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, f)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -f, position
-    return c2w
+    """Camera-to-world [4, 4] (OpenGL: -Z along ``forward``, +Y toward world +Z, +X right), no roll: the rule of
+    :func:`voxnerf.camera_path.look_at` with world +Z up."""
+    position = np.asarray(position, dtype=np.float64)
+    return look_at(position, position + np.asarray(forward, dtype=np.float64), np.array([0.0, 0.0, 1.0]))
 
 
 def camera_path(n_frames: int) -> np.ndarray:
