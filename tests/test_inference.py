@@ -94,7 +94,7 @@ def test_empty_cells_of_the_occupancy_grid_are_skipped():
     model = _model("occgrid")
     model.grid.occupied.zero_()  # nothing occupied: no sample is evaluated, every ray shows the background
     rays = _rays(model)
-    out = render_rays_fast(model, rays, model.sampler(), FastSettings(precision="float32"))
+    out = render_rays_fast(model, rays, model.sampler(), FastSettings(skip_empty=True, precision="float32"))
     assert torch.equal(out["opacity"], torch.zeros(len(rays)))
     assert torch.allclose(out["rgb"], model.background.expand(len(rays), 3))
     assert torch.equal(out["depth"], rays.far)
@@ -144,3 +144,15 @@ def test_render_normalized_takes_either_path_and_refuses_others():
     assert (fast["depth"] - full["depth"]).abs().max() < 3e-2 * math.sqrt(3) * 2
     with pytest.raises(RunError, match="render path"):
         render_normalized(model, c2w, intr, path="slow")
+
+
+def test_the_default_settings_ignore_a_grid_seeded_from_the_prior():
+    """Training seeds the grid from the prior and the surface-guided sampler never needs it to follow the
+    field, which has density elsewhere: the default fast path must not drop those samples."""
+    model = _model()
+    model.grid.seed_from_points(torch.tensor([[0.5, 0.5, 0.5]]))  # one occupied corner, the rest "empty"
+    rays = _rays(model)
+    full = model.render_rays(rays, model.sampler())
+    fast = render_rays_fast(model, rays, model.sampler())
+    assert (fast["rgb"] - full["rgb"].detach()).abs().max() < 3e-2
+    assert (fast["opacity"] - full["opacity"].detach()).abs().max() < 3e-2

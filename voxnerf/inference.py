@@ -9,8 +9,9 @@ time, and evaluates only what can change the pixel:
   out weighs less than that in total;
 - a sample whose weight is below ``min_weight`` gets no colour evaluation (its colour counts as black): at most
   ``min_weight`` of brightness per sample;
-- with ``skip_empty``, samples in cells of the occupancy grid marked empty get density 0 without evaluating the
-  field (the grid is the one training kept; a grid that was never updated marks everything occupied);
+- with ``skip_empty`` (off by default), samples in cells of the occupancy grid marked empty get density 0
+  without evaluating the field. Only for a grid that follows the field: the grid the surface-guided sampler
+  keeps is seeded from the prior and thresholded, and a field still has density where it says empty;
 - the colour MLP's direction input is folded in once per ray (:meth:`RadianceField.direction_features`).
 
 It needs no ``torch.compile`` (a one-pose render pays nothing to compile) and runs alike on CPU and CUDA. All
@@ -37,7 +38,7 @@ class FastSettings:
 
     min_transmittance: float = 1e-4
     min_weight: float = 1e-4
-    skip_empty: bool = True
+    skip_empty: bool = False
     block: int = 8192  # rays composited together
     precision: str = "auto"  # of the MLPs: auto (bfloat16 where native), float32 or bfloat16
 

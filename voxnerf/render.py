@@ -142,8 +142,8 @@ def render(
         outputs: subset of ("rgb", "depth", "opacity"); only these are computed.
         path: ``"fast"`` or ``"full"``, see :func:`render_normalized`.
     Returns:
-        rgb float32 [H, W, 3] in [0, 1] (sRGB-encoded, as the images it was trained on), depth float32 [H, W] z-depth in scene units,
-        opacity float32 [H, W].
+        rgb float32 [H, W, 3] in [0, 1] (sRGB-encoded, as the images it was trained on), depth float32 [H, W]
+        z-depth in scene units, opacity float32 [H, W].
     """
     try:
         pose = validate_pose(c2w.detach().cpu().numpy() if isinstance(c2w, Tensor) else c2w)
