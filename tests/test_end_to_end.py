@@ -11,10 +11,12 @@ import torch
 from voxnerf import hash_kernel
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
+from voxnerf.evaluation import evaluate_views
 from voxnerf.image_io import decode_exr
 from voxnerf.render import load_model, render
 from voxnerf.scene import load_scene
 from voxnerf.synthetic import build_room, render_view
+from voxnerf.training.evals import eval_views_of
 from voxnerf.training.run import train
 
 pytestmark = pytest.mark.slow
@@ -68,6 +70,17 @@ def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_run, 
         out = render(trained, frame.c2w, k, ("depth",))
         errors.append(np.abs(out["depth"] - true_z) / true_z)
     assert float(np.median(np.concatenate([e.ravel() for e in errors]))) < 0.05
+
+
+def test_the_fast_render_path_scores_within_a_fifth_of_a_db_of_the_full_path(trained_run):
+    trained = load_model(trained_run, "cpu")
+    scene = load_scene(trained.scene_dir, downscale=trained.model.config.downscale)
+    views = eval_views_of(scene, trained.model.transform)
+    fast, full = (evaluate_views(trained.model, views, trained.model.config, lpips=False, path=path)
+                  for path in ("fast", "full"))
+    for split in views:
+        assert abs(fast[split]["psnr"] - full[split]["psnr"]) < 0.2, split
+        assert fast[split]["renderer"].startswith("fast") and full[split]["renderer"].startswith("full")
 
 
 def test_cli_eval_and_render(trained_run, tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""Command line: ``voxnerf train | eval | render | synth | import | serve | worker``.
+"""Command line: ``voxnerf train | eval | render | export | synth | import | serve | worker``.
 
 Errors the user can fix print one line (``voxnerf: error: <file>: <key>: <message>``) and exit with 2.
 """
@@ -65,8 +65,9 @@ def _eval(args: argparse.Namespace) -> int:
         raise RunError(f"{scene_dir}: no evaluation split {split!r} (have {sorted(scene.splits)})")
     views = eval_views_of(scene, trained.model.transform, [split])
     metrics = evaluate_views(trained.model, {split: views[split]}, trained.model.config,
-                             out_dir=Path(args.run) / "eval")[split]
+                             out_dir=Path(args.run) / "eval", path=args.render_path)[split]
     print(_metrics_line(split, metrics))
+    print(f"rendered by the {metrics['renderer']}")
     if args.json:
         from voxnerf.image_io import write_atomic
 
@@ -300,6 +301,38 @@ def _render_camera_path(args: argparse.Namespace, mode: str) -> int:
     return 0
 
 
+def _export(args: argparse.Namespace) -> int:
+    from voxnerf.export import export_geometry
+    from voxnerf.render import load_model
+    from voxnerf.scene import load_scene
+
+    targets = [(kind, path) for kind, path in (("mesh", args.mesh), ("pointcloud", args.pointcloud)) if path]
+    if not targets:
+        raise RunError("give --mesh OUT.ply or --pointcloud OUT.ply (or both)")
+    trained = load_model(args.run, args.device)
+    scene = None
+    if args.scene:
+        scene = load_scene(args.scene, downscale=int(trained.model.config.downscale), load_images=False)
+    elif not trained.scene_dir:
+        raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
+    for kind, path in targets:
+        result = export_geometry(trained, Path(path), kind, scene=scene, voxel_size=args.voxel_size,
+                                 min_opacity=args.min_opacity, max_views=args.max_views,
+                                 on_view=_progress_line(kind))
+        print(f"wrote {result.out}: {result.points} {'vertices' if kind == 'mesh' else 'points'}, "
+              f"{result.faces} faces, voxel {result.voxel_size:.4g}, {result.views} views, {result.seconds:.1f} s")
+    return 0
+
+
+def _progress_line(label: str):
+    """on_view callback drawing ``label: done/total views`` on one stderr line."""
+
+    def on_view(done: int, total: int) -> None:
+        print(f"\r{label}: {done}/{total} views", end="\n" if done == total else "", file=sys.stderr, flush=True)
+
+    return on_view
+
+
 def _synth(args: argparse.Namespace) -> int:
     from voxnerf.synthetic import RoomSpec, make_room_scene
 
@@ -395,6 +428,8 @@ def _add_eval_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="scene directory (default: the one the run trained on)")
     p.add_argument("--json", help="write the metrics here")
     p.add_argument("--device", default="auto")
+    p.add_argument("--render-path", choices=["fast", "full"], default="fast",
+                   help="fast: rays stop when opaque, no compiling (default); full: every sample of every ray")
     p.set_defaults(func=_eval)
 
 
@@ -441,6 +476,24 @@ def _add_render_command(sub: argparse._SubParsersAction) -> None:
                    help="--path orbit: height of the circle above the centre along the cameras' up (default 0)")
     p.add_argument("--device", default="auto")
     p.set_defaults(func=_render)
+
+
+def _add_export_command(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export", help="export the run's geometry as a coloured mesh and/or point cloud (PLY)",
+                       description="Render the run from its training cameras (and small offsets of them) and "
+                       "write a TSDF mesh and/or a point cloud in the scene's coordinates and units; see "
+                       "docs/engine.md, Geometry export.")
+    p.add_argument("run")
+    p.add_argument("--mesh", metavar="OUT.ply", help="write the TSDF mesh (vertex colours) here")
+    p.add_argument("--pointcloud", metavar="OUT.ply", help="write the point cloud (colours, normals) here")
+    p.add_argument("--scene", help="scene directory (default: the one the run trained on)")
+    p.add_argument("--voxel-size", type=float, metavar="M",
+                   help="voxel / point spacing in scene units (default: the scene box's longest side / 512)")
+    p.add_argument("--min-opacity", type=float, default=0.5,
+                   help="pixels rendering less opaque than this carry no surface (default 0.5)")
+    p.add_argument("--max-views", type=int, metavar="N", help="render at most N views (default: all)")
+    p.add_argument("--device", default="auto")
+    p.set_defaults(func=_export)
 
 
 def _add_synth_command(sub: argparse._SubParsersAction) -> None:
@@ -491,6 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_command(sub)
     _add_eval_command(sub)
     _add_render_command(sub)
+    _add_export_command(sub)
     _add_synth_command(sub)
     _add_import_command(sub)
     _add_serve_command(sub)

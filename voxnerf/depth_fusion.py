@@ -48,11 +48,14 @@ class FusionError(ValueError):
 
 @dataclass(frozen=True)
 class DepthView:
-    """One training frame's depth: float32 [H, W] scene units (NaN invalid), its camera and pose."""
+    """One frame's depth: float32 [H, W] scene units (NaN invalid), its camera and pose; optionally its colour
+    registered to the depth, [H, W, 3] float in [0, 1] or uint8 (fused into vertex colours when every view has
+    one)."""
 
     depth: np.ndarray
     intrinsics: Intrinsics  # of the depth map (its own size)
     c2w: np.ndarray  # [4, 4] float64, OpenGL axes, scene units
+    rgb: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -147,15 +150,22 @@ def _extent(views: list[DepthView]) -> float:
     return float(max((hi - lo).max(), 1e-9))
 
 
-def backproject(view: DepthView, stride: int = 1) -> np.ndarray:
-    """World points [M, 3] of the valid pixels of ``view`` (every ``stride``-th row and column)."""
+def point_map(view: DepthView) -> np.ndarray:
+    """World points float64 [H, W, 3] (scene units) of every pixel's centre at its z-depth; NaN where the depth
+    is invalid (non-finite or not positive)."""
     k = view.intrinsics
-    v, u = np.mgrid[0 : view.depth.shape[0] : stride, 0 : view.depth.shape[1] : stride]
-    z = view.depth[v, u]
-    ok = np.isfinite(z) & (z > 0)
-    z, u, v = z[ok], u[ok] + 0.5, v[ok] + 0.5
-    cam = np.stack([(u - k.cx) / k.fl_x * z, -(v - k.cy) / k.fl_y * z, -z], axis=1)
+    v, u = np.mgrid[0 : view.depth.shape[0], 0 : view.depth.shape[1]] + 0.5
+    z = view.depth.astype(np.float64)
+    z = np.where(np.isfinite(z) & (z > 0), z, np.nan)
+    cam = np.stack([(u - k.cx) / k.fl_x * z, -(v - k.cy) / k.fl_y * z, -z], axis=-1)
     return cam @ view.c2w[:3, :3].T + view.c2w[:3, 3]
+
+
+def backproject(view: DepthView, stride: int = 1) -> np.ndarray:
+    """World points [M, 3] of the valid pixels of ``view`` (every ``stride``-th row and column), row-major
+    (the order of ``view.depth[valid]``)."""
+    points = point_map(view)[::stride, ::stride].reshape(-1, 3)
+    return points[np.isfinite(points).all(axis=1)]
 
 
 def _o3d_camera(view: DepthView):
@@ -169,16 +179,22 @@ def _o3d_camera(view: DepthView):
     return intrinsic, extrinsic
 
 
-def fuse_tsdf(views: list[DepthView], voxel: float, truncation: float, depth_max: float) -> trimesh.Trimesh:
-    """Marching-cubes mesh of the TSDF of ``views`` (voxel and truncation in scene units).
+def fuse_tsdf(views: list[DepthView], voxel: float, truncation: float, depth_max: float,
+              min_views: float = 0.5) -> trimesh.Trimesh:
+    """Marching-cubes mesh of the TSDF of ``views`` (voxel and truncation in scene units), with vertex colours
+    (uint8 RGBA) when every view has ``rgb``. Voxels seen by fewer than ``min_views`` views are left out (each
+    view adds a weight of 1; the default keeps every surface some view saw).
 
     Raises FusionError when the fusion leaves no surface (e.g. every depth beyond ``depth_max``).
     """
     import open3d as o3d
 
+    coloured = bool(views) and all(v.rgb is not None for v in views)
+    attrs = (("tsdf", 1), ("weight", 1)) + ((("color", 3),) if coloured else ())
     grid = o3d.t.geometry.VoxelBlockGrid(
-        attr_names=("tsdf", "weight"), attr_dtypes=(o3d.core.float32, o3d.core.float32),
-        attr_channels=((1,), (1,)), voxel_size=float(voxel), block_resolution=16, block_count=50_000,
+        attr_names=tuple(name for name, _ in attrs), attr_dtypes=tuple(o3d.core.float32 for _ in attrs),
+        attr_channels=tuple((c,) for _, c in attrs), voxel_size=float(voxel), block_resolution=16,
+        block_count=50_000,
     )
     kwargs = {"depth_scale": 1.0, "depth_max": float(depth_max), "trunc_voxel_multiplier": float(truncation / voxel)}
     for view in views:
@@ -189,24 +205,37 @@ def fuse_tsdf(views: list[DepthView], voxel: float, truncation: float, depth_max
             blocks = grid.compute_unique_block_coordinates(image, intrinsic, extrinsic, **kwargs)
         except RuntimeError:  # open3d raises when no pixel of this frame lies within depth_max
             continue
-        grid.integrate(blocks, image, intrinsic, extrinsic, **kwargs)
+        if coloured:
+            colour = o3d.t.geometry.Image(np.ascontiguousarray(_unit_rgb(view.rgb), np.float32))
+            grid.integrate(blocks, image, colour, intrinsic, extrinsic, **kwargs)
+        else:
+            grid.integrate(blocks, image, intrinsic, extrinsic, **kwargs)
     try:
-        # open3d keeps voxels whose weight exceeds the threshold, and each frame adds 1: this keeps every
-        # surface some frame saw (a wall seen once is a measurement too).
-        fused = grid.extract_triangle_mesh(weight_threshold=0.5).to_legacy()
+        # open3d keeps voxels whose weight exceeds the threshold, and each frame adds 1: by default this keeps
+        # every surface some frame saw (a wall seen once is a measurement too).
+        fused = grid.extract_triangle_mesh(weight_threshold=float(min_views)).to_legacy()
     except RuntimeError:  # open3d raises on an empty volume
         fused = o3d.geometry.TriangleMesh()
     mesh = trimesh.Trimesh(np.asarray(fused.vertices), np.asarray(fused.triangles), process=False)
+    if coloured and fused.has_vertex_colors():
+        mesh.visual.vertex_colors = np.round(np.clip(np.asarray(fused.vertex_colors), 0.0, 1.0) * 255).astype(np.uint8)
     if len(mesh.faces) == 0 or not np.isfinite(mesh.vertices).all():
         raise FusionError(f"TSDF fusion of {len(views)} depth maps left no surface (voxel {voxel:.4g})")
     return canonical_mesh(mesh)
+
+
+def _unit_rgb(rgb: np.ndarray) -> np.ndarray:
+    """[H, W, 3] uint8 or float -> float32 in [0, 1]."""
+    if rgb.dtype == np.uint8:
+        return rgb.astype(np.float32) / 255.0
+    return np.clip(np.nan_to_num(rgb.astype(np.float32), nan=0.0), 0.0, 1.0)
 
 
 def canonical_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """The same mesh with its vertices and faces in a fixed order (open3d's parallel marching cubes emits them
     in a different order from run to run; the prior's surface samples, and so training, depend on it).
     Vertices sort lexicographically; each face is rotated to start at its smallest index (orientation kept),
-    then faces sort lexicographically."""
+    then faces sort lexicographically. Vertex colours, when the mesh has them, follow their vertices."""
     vertices = np.asarray(mesh.vertices)
     order = np.lexsort(vertices.T[::-1])
     rank = np.empty_like(order)
@@ -215,7 +244,10 @@ def canonical_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     shift = np.argmin(faces, axis=1)
     faces = np.take_along_axis(faces, (shift[:, None] + np.arange(3)[None]) % 3, axis=1)
     faces = faces[np.lexsort(faces.T[::-1])]
-    return trimesh.Trimesh(vertices[order], faces, process=False)
+    colours = None
+    if mesh.visual.kind == "vertex":
+        colours = np.asarray(mesh.visual.vertex_colors)[order]
+    return trimesh.Trimesh(vertices[order], faces, vertex_colors=colours, process=False)
 
 
 def _cast_z(scene, view: DepthView, pixels: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
