@@ -22,12 +22,12 @@ from fastapi.staticfiles import StaticFiles
 from app.body_limit import BodyLimitMiddleware
 from app.core import db, storage
 from app.core.celery_app import create_celery
-from app.core.dispatch import requeue_stale_jobs
+from app.core.dispatch import requeue_stale_jobs, requeue_stale_outputs
 from app.core.progress import json_safe
 from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
-from app.routes import health, jobs, render, scenes
+from app.routes import health, jobs, outputs, render, scenes
 from app.uploads import UploadError
 
 log = logging.getLogger(__name__)
@@ -35,9 +35,10 @@ STATIC_DIR = Path(__file__).parent / "static"
 
 
 def sweep_once(app: FastAPI) -> None:
-    """Requeue jobs whose worker died and drop render results nobody collected."""
+    """Requeue jobs and output jobs whose worker died and drop render results nobody collected."""
     settings: Settings = app.state.settings
     requeue_stale_jobs(settings, app.state.celery)
+    requeue_stale_outputs(settings, app.state.celery)
     remove_old_outcomes(settings.render_results_dir, 2 * settings.render_timeout_s)
 
 
@@ -96,7 +97,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, jobs, render):
+    for module in (scenes, jobs, outputs, render):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
 

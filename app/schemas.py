@@ -15,8 +15,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
-from app.core import progress
-from app.core.models import JOB_STATES
+from app.core import outputs, progress
+from app.core.models import JOB_STATES, OUTPUT_KINDS
+from voxnerf.camera_path import MAX_FPS
 from voxnerf.config import TrainConfig
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord
 
@@ -277,6 +278,109 @@ class EvalRender(BaseModel):
     split: str
     name: str
     url: str
+
+
+# ------------------------------------------------------------------------------------------------ outputs
+
+OutputKind = Literal[OUTPUT_KINDS]
+VideoGenerator = Literal[outputs.GENERATORS]
+MAX_OUTPUT_SIDE = 16384
+
+
+class VideoRequest(BaseModel):
+    """A fly-through video (H.264 MP4) of a trained job: either ``camera_path`` (nerfstudio's camera-path JSON,
+    as its viewer's Render panel writes it, checked by :func:`voxnerf.camera_path.parse_nerfstudio`), or a
+    generated ``path``: ``interpolate`` (a smooth path through the scene's training cameras) or ``orbit``
+    (one turn around their centre), with ``frames``, ``fps`` and optionally ``width``/``height`` (default:
+    the scene's size), ``radius`` and ``height_above`` (scene units; orbit only). Sizes must be even."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    camera_path: dict | None = Field(None, description="nerfstudio camera-path JSON object")
+    dataparser_transforms: dict | None = Field(
+        None, description="the nerfstudio run's dataparser_transforms.json, when camera_path's poses are in its frame"
+    )
+    path: VideoGenerator | None = Field(None, description="a generated path instead of camera_path")
+    frames: int | None = Field(None, description="frames of a generated path (1 to VOXNERF_MAX_VIDEO_FRAMES)")
+    fps: float = Field(30.0, gt=0, le=MAX_FPS, description="frame rate of a generated path")
+    width: int | None = Field(None, ge=1, le=MAX_OUTPUT_SIDE)
+    height: int | None = Field(None, ge=1, le=MAX_OUTPUT_SIDE)
+    radius: float | None = Field(None, gt=0, description="orbit radius, scene units; default the cameras' own")
+    height_above: float | None = Field(
+        None, description="orbit height above the cameras' centre along the scene's up, scene units; default 0"
+    )
+    format: Literal["mp4"] = "mp4"
+
+    @model_validator(mode="after")
+    def _one_path(self) -> VideoRequest:
+        if (self.camera_path is None) == (self.path is None):
+            raise ValueError("give camera_path (nerfstudio JSON) or path (interpolate or orbit), not both")
+        generator_only = ("frames", "width", "height", "radius", "height_above")
+        if self.camera_path is not None and any(getattr(self, key) is not None for key in generator_only):
+            raise ValueError(f"{', '.join(generator_only)} belong to a generated path; camera_path sets its own")
+        if self.path is not None and self.frames is None:
+            raise ValueError("frames: required with path")
+        if (self.width is None) != (self.height is None):
+            raise ValueError("give width and height together (or neither, for the scene's size)")
+        if self.path != "orbit" and (self.radius is not None or self.height_above is not None):
+            raise ValueError("radius and height_above belong to path orbit")
+        return self
+
+
+class ExportRequest(BaseModel):
+    """Geometry of a trained job: a triangle ``mesh`` or a coloured ``pointcloud``, as binary PLY in scene
+    units (:func:`voxnerf.export.export_geometry`)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    kind: Literal["mesh", "pointcloud"]
+    voxel_size: float | None = Field(None, gt=0, description="scene units; default the engine's for the scene")
+    min_opacity: float = Field(0.5, gt=0, le=1, description="opacity a surface point must reach")
+    max_views: int | None = Field(
+        None, ge=1, le=100_000, description="render at most this many of the engine's views; default all"
+    )
+
+
+class OutputOut(BaseModel):
+    """An output job: its state, progress (``done`` of ``total`` frames or views), and when it succeeded, what
+    it made (``summary``) and where to download it (``file_url``)."""
+
+    id: str
+    job_id: str
+    kind: OutputKind
+    state: JobState
+    partial: bool = Field(description="made from a cancelled job's checkpoint: an unfinished model")
+    progress: float
+    done: int
+    total: int | None
+    unit: Literal["frames", "views"]
+    eta_s: float | None
+    params: dict = Field(description="the request (a camera path is summarised by its frame count)")
+    summary: dict | None
+    file_name: str | None
+    file_url: str | None
+    error: str | None
+    cancel_requested: bool
+    attempt: int
+    requeues: int
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+    @classmethod
+    def from_row(cls, row) -> OutputOut:
+        params = dict(row.params)
+        if isinstance(params.get("camera_path"), dict):
+            params["camera_path"] = {"frames": len(params["camera_path"].get("camera_path", []))}
+        succeeded = row.state == "succeeded"
+        return cls(
+            id=row.id, job_id=row.job_id, kind=row.kind, state=row.state, partial=row.partial,
+            progress=row.progress, done=row.done, total=row.total, unit=outputs.UNITS[row.kind], eta_s=row.eta_s,
+            params=params, summary=row.summary, file_name=row.file_name if succeeded else None,
+            file_url=f"/outputs/{row.id}/file" if succeeded else None, error=row.error,
+            cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,
+            created_at=_utc(row.created_at), started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
+        )
 
 
 # ------------------------------------------------------------------------------------------------ health

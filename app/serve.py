@@ -1,4 +1,5 @@
-"""``voxnerf serve``: the API and embedded workers (one ``train``, one ``render``) from one command."""
+"""``voxnerf serve``: the API and embedded workers (one ``train``, one ``render``, one ``outputs``) from one
+command."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import time
 
 import uvicorn
 
-from app.core.celery_app import RENDER_QUEUE, TRAIN_QUEUE
+from app.core.celery_app import OUTPUTS_QUEUE, RENDER_QUEUE, TRAIN_QUEUE
 from app.core.settings import get_settings
 from app.main import create_app
 
@@ -42,11 +43,11 @@ def _stop_all(procs: list[subprocess.Popen]) -> None:
 
 
 def serve(host: str, port: int) -> None:
-    """Serve the API on ``host:port`` with embedded train and render workers; blocks until stopped."""
+    """Serve the API on ``host:port`` with embedded train, render and outputs workers; blocks until stopped."""
     settings = get_settings()
     settings.make_dirs()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    workers = [_spawn_worker(TRAIN_QUEUE), _spawn_worker(RENDER_QUEUE)]
+    workers = [_spawn_worker(TRAIN_QUEUE), _spawn_worker(RENDER_QUEUE), _spawn_worker(OUTPUTS_QUEUE)]
     log.info("data in %s; broker %s", settings.data_dir, settings.broker_url or "embedded filesystem queue")
     try:
         uvicorn.run(create_app(settings), host=host, port=port)

@@ -1,6 +1,7 @@
 """The dashboard in a real headless browser (playwright driving Debian's /usr/bin/chromium, no download):
 with the API token entered, a training job's progress bar advances, its PSNR plot and evaluation thumbnails
-appear, and a pose of the finished job renders. A screenshot is saved under the test's temporary directory."""
+appear, a pose of the finished job renders, and a video started from its row plays in the page with the asked
+size and duration. A screenshot is saved under the test's temporary directory."""
 
 from __future__ import annotations
 
@@ -19,8 +20,11 @@ TOKEN = "dash-token"
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
     svc = start_service(tmp_path_factory.mktemp("dashboard"), token=TOKEN)
-    yield svc
-    svc.stop()
+    try:
+        svc.start_worker("outputs")
+        yield svc
+    finally:
+        svc.stop()
 
 
 @pytest.fixture
@@ -81,6 +85,18 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
         "() => document.getElementById('render-image').naturalWidth === 64", timeout=60_000
     )
     assert page.is_hidden("#message") or "refused" not in page.inner_text("#message")
+
+    # a video of the finished job from its row's button, played from a blob URL: 6 frames at 12 fps, 32x24
+    page.fill("#video-frames", "6")
+    page.fill("#video-fps", "12")
+    page.fill("#video-width", "32")
+    page.fill("#video-height", "24")
+    page.click(f'{row} button[data-output="orbit"]')
+    video = f'{row} li[data-kind="video"][data-state="succeeded"] video'
+    page.wait_for_selector(video, timeout=240_000)
+    page.wait_for_function(f"() => document.querySelector('{video}').readyState >= 1", timeout=60_000)
+    size = page.eval_on_selector(video, "v => [v.videoWidth, v.videoHeight, v.duration]")
+    assert size[:2] == [32, 24] and abs(size[2] - 0.5) < 0.05, size
 
     shot = tmp_path / "dashboard.png"
     page.screenshot(path=str(shot), full_page=True)

@@ -24,7 +24,7 @@ COMPOSE_FILE = ROOT / "docker-compose.yml"
 CPU_OVERRIDE = ROOT / "docker" / "compose.cpu.yml"
 DOCKERFILES = [ROOT / "docker" / "Dockerfile.api", ROOT / "docker" / "Dockerfile.worker"]
 STACKS = {"gpu": [COMPOSE_FILE], "cpu": [COMPOSE_FILE, CPU_OVERRIDE]}
-VOXNERF_SERVICES = {"api", "worker-train", "worker-render"}
+VOXNERF_SERVICES = {"api", "worker-train", "worker-render", "worker-outputs"}
 ENV_PREFIX = Settings.model_config["env_prefix"]
 
 

@@ -1,4 +1,5 @@
-"""Celery tasks: train a job (queue ``train``) and render a pose of a finished job (queue ``render``).
+"""Celery tasks: train a job (queue ``train``) and render a pose of a finished job (queue ``render``); output
+jobs (queue ``outputs``: videos, meshes, point clouds) are in :mod:`worker.outputs`, imported at the end.
 
 Training: the task claims the job in the job store (fenced by its attempt number), runs
 :func:`voxnerf.trainer.train` with ``resume=True`` (a redelivered job continues from its checkpoint),
@@ -22,6 +23,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 
@@ -31,7 +33,7 @@ from celery.signals import worker_ready
 
 from app.core import jobstore, storage
 from app.core.celery_app import RENDER_TASK, TRAIN_TASK
-from app.core.dispatch import requeue_stale_jobs
+from app.core.dispatch import requeue_stale_jobs, requeue_stale_outputs
 from app.core.render_request import RenderRequest
 from app.core.render_results import RenderOutcome, deliver_outcome
 from app.core.settings import Settings, get_settings
@@ -48,12 +50,23 @@ log = logging.getLogger(__name__)
 
 
 class Lease:
-    """Renews a claimed job's heartbeat in a side thread and turns cancellation into ``should_stop``."""
+    """Renews a claimed job's heartbeat in a side thread and turns cancellation into ``should_stop``.
 
-    def __init__(self, settings: Settings, job_id: str, attempt: int) -> None:
+    ``renew(settings, id, attempt) -> LeaseStatus`` refreshes the lease: a training job's by default
+    (:func:`app.core.jobstore.renew_lease`), an output job's with :func:`app.core.outputs.renew_lease`.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        job_id: str,
+        attempt: int,
+        renew: Callable[[Settings, str, int], jobstore.LeaseStatus] = jobstore.renew_lease,
+    ) -> None:
         self.settings = settings
         self.job_id = job_id
         self.attempt = attempt
+        self.renew = renew
         self.cancelled = threading.Event()
         self.lost = threading.Event()
         self._done = threading.Event()
@@ -62,7 +75,7 @@ class Lease:
     def _run(self) -> None:
         while not self._done.wait(self.settings.heartbeat_s):
             try:
-                status = jobstore.renew_lease(self.settings, self.job_id, self.attempt)
+                status = self.renew(self.settings, self.job_id, self.attempt)
             except Exception:  # the database is briefly unreachable: keep training, retry next beat
                 log.warning("job %s: lease renewal failed", self.job_id, exc_info=True)
                 continue
@@ -202,7 +215,8 @@ def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:
         intrinsics = request.intrinsics(trained.default_intrinsics, max_pixels=settings.max_render_pixels)
     except CameraError as err:
         return RenderOutcome(422, detail=str(err))
-    images = render(trained, np.asarray(request.transform_matrix), intrinsics, tuple(request.outputs))
+    images = render(trained, np.asarray(request.transform_matrix), intrinsics, tuple(request.outputs),
+                    path=settings.render_path)
     data = encode_outputs(images, request.format, request.outputs, trained.depth_unit_scale)
     return RenderOutcome(200, request.media_type, data)
 
@@ -223,5 +237,9 @@ def _recover_stale_jobs(sender=None, **_) -> None:
     """At worker start-up, requeue jobs whose previous worker died (the API also does so periodically)."""
     try:
         requeue_stale_jobs(get_settings(), sender.app)
+        requeue_stale_outputs(get_settings(), sender.app)
     except Exception:
         log.exception("start-up recovery of stale jobs failed")
+
+
+import worker.outputs  # noqa: E402, F401  (registers the output task; it uses Lease and model_cache above)

@@ -21,13 +21,15 @@ from app.core.settings import Settings, get_settings
 
 TRAIN_TASK = "voxnerf.train"
 RENDER_TASK = "voxnerf.render"
+OUTPUT_TASK = "voxnerf.output"
 TRAIN_QUEUE = "train"
 RENDER_QUEUE = "render"
-QUEUES = (TRAIN_QUEUE, RENDER_QUEUE)
+OUTPUTS_QUEUE = "outputs"  # output jobs: videos, meshes, point clouds (worker/outputs.py)
+QUEUES = (TRAIN_QUEUE, RENDER_QUEUE, OUTPUTS_QUEUE)
 
 
 def create_celery(settings: Settings, include: Sequence[str] = ()) -> Celery:
-    """A Celery app for ``settings``: JSON messages, train/render routing, prefetch 1, no result backend.
+    """A Celery app for ``settings``: JSON messages, train/render/outputs routing, prefetch 1, no result backend.
 
     ``include``: modules whose tasks a worker runs (the API only publishes by task name and needs none).
     """
@@ -36,7 +38,11 @@ def create_celery(settings: Settings, include: Sequence[str] = ()) -> Celery:
         task_serializer="json",
         accept_content=["json"],
         task_ignore_result=True,
-        task_routes={TRAIN_TASK: {"queue": TRAIN_QUEUE}, RENDER_TASK: {"queue": RENDER_QUEUE}},
+        task_routes={
+            TRAIN_TASK: {"queue": TRAIN_QUEUE},
+            RENDER_TASK: {"queue": RENDER_QUEUE},
+            OUTPUT_TASK: {"queue": OUTPUTS_QUEUE},
+        },
         task_default_queue=TRAIN_QUEUE,
         worker_prefetch_multiplier=1,
         worker_send_task_events=False,

@@ -1,4 +1,5 @@
-"""Job-store tables (SQLAlchemy ORM). Times are UNIX seconds (float, UTC); JSON columns hold dicts/lists.
+"""Job-store tables (SQLAlchemy ORM): scenes, training jobs, output jobs. Times are UNIX seconds (float, UTC);
+JSON columns hold dicts/lists.
 
 The job's progress columns (stage, iteration, progress, ETA, history, stages...) are not listed here: they are
 built from the engine's ``ProgressEvent`` by :func:`app.core.progress.progress_columns`.
@@ -54,6 +55,43 @@ class JobRow(ProgressColumns, Base):
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    attempt: Mapped[int] = mapped_column(Integer, default=0)
+    requeues: Mapped[int] = mapped_column(Integer, default=0)
+    worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+
+OUTPUT_KINDS = ("video", "mesh", "pointcloud")
+
+
+class OutputRow(Base):
+    """An output job: a video, mesh or point cloud made from a trained job's model by an ``outputs`` worker.
+
+    The file lives in ``<data_dir>/runs/<job_id>/outputs/<id>/<file_name>`` (and in the object store under
+    ``outputs/<id>`` when there is one). ``done``/``total`` count frames (video) or views (exports);
+    ``attempt`` fences the claiming worker's writes as for training jobs (:class:`JobRow`). ``partial``: the
+    trained job was cancelled, so its checkpoint is an unfinished model.
+    """
+
+    __tablename__ = "outputs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    job_id: Mapped[str] = mapped_column(String(32), index=True)
+    kind: Mapped[str] = mapped_column(String(16))
+    state: Mapped[str] = mapped_column(String(16), index=True)
+    params: Mapped[dict] = mapped_column(JSON)
+    partial: Mapped[bool] = mapped_column(Boolean, default=False)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    done: Mapped[int] = mapped_column(Integer, default=0)
+    total: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    eta_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    summary: Mapped[dict | None] = mapped_column(JSON, nullable=True)
+    file_name: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[float] = mapped_column(Float)
+    started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     attempt: Mapped[int] = mapped_column(Integer, default=0)
     requeues: Mapped[int] = mapped_column(Integer, default=0)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -55,11 +55,18 @@ class Settings(BaseSettings):
         default=64_000_000, gt=0, description="declared width x height of one image"
     )
     max_render_pixels: int = Field(default=4096 * 4096, gt=0, description="width x height of one render")
+    max_video_frames: int = Field(
+        default=3600, ge=1, le=10_000, description="frames of one video job (POST /jobs/{id}/videos)"
+    )
 
     render_timeout_s: float = Field(
         default=120.0, gt=0, description="POST /render waits this long for a worker"
     )
     render_cache_size: int = Field(default=2, ge=1, description="loaded models each render process keeps")
+    render_path: Literal["fast", "full"] = Field(
+        default="fast",
+        description="how render workers render: fast (rays stop when opaque, no compiling) or full (every sample)",
+    )
     max_concurrent_renders: int = Field(
         default=8,
         ge=1,

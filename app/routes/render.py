@@ -1,5 +1,8 @@
 """``POST /render``: render a pose of a finished job on a render worker and answer the image bytes.
 
+A succeeded job renders; so does a cancelled one that kept a checkpoint, answered with ``X-VoxNeRF-Partial:
+true`` (:func:`app.core.outputs.trained_source`).
+
 Each API process serves at most ``max_concurrent_renders`` renders at once. The limit is taken on the event
 loop before a worker thread is used, so a burst above it is answered 429 at once (with ``Retry-After``)
 instead of queueing threads that each wait up to ``render_timeout_s`` for a render worker.
@@ -17,6 +20,7 @@ from redis import RedisError
 
 from app.core import jobstore
 from app.core.dispatch import send_render
+from app.core.outputs import NotRenderable, trained_source
 from app.core.render_request import RenderRequest
 from app.core.render_results import receive_outcome
 from app.core.settings import Settings
@@ -27,6 +31,7 @@ log = logging.getLogger(__name__)
 router = APIRouter(tags=["render"])
 
 RETRY_AFTER_S = 1  # what a refused client is told to wait: about one render of a small image
+PARTIAL_HEADER = "X-VoxNeRF-Partial"  # "true" on a render of a cancelled job's checkpoint (an unfinished model)
 
 
 class RenderSlots:
@@ -64,8 +69,10 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
     job = jobstore.get_job(settings, body.job_id)
     if job is None:
         raise HTTPException(404, f"no job {body.job_id}")
-    if job.state != "succeeded":
-        raise HTTPException(409, f"job {body.job_id} is {job.state}; only a succeeded job can be rendered")
+    try:
+        partial = trained_source(settings, job)
+    except NotRenderable as err:
+        raise HTTPException(409, str(err)) from None
     pixels = body.pixels()
     if pixels is not None and pixels > settings.max_render_pixels:
         raise HTTPException(
@@ -84,24 +91,26 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
         raise HTTPException(504, f"no render worker answered within {settings.render_timeout_s:g} s")
     if outcome.status != 200:
         raise HTTPException(outcome.status, outcome.detail)
-    return Response(
-        outcome.data,
-        media_type=outcome.media_type,
-        headers={"Content-Disposition": f'inline; filename="{body.job_id}.{body.format}"'},
-    )
+    headers = {"Content-Disposition": f'inline; filename="{body.job_id}.{body.format}"'}
+    if partial:
+        headers[PARTIAL_HEADER] = "true"
+    return Response(outcome.data, media_type=outcome.media_type, headers=headers)
 
 
 @router.post(
     "/render",
     response_class=Response,
     responses={
-        200: {"content": {media: {} for media in MEDIA_TYPES.values()}, "description": "the image"},
-        409: {"description": "the job has not succeeded"},
+        200: {
+            "content": {media: {} for media in MEDIA_TYPES.values()},
+            "description": f"the image; header {PARTIAL_HEADER}: true when the job was cancelled (its checkpoint)",
+        },
+        409: {"description": "the job has neither succeeded nor been cancelled with a checkpoint"},
         429: {"description": "max_concurrent_renders renders are in progress; retry after Retry-After"},
         503: {"description": "the broker is unreachable"},
         504: {"description": "no render worker answered in time"},
     },
-    summary="Render a camera pose of a succeeded job to PNG or EXR",
+    summary="Render a camera pose of a succeeded (or cancelled, checkpointed) job to PNG or EXR",
 )
 async def render(
     body: RenderRequest, request: Request, settings: SettingsDep, celery: CeleryDep

@@ -11,6 +11,13 @@ const SVG_NS = "http://www.w3.org/2000/svg";
 
 const $ = (id) => document.getElementById(id);
 const thumbsLoaded = new Set();  // job ids whose evaluation renders were fetched
+const outputMedia = new Map();  // output id -> blob URL of its downloaded video or file
+const OUTPUT_BUTTONS = [  // [data-output, label, endpoint, body builder]
+  ["orbit", "Video (orbit)", "videos", () => videoBody("orbit")],
+  ["interpolate", "Video (through cameras)", "videos", () => videoBody("interpolate")],
+  ["mesh", "Mesh", "exports", () => ({ kind: "mesh" })],
+  ["pointcloud", "Point cloud", "exports", () => ({ kind: "pointcloud" })],
+];
 
 // ------------------------------------------------------------------------------------------- API access
 
@@ -173,12 +180,16 @@ function jobRow(job) {
   if (!row) {
     row = document.createElement("tr");
     row.dataset.jobId = job.id;
-    for (const name of ["id", "scene", "state", "progress", "eta", "plot", "thumbs", "actions"]) {
+    for (const name of ["id", "scene", "state", "progress", "eta", "plot", "thumbs", "actions", "outputs"]) {
       const cell = document.createElement("td");
       cell.className = `col-${name}`;
       row.appendChild(cell);
     }
     row.querySelector(".col-thumbs").appendChild(Object.assign(document.createElement("div"), { className: "thumbs" }));
+    row.querySelector(".col-outputs").append(
+      Object.assign(document.createElement("div"), { className: "output-buttons" }),
+      Object.assign(document.createElement("ul"), { className: "outputs" }),
+    );
   }
   return row;
 }
@@ -199,7 +210,97 @@ function updateRow(row, job) {
   }
   if (job.state === "succeeded" && !thumbsLoaded.has(job.id)) loadThumbnails(job, cell("thumbs").firstChild);
   cell("actions").replaceChildren(...(job.state === "queued" || job.state === "running" ? [cancelButton(job)] : []));
+  if (job.state === "succeeded") {
+    const buttons = cell("outputs").querySelector(".output-buttons");
+    if (!buttons.childElementCount) buttons.append(...outputButtons(job));
+    refreshOutputs(job, cell("outputs").querySelector(".outputs"));
+  }
   row.dataset.state = job.state;
+}
+
+// ------------------------------------------------------------------------------------------- outputs
+
+function videoBody(path) {
+  const body = { path, frames: Number($("video-frames").value), fps: Number($("video-fps").value) };
+  const width = $("video-width").value, height = $("video-height").value;
+  if (width && height) Object.assign(body, { width: Number(width), height: Number(height) });
+  return body;
+}
+
+function outputButtons(job) {
+  return OUTPUT_BUTTONS.map(([name, label, endpoint, body]) => {
+    const button = Object.assign(document.createElement("button"), { className: "secondary", textContent: label });
+    button.type = "button";
+    button.dataset.output = name;
+    button.addEventListener("click", async () => {
+      try {
+        const output = await (await api(`/jobs/${job.id}/${endpoint}`, {
+          method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body()),
+        })).json();
+        showMessage(`${label} of job ${job.id.slice(0, 8)} queued (output ${output.id.slice(0, 8)}).`, "info");
+      } catch (err) {
+        showMessage(`${label} refused: ${err.message}`);
+      }
+    });
+    return button;
+  });
+}
+
+// The output's blob URL, downloaded once with the API token (a <video> or a link cannot send the header).
+async function outputBlobUrl(output) {
+  if (!outputMedia.has(output.id)) {
+    const blob = await (await api(output.file_url)).blob();
+    outputMedia.set(output.id, URL.createObjectURL(blob));
+  }
+  return outputMedia.get(output.id);
+}
+
+function outputMediaNode(output) {
+  if (output.kind === "video") {
+    const video = Object.assign(document.createElement("video"), { controls: true, muted: true, loop: true });
+    outputBlobUrl(output).then((url) => { video.src = url; }, (err) => showMessage(`Video: ${err.message}`));
+    return video;
+  }
+  const link = Object.assign(document.createElement("a"), { href: "#", textContent: `download ${output.file_name}` });
+  link.addEventListener("click", async (event) => {
+    event.preventDefault();
+    try {
+      const save = Object.assign(document.createElement("a"), { href: await outputBlobUrl(output) });
+      save.download = `${output.id.slice(0, 8)}-${output.file_name}`;
+      save.click();
+    } catch (err) {
+      showMessage(`Download: ${err.message}`);
+    }
+  });
+  return link;
+}
+
+function outputItem(list, output) {
+  let item = list.querySelector(`li[data-output-id="${output.id}"]`);
+  if (!item) {
+    item = Object.assign(document.createElement("li"), { className: "output" });
+    item.dataset.outputId = output.id;
+    item.dataset.kind = output.kind;
+    item.append(document.createElement("span"), document.createElement("span"));
+  }
+  const [label, status] = item.children;
+  label.textContent = output.kind + (output.params && output.params.path ? ` (${output.params.path})` : "");
+  const percent = Math.round(100 * (output.progress || 0));
+  status.className = `state state-${output.state}`;
+  status.textContent = output.state === "running" ? `${percent}% · ${output.done}/${output.total ?? "?"} ${output.unit}`
+    : output.state + (output.error ? `: ${output.error}` : "");
+  if (output.state === "succeeded" && item.dataset.state !== "succeeded") item.appendChild(outputMediaNode(output));
+  item.dataset.state = output.state;
+  return item;
+}
+
+async function refreshOutputs(job, list) {
+  try {
+    const outputs = await (await api(`/jobs/${job.id}/outputs?limit=20`)).json();
+    list.replaceChildren(...outputs.map((output) => outputItem(list, output)));
+  } catch (err) {
+    showMessage(`Outputs of ${job.id}: ${err.message}`);
+  }
 }
 
 function fillSelect(select, items, label) {

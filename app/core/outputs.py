@@ -1,0 +1,298 @@
+"""Output jobs: videos, meshes and point clouds made from a trained job's model (API and ``outputs`` workers).
+
+An output job moves ``queued -> running -> succeeded | failed | cancelled`` like a training job, with the same
+fencing: a worker *claims* it (``attempt`` goes up by one) and writes progress, renews its lease and finishes
+it only while the row still carries that attempt (:func:`app.core.jobstore.is_stale` decides when a running
+one's worker is presumed dead). Progress counts ``done`` of ``total`` frames (video) or views (exports).
+
+What an output is made from: a ``succeeded`` training job, or a ``cancelled`` one that kept a checkpoint (the
+output is then marked ``partial``: an unfinished model); :func:`trained_source` is that rule, which
+``POST /render`` follows too.
+
+Files: ``<runs_dir>/<job id>/outputs/<output id>/<file>`` (``video.mp4`` with ``video.mp4.camera_path.json``
+beside it, ``mesh.ply``, ``pointcloud.ply``), written by the engine under a temporary name and renamed when
+complete. With an object store (:mod:`app.core.storage`) the finished directory is uploaded as
+``outputs/<output id>`` and fetched into a process's cache when it is downloaded there.
+
+Video requests are checked here with the engine's torch-free camera-path rules (:mod:`voxnerf.camera_path`),
+so the API refuses a malformed path (422 naming the key) before anything is queued.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+from sqlalchemy import select, update
+
+from app.core import storage
+from app.core.db import session_scope
+from app.core.jobstore import LeaseStatus, is_stale, new_id
+from app.core.models import ACTIVE_STATES, JobRow, OutputRow
+from app.core.progress import json_safe
+from app.core.settings import Settings
+from voxnerf.camera_path import CameraPathError, check_frame_count, parse_nerfstudio
+from voxnerf.files import CHECKPOINT
+
+OUTPUTS_DIR = "outputs"  # under a run directory, and the object store's prefix
+FILE_NAMES = {"video": "video.mp4", "mesh": "mesh.ply", "pointcloud": "pointcloud.ply"}
+MEDIA_TYPES = {"video": "video/mp4", "mesh": "application/octet-stream", "pointcloud": "application/octet-stream"}
+UNITS = {"video": "frames", "mesh": "views", "pointcloud": "views"}
+GENERATORS = ("interpolate", "orbit")  # through the training cameras, around their centre
+MAX_REQUEUES = 2  # an output whose worker died this often is failed (it may be what kills the worker)
+
+
+class NotRenderable(Exception):
+    """The trained job cannot be rendered from (the API answers 409 with this message)."""
+
+
+# ------------------------------------------------------------------------------------------------ the source
+
+
+def has_checkpoint(settings: Settings, job_id: str) -> bool:
+    """Whether job ``job_id``'s run holds a checkpoint: in this process's cache, or in the object store."""
+    if (settings.runs_dir / job_id / CHECKPOINT).is_file():
+        return True
+    store = storage.open_store(settings)
+    if store is None:
+        return False
+    marker = storage.read_marker(store, f"{storage.RUNS}/{job_id}")
+    return marker is not None and CHECKPOINT in marker["files"]
+
+
+def trained_source(settings: Settings, job: JobRow) -> bool:
+    """Whether renders of ``job`` are *partial*: False for a succeeded job, True for a cancelled one that kept
+    a checkpoint. Raises NotRenderable for any other job."""
+    if job.state == "succeeded":
+        return False
+    if job.state == "cancelled" and has_checkpoint(settings, job.id):
+        return True
+    why = "without a checkpoint" if job.state == "cancelled" else ""
+    raise NotRenderable(
+        f"job {job.id} is {job.state}{' ' + why if why else ''}; only a succeeded job, or a cancelled one that "
+        "kept a checkpoint, can be rendered"
+    )
+
+
+# ------------------------------------------------------------------------------------------------ requests
+
+
+def _even_size(width: int, height: int, key: str) -> None:
+    """The engine's video rule (:mod:`voxnerf.video`: H.264 yuv420p needs even sizes), checked before queueing."""
+    if width % 2 or height % 2:
+        raise CameraPathError(f"a video needs even sizes (H.264 yuv420p), got {width}x{height}", key)
+
+
+def video_params(settings: Settings, request: dict) -> tuple[dict, int]:
+    """The stored parameters and frame count of a video request (``VideoRequest``'s fields, None when left out).
+
+    A ``camera_path`` (nerfstudio's camera-path JSON, with ``dataparser_transforms`` when its poses are in a
+    nerfstudio run's frame) is parsed here and stored in scene units; a generator (``path``: interpolate or
+    orbit) keeps its fields for the worker, which knows the scene's cameras. Limits: ``max_video_frames``
+    frames and ``max_render_pixels`` pixels per frame. Raises CameraPathError naming the key at fault.
+    """
+    if request.get("camera_path") is not None:
+        path = parse_nerfstudio(
+            request["camera_path"],
+            dataparser_transforms=request.get("dataparser_transforms"),
+            max_frames=settings.max_video_frames,
+            max_pixels=settings.max_render_pixels,
+        )
+        width, height = path.size
+        _even_size(width, height, "camera_path.render_width, render_height")
+        params = {"camera_path": path.to_nerfstudio(), "width": width, "height": height, "fps": path.fps}
+        return {**params, "frames": len(path)}, len(path)
+    check_frame_count(request.get("frames"), settings.max_video_frames, key="frames")
+    width, height = request.get("width"), request.get("height")
+    if width is not None and height is not None:
+        if width * height > settings.max_render_pixels:
+            raise CameraPathError(
+                f"{width}x{height} exceeds the limit of {settings.max_render_pixels} pixels", "width, height"
+            )
+        _even_size(width, height, "width, height")
+    keys = ("path", "frames", "fps", "width", "height", "radius", "height_above")
+    return {key: request.get(key) for key in keys}, request["frames"]
+
+
+# ------------------------------------------------------------------------------------------------ files
+
+
+def output_dir(settings: Settings, job_id: str, output_id: str) -> Path:
+    """This process's directory of an output's files."""
+    return settings.runs_dir / job_id / OUTPUTS_DIR / output_id
+
+
+def store_key(output_id: str) -> str:
+    return f"{OUTPUTS_DIR}/{output_id}"
+
+
+def publish_output(settings: Settings, output: OutputRow, directory: Path) -> None:
+    """Upload a finished output's directory to the object store; no-op without one."""
+    store = storage.open_store(settings)
+    if store is not None:
+        storage.put_dir(store, directory, store_key(output.id))
+
+
+def output_file(settings: Settings, output: OutputRow) -> Path:
+    """The local file of a succeeded output, fetched from the object store when this cache lacks it. Raises
+    StorageError when the store does not hold it, FileNotFoundError when the data directory lost it."""
+    directory = output_dir(settings, output.job_id, output.id)
+    path = directory / output.file_name
+    store = storage.open_store(settings)
+    if store is not None and not path.is_file():
+        storage.fetch_dir(store, store_key(output.id), directory, settings.staging_dir)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the output's file is missing")
+    return path
+
+
+def remove_files(settings: Settings, output: OutputRow) -> None:
+    """Delete what a failed or cancelled output left in this process's data directory."""
+    shutil.rmtree(output_dir(settings, output.job_id, output.id), ignore_errors=True)
+
+
+# ------------------------------------------------------------------------------------------------ rows
+
+
+def create_output(settings: Settings, job_id: str, kind: str, params: dict, total: int | None,
+                  partial: bool) -> OutputRow:
+    """A new queued output job of trained job ``job_id``."""
+    row = OutputRow(
+        id=new_id(), job_id=job_id, kind=kind, state="queued", params=json_safe(params), partial=partial,
+        progress=0.0, done=0, total=total, created_at=time.time(), cancel_requested=False, attempt=0, requeues=0,
+    )
+    with session_scope(settings) as session:
+        session.add(row)
+    return row
+
+
+def get_output(settings: Settings, output_id: str) -> OutputRow | None:
+    with session_scope(settings) as session:
+        return session.get(OutputRow, output_id)
+
+
+def list_outputs(settings: Settings, job_id: str, limit: int = 100) -> list[OutputRow]:
+    """The outputs of job ``job_id``, newest first."""
+    query = (
+        select(OutputRow).where(OutputRow.job_id == job_id).order_by(OutputRow.created_at.desc()).limit(limit)
+    )
+    with session_scope(settings) as session:
+        return list(session.scalars(query))
+
+
+def fail_output(settings: Settings, output_id: str, error: str) -> None:
+    """Fail an output that is queued or running whoever holds it (the broker refused it, or it was requeued
+    too often)."""
+    with session_scope(settings) as session:
+        session.execute(
+            update(OutputRow)
+            .where(OutputRow.id == output_id, OutputRow.state.in_(ACTIVE_STATES))
+            .values(state="failed", error=error, finished_at=time.time(), eta_s=None)
+        )
+
+
+def request_cancel(settings: Settings, output_id: str) -> OutputRow | None:
+    """Cancel an output: a queued one at once, a running one at its next frame or view (its worker sees the
+    flag through its lease)."""
+    with session_scope(settings) as session:
+        cancelled = session.execute(
+            update(OutputRow)
+            .where(OutputRow.id == output_id, OutputRow.state == "queued")
+            .values(state="cancelled", cancel_requested=True, finished_at=time.time())
+        ).rowcount
+        if not cancelled:
+            session.execute(
+                update(OutputRow)
+                .where(OutputRow.id == output_id, OutputRow.state == "running")
+                .values(cancel_requested=True)
+            )
+    return get_output(settings, output_id)
+
+
+def claim_output(settings: Settings, output_id: str, worker: str) -> OutputRow | None:
+    """Take a queued (or stale running) output for ``worker``; None when it is not there to take. The returned
+    row's ``attempt`` fences every later write (as :func:`app.core.jobstore.claim_job`)."""
+    now = time.time()
+    row = get_output(settings, output_id)
+    if row is None or row.state not in ACTIVE_STATES:
+        return None
+    if row.state == "running" and not is_stale(row, settings, now):
+        return None
+    with session_scope(settings) as session:
+        claimed = session.execute(
+            update(OutputRow)
+            .where(OutputRow.id == output_id, OutputRow.attempt == row.attempt, OutputRow.state == row.state)
+            .values(
+                state="running",
+                attempt=row.attempt + 1,
+                requeues=row.requeues + int(row.state == "running"),
+                worker=worker,
+                heartbeat_at=now,
+                started_at=now,
+                progress=0.0,
+                done=0,
+                eta_s=None,
+            )
+        ).rowcount
+    return get_output(settings, output_id) if claimed else None
+
+
+def _write_running(settings: Settings, output_id: str, attempt: int, values: dict) -> bool:
+    """Update a running output's row (and its heartbeat) while it still carries ``attempt``."""
+    with session_scope(settings) as session:
+        return bool(
+            session.execute(
+                update(OutputRow)
+                .where(OutputRow.id == output_id, OutputRow.attempt == attempt, OutputRow.state == "running")
+                .values(heartbeat_at=time.time(), **{k: json_safe(v) for k, v in values.items()})
+            ).rowcount
+        )
+
+
+def renew_lease(settings: Settings, output_id: str, attempt: int) -> LeaseStatus:
+    """Refresh a claimed output's heartbeat and read its cancel flag (the lease of ``worker.tasks.Lease``)."""
+    owned = _write_running(settings, output_id, attempt, {})
+    with session_scope(settings) as session:
+        cancel = session.scalar(select(OutputRow.cancel_requested).where(OutputRow.id == output_id))
+    return LeaseStatus(owned, bool(cancel))
+
+
+def record_progress(settings: Settings, output_id: str, attempt: int, done: int, total: int,
+                    eta_s: float | None) -> bool:
+    """Write ``done`` of ``total`` (frames or views) and the ETA of a claimed output; False when not owned."""
+    progress = min(1.0, done / total) if total > 0 else 0.0
+    return _write_running(settings, output_id, attempt, {"done": done, "total": total, "progress": progress,
+                                                         "eta_s": eta_s})
+
+
+def finish_output(settings: Settings, output_id: str, attempt: int, state: str, values: dict) -> bool:
+    """Move a claimed output to a final state with its last fields; False when no longer owned."""
+    final = {"state": state, "finished_at": time.time(), "eta_s": None, **values}
+    if state == "succeeded":
+        final["progress"] = 1.0
+    return _write_running(settings, output_id, attempt, final)
+
+
+def stale_outputs(settings: Settings) -> list[OutputRow]:
+    """Running outputs whose worker is presumed dead (:func:`app.core.jobstore.is_stale`)."""
+    now = time.time()
+    with session_scope(settings) as session:
+        running = list(session.scalars(select(OutputRow).where(OutputRow.state == "running")))
+    return [row for row in running if is_stale(row, settings, now)]
+
+
+def mark_requeued(settings: Settings, rows: Iterable[OutputRow]) -> list[str]:
+    """Put stale running outputs back to ``queued`` (only if untouched since read); returns the ids moved."""
+    moved = []
+    with session_scope(settings) as session:
+        for row in rows:
+            done = session.execute(
+                update(OutputRow)
+                .where(OutputRow.id == row.id, OutputRow.attempt == row.attempt, OutputRow.state == "running")
+                .values(state="queued", requeues=row.requeues + 1, worker=None, eta_s=None)
+            ).rowcount
+            if done:
+                moved.append(row.id)
+    return moved

@@ -1,0 +1,119 @@
+"""Output jobs of a trained job: fly-through videos, meshes and point clouds (queue ``outputs``), and their files.
+
+``POST /jobs/{id}/videos`` and ``POST /jobs/{id}/exports`` queue one (202); ``GET /outputs/{id}`` follows it;
+``GET /outputs/{id}/file`` downloads what a succeeded one made (409 before: a partial file is never served).
+The rules (which jobs can be rendered from, camera-path limits, where files live) are in :mod:`app.core.outputs`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from celery import Celery
+from fastapi import APIRouter, HTTPException, Path, Query
+from fastapi.responses import FileResponse
+from kombu.exceptions import KombuError
+
+from app.core import jobstore, storage
+from app.core import outputs as store
+from app.core.dispatch import send_output
+from app.core.models import OutputRow
+from app.core.settings import Settings
+from app.deps import ID_DOC, CeleryDep, JobId, SettingsDep
+from app.schemas import ExportRequest, OutputOut, VideoRequest
+from voxnerf.camera_path import CameraPathError
+
+router = APIRouter(tags=["outputs"])
+OutputId = Annotated[str, Path(pattern=jobstore.ID_RE.pattern, description=f"output id, {ID_DOC}")]
+
+
+def _source_or_error(settings: Settings, job_id: str) -> bool:
+    """Whether outputs of job ``job_id`` are partial; 404 for an unknown job, 409 for one not to render from."""
+    job = jobstore.get_job(settings, job_id)
+    if job is None:
+        raise HTTPException(404, f"no job {job_id}")
+    try:
+        return store.trained_source(settings, job)
+    except store.NotRenderable as err:
+        raise HTTPException(409, str(err)) from None
+
+
+def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: dict, total: int | None,
+           partial: bool) -> OutputOut:
+    """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503)."""
+    row = store.create_output(settings, job_id, kind, params, total, partial)
+    try:
+        send_output(celery, row.id)
+    except (KombuError, OSError) as err:
+        store.fail_output(settings, row.id, f"the queue refused it: {err}")
+        raise HTTPException(503, f"the outputs queue is unavailable ({err}); try again later") from None
+    return OutputOut.from_row(row)
+
+
+def _output_or_404(settings: Settings, output_id: str) -> OutputRow:
+    row = store.get_output(settings, output_id)
+    if row is None:
+        raise HTTPException(404, f"no output {output_id}")
+    return row
+
+
+@router.post("/jobs/{job_id}/videos", status_code=202, response_model=OutputOut,
+             summary="Render a fly-through video (MP4) of a trained job")
+def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celery: CeleryDep) -> OutputOut:
+    partial = _source_or_error(settings, job_id)
+    try:
+        params, frames = store.video_params(settings, body.model_dump())
+    except CameraPathError as err:
+        raise HTTPException(422, str(err)) from None
+    return _queue(settings, celery, job_id, "video", params, frames, partial)
+
+
+@router.post("/jobs/{job_id}/exports", status_code=202, response_model=OutputOut,
+             summary="Export a mesh or a point cloud (PLY) of a trained job")
+def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, celery: CeleryDep) -> OutputOut:
+    partial = _source_or_error(settings, job_id)
+    return _queue(settings, celery, job_id, body.kind, body.model_dump(exclude={"kind"}), None, partial)
+
+
+@router.get("/jobs/{job_id}/outputs", response_model=list[OutputOut], summary="Output jobs of a job, newest first")
+def list_outputs(job_id: JobId, settings: SettingsDep, limit: int = Query(100, ge=1, le=1000)) -> list[OutputOut]:
+    if jobstore.get_job(settings, job_id) is None:
+        raise HTTPException(404, f"no job {job_id}")
+    return [OutputOut.from_row(row) for row in store.list_outputs(settings, job_id, limit)]
+
+
+@router.get("/outputs/{output_id}", response_model=OutputOut, summary="State, progress, ETA, error, summary")
+def get_output(output_id: OutputId, settings: SettingsDep) -> OutputOut:
+    return OutputOut.from_row(_output_or_404(settings, output_id))
+
+
+@router.post("/outputs/{output_id}/cancel", status_code=202, response_model=OutputOut, summary="Cancel an output")
+def cancel_output(output_id: OutputId, settings: SettingsDep) -> OutputOut:
+    """Cancel a queued output at once, a running one at its next frame or view (nothing is kept)."""
+    _output_or_404(settings, output_id)
+    row = store.request_cancel(settings, output_id)
+    if row.state in ("succeeded", "failed"):
+        raise HTTPException(409, f"output {output_id} already {row.state}")
+    return OutputOut.from_row(row)
+
+
+@router.get(
+    "/outputs/{output_id}/file",
+    response_class=FileResponse,
+    responses={
+        200: {"content": {"video/mp4": {}, "application/octet-stream": {}}, "description": "the MP4 or PLY"},
+        409: {"description": "the output has not succeeded"},
+    },
+    summary="Download a succeeded output (video/mp4, or PLY as application/octet-stream)",
+)
+def get_output_file(output_id: OutputId, settings: SettingsDep) -> FileResponse:
+    row = _output_or_404(settings, output_id)
+    if row.state != "succeeded":
+        raise HTTPException(409, f"output {output_id} is {row.state}; its file is served once it has succeeded")
+    try:
+        path = store.output_file(settings, row)
+    except storage.StorageError as err:
+        raise HTTPException(503, f"the output cannot be fetched from the store: {err}") from None
+    except FileNotFoundError:
+        raise HTTPException(404, f"output {output_id}: its file is gone from the data directory") from None
+    return FileResponse(path, media_type=store.MEDIA_TYPES[row.kind], filename=f"{row.id}-{row.file_name}")

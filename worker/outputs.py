@@ -1,0 +1,186 @@
+"""Celery task of the ``outputs`` queue: make an output job's video, mesh or point cloud from a trained model.
+
+The task claims the output in the job store (fenced by its attempt, :mod:`app.core.outputs`), loads the trained
+job's model through this process's model cache (:func:`worker.tasks.model_cache`; with an object store the
+run's checkpoint is fetched first), and runs the engine: :func:`voxnerf.video.render_path` for a video,
+:func:`voxnerf.export.export_geometry` for a mesh or point cloud. Progress (frames or views done, ETA) is
+written at most every ``progress_interval_s``; a :class:`worker.tasks.Lease` renews the output's lease every
+``heartbeat_s`` and turns its cancel flag into ``should_stop``, so a cancelled output stops at its next frame or
+view. The engine writes each file under a temporary name and renames it when complete; a failed or cancelled
+output's directory is removed, a succeeded one's is uploaded to the object store (when there is one).
+
+Generated video paths need the scene's training cameras: ``interpolate`` passes through them (evenly thinned
+to one key camera per :data:`FRAMES_PER_KEY` frames), ``orbit`` circles their centre
+(:func:`voxnerf.camera_path.orbit_defaults`, up: their mean +Y axis). Exports render from them too.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+from celery import shared_task
+
+from app.core import jobstore, outputs, storage
+from app.core.celery_app import OUTPUT_TASK
+from app.core.models import OutputRow
+from app.core.settings import Settings, get_settings
+from voxnerf.camera_path import (
+    CameraPath,
+    interpolate_path,
+    mean_up,
+    orbit_defaults,
+    orbit_path,
+    parse_nerfstudio,
+)
+from voxnerf.camera_rules import CameraError, resolve_intrinsics
+from voxnerf.errors import RunError, VoxNeRFError
+from voxnerf.export import export_geometry
+from voxnerf.render import TrainedModel
+from voxnerf.scene import Scene, load_scene
+from voxnerf.video import render_path
+from worker.tasks import Lease, model_cache
+
+log = logging.getLogger(__name__)
+
+FRAMES_PER_KEY = 8  # an interpolated video passes through one training camera per this many frames, at most
+
+
+class OutputProgress:
+    """``on_frame`` / ``on_view`` callback: writes ``done`` of ``total`` and an ETA to the job store, at most
+    once per ``progress_interval_s`` (the last step always)."""
+
+    def __init__(self, settings: Settings, output_id: str, attempt: int) -> None:
+        self.settings = settings
+        self.output_id = output_id
+        self.attempt = attempt
+        self._started = time.monotonic()
+        self._last_write = -float("inf")
+
+    def __call__(self, done: int, total: int) -> None:
+        now = time.monotonic()
+        if done < total and now - self._last_write < self.settings.progress_interval_s:
+            return
+        self._last_write = now
+        eta_s = (now - self._started) * (total - done) / done if done > 0 else None
+        outputs.record_progress(self.settings, self.output_id, self.attempt, done, total, eta_s)
+
+
+# ------------------------------------------------------------------------------------------------ inputs
+
+
+def scene_of(settings: Settings, job, trained: TrainedModel) -> Scene:
+    """The cameras (no images) of the scene job ``job`` trained on, at the trained downscale."""
+    scene_dir = storage.ensure_scene(settings, job.scene_id)
+    if not scene_dir.is_dir():
+        raise RunError(f"scene {job.scene_id} of job {job.id} was deleted: its cameras are needed")
+    return load_scene(scene_dir, downscale=int(trained.model.config.downscale), load_images=False)
+
+
+def key_cameras(poses: np.ndarray, n_frames: int) -> np.ndarray:
+    """Evenly spaced cameras of ``poses`` [N, 4, 4] for a path of ``n_frames``: at least 2 (when N allows), at
+    most one per :data:`FRAMES_PER_KEY` frames, first and last kept."""
+    count = min(len(poses), max(2, n_frames // FRAMES_PER_KEY))
+    return poses[np.unique(np.linspace(0, len(poses) - 1, count).round().astype(int))]
+
+
+def generated_path(settings: Settings, params: dict, trained: TrainedModel, scene: Scene) -> CameraPath:
+    """The ``interpolate`` or ``orbit`` path of a video's ``params`` around ``scene``'s training cameras."""
+    intrinsics = resolve_intrinsics(
+        trained.default_intrinsics, width=params["width"], height=params["height"],
+        max_pixels=settings.max_render_pixels,
+    ).undistorted()
+    poses = np.stack([scene.frames[i].c2w for i in scene.train_indices])
+    n_frames, fps = params["frames"], params["fps"]
+    if params["path"] == "orbit":
+        up = mean_up(poses)
+        center, radius = orbit_defaults(poses, up)
+        return orbit_path(center, radius=params["radius"] or radius, height=params["height_above"] or 0.0,
+                          n_frames=n_frames, intrinsics=intrinsics, fps=fps, up=up)
+    keys = key_cameras(poses, n_frames)
+    if n_frames < 2 or len(keys) < 2:
+        return CameraPath(np.repeat(poses[:1], n_frames, axis=0), [intrinsics] * n_frames, fps)
+    return interpolate_path(keys, intrinsics, n_frames=n_frames, fps=fps)
+
+
+def video_path(settings: Settings, params: dict, trained: TrainedModel, job) -> CameraPath:
+    """The camera path of a video output: the stored nerfstudio path (scene units), or a generated one."""
+    if params.get("camera_path") is not None:
+        return parse_nerfstudio(
+            params["camera_path"], max_frames=settings.max_video_frames, max_pixels=settings.max_render_pixels
+        )
+    return generated_path(settings, params, trained, scene_of(settings, job, trained))
+
+
+# ------------------------------------------------------------------------------------------------ making
+
+
+def make_video(settings: Settings, row: OutputRow, job, trained: TrainedModel, lease: Lease) -> dict | None:
+    """Render the video; its summary, or None when cancelled (nothing written)."""
+    path = video_path(settings, row.params, trained, job)
+    out = outputs.output_dir(settings, row.job_id, row.id) / outputs.FILE_NAMES["video"]
+    result = render_path(trained, path, out, on_frame=OutputProgress(settings, row.id, row.attempt),
+                         should_stop=lease.should_stop)
+    if result.stopped:
+        return None
+    width, height = path.size
+    return {"frames": result.frames, "width": width, "height": height, "fps": path.fps,
+            "duration_s": path.seconds, "render_seconds": round(result.seconds, 3), "bytes": out.stat().st_size}
+
+
+def make_export(settings: Settings, row: OutputRow, job, trained: TrainedModel, lease: Lease) -> dict | None:
+    """Export the mesh or point cloud; its summary, or None when cancelled (nothing written)."""
+    out = outputs.output_dir(settings, row.job_id, row.id) / outputs.FILE_NAMES[row.kind]
+    result = export_geometry(
+        trained, out, row.kind, scene=scene_of(settings, job, trained), voxel_size=row.params.get("voxel_size"),
+        min_opacity=row.params.get("min_opacity", 0.5), max_views=row.params.get("max_views"),
+        on_view=OutputProgress(settings, row.id, row.attempt), should_stop=lease.should_stop,
+    )
+    if result.stopped:
+        return None
+    summary = {key: value for key, value in result.summary().items() if key not in ("out", "stopped")}
+    return {**summary, "bytes": out.stat().st_size}
+
+
+def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
+    """Make a claimed output; the final row values: ``state`` succeeded (summary, file name), cancelled, or
+    failed (error)."""
+    try:
+        job = jobstore.get_job(settings, row.job_id)
+        if job is None:
+            raise RunError(f"job {row.job_id} no longer exists")
+        trained = model_cache().get(storage.ensure_run(settings, row.job_id, refresh=False), settings.device)
+        make = make_video if row.kind == "video" else make_export
+        summary = make(settings, row, job, trained, lease)
+        if summary is None:
+            return {"state": "cancelled"}
+        outputs.publish_output(settings, row, outputs.output_dir(settings, row.job_id, row.id))
+    except (VoxNeRFError, CameraError) as err:
+        log.warning("output %s failed: %s", row.id, err)
+        return {"state": "failed", "error": f"{type(err).__name__}: {err}"}
+    except Exception as err:
+        log.exception("output %s crashed", row.id)
+        return {"state": "failed", "error": f"internal error: {type(err).__name__}: {err}"}
+    return {"state": "succeeded", "summary": summary, "file_name": outputs.FILE_NAMES[row.kind]}
+
+
+@shared_task(name=OUTPUT_TASK, acks_late=True, reject_on_worker_lost=True)
+def make_output(output_id: str) -> None:
+    """Make output ``output_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
+    settings = get_settings()
+    row = outputs.claim_output(settings, output_id, jobstore.worker_identity())
+    if row is None:
+        log.info("output %s: nothing to do (finished, cancelled, or running elsewhere)", output_id)
+        return
+    if row.cancel_requested:
+        outputs.finish_output(settings, output_id, row.attempt, "cancelled", {})
+        return
+    with Lease(settings, output_id, row.attempt, renew=outputs.renew_lease) as lease:
+        values = produce(settings, row, lease)
+    if lease.lost.is_set():
+        return  # requeued elsewhere: the new owner writes the row and the files
+    state = values.pop("state")
+    if state != "succeeded":
+        outputs.remove_files(settings, row)
+    outputs.finish_output(settings, output_id, row.attempt, state, values)
