@@ -25,6 +25,7 @@ prior_noise_sweep = importlib.import_module("prior_noise_sweep")
 docs_section = importlib.import_module("docs_section")
 optimizer_step = importlib.import_module("optimizer_step")
 depth_sources = importlib.import_module("depth_sources")
+render_speed = importlib.import_module("render_speed")
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -294,3 +295,19 @@ def test_depth_sources_quick(room: Path, tmp_path: Path) -> None:
     assert all(r["iterations"] == 3 for r in results.values())
     table = (out / "table.md").read_text()
     assert all(f"| {name} | 3 |" in table for name in depth_sources.VARIANTS)
+
+
+def test_render_speed_table_states_both_paths_their_ratio_and_the_psnr_gap():
+    timing = {"fast": {"n": 3, "p50_ms": 100.0, "p95_ms": 120.0}, "full": {"n": 3, "p50_ms": 250.0, "p95_ms": 300.0}}
+    results = {
+        "environment": {"date": "2026-11-24", "machine": "Linux", "cpus": 2, "torch": "2", "load": "0.1"},
+        "poses": 3, "renders": 4, "room_seconds": 60.0,
+        "service": {"fast-0": {"n": 4, "p50_ms": 200.0, "p95_ms": 220.0}, "full-1": {"n": 4, "p50_ms": 500.0,
+                    "p95_ms": 600.0}, "fast-2": {"n": 4, "p50_ms": 300.0, "p95_ms": 330.0}},
+        "scenes": {"room 60 s": {"frame_times": {"320x240": timing}, "psnr": {
+            "fast": {"test": 25.1, "seconds": 1.0}, "full": {"test": 25.2, "seconds": 2.0}}}},
+    }
+    text = render_speed.markdown(results, "cmd")
+    assert "| room 60 s | 320x240 in process | 100 / 120 ms | 250 / 300 ms | 2.50x |" in text
+    assert "200 / 220 ms then 300 / 330 ms | 500 / 600 ms | 2.00x |" in text  # against the mean of the fast rounds
+    assert "| room 60 s | test | 25.100 dB | 25.200 dB | -0.100 dB |" in text and "cmd" in text

@@ -15,7 +15,7 @@ from voxnerf.cli import main
 from voxnerf.config import TrainConfig
 from voxnerf.depth_fusion import DepthView, backproject
 from voxnerf.errors import VoxNeRFError
-from voxnerf.export import EXPORT_KINDS, ExportError, export_geometry, fuse_mesh, point_cloud
+from voxnerf.export import EXPORT_KINDS, ExportError, distances_to_mesh, export_geometry, fuse_mesh, point_cloud
 from voxnerf.render import load_model
 from voxnerf.scene import Frame, Scene, load_scene
 from voxnerf.training.run import train
@@ -51,10 +51,7 @@ def exported(trained_room, tmp_path_factory) -> dict[str, Path]:
 
 
 def _distance_to(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()
+    return distances_to_mesh(points, mesh)
 
 
 def _distance_to_points(cloud: np.ndarray, queries: np.ndarray) -> np.ndarray:

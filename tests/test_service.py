@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from service_fixtures import Service, first_pose, start_redis, start_service, upload_scene, wait_for, zip_scene
 
-from voxnerf.image_io import decode_exr
+from voxnerf.image_io import decode_exr, srgb_to_linear
 
 pytestmark = pytest.mark.slow
 
@@ -168,8 +168,8 @@ def test_render_png_and_exr_of_a_held_out_pose(service, client, trained, small_r
     channels = decode_exr(exr)
     assert sorted(channels) == ["A", "B", "G", "R", "Z"]
     assert all(c.shape == (48, 64) and np.isfinite(c).all() for c in channels.values())
-    linear = np.stack([channels[c] for c in "RGB"], -1)
-    assert np.abs(np.clip(linear, 0, 1) * 255 - rgb).mean() < 1.0
+    linear = np.stack([channels[c] for c in "RGB"], -1)  # linear light: the PNG's sRGB colour decoded
+    assert np.abs(linear - srgb_to_linear(rgb / 255.0)).mean() < 1.0 / 255
     assert channels["A"].min() >= 0.0 and channels["A"].max() <= 1.0 + 1e-5
     assert 0.0 < np.median(channels["Z"]) < 20.0  # metres, around a 5 x 4 x 2.6 m room
 

@@ -22,7 +22,7 @@ from app.core.render_request import RenderRequest
 from app.core.settings import Settings
 from app.uploads import TRANSFORMS, UploadError, safe_relpath
 from voxnerf.cameras import Intrinsics
-from voxnerf.image_io import decode_exr
+from voxnerf.image_io import decode_exr, srgb_to_linear
 from voxnerf.outputs import encode_outputs as encode_render
 from voxnerf.training.records import EvalRecord, ProgressEvent
 
@@ -98,7 +98,7 @@ def test_encode_render_png_and_exr_round_trip():
     assert alpha.shape == (6, 8) and alpha.dtype == np.uint8
     channels = decode_exr(encode_render(images, "exr", ["rgb", "depth", "opacity"], 0.001))
     assert sorted(channels) == ["A", "B", "G", "R", "Z"]
-    np.testing.assert_array_equal(np.stack([channels[c] for c in "RGB"], -1), images["rgb"])
+    np.testing.assert_array_equal(np.stack([channels[c] for c in "RGB"], -1), srgb_to_linear(images["rgb"]))
     np.testing.assert_array_equal(channels["Z"], images["depth"])
     np.testing.assert_array_equal(channels["A"], images["opacity"])
     assert sorted(decode_exr(encode_render(images, "exr", ["depth"], 0.001))) == ["Z"]

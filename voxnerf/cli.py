@@ -533,7 +533,7 @@ def _add_serve_command(sub: argparse._SubParsersAction) -> None:
 
 def _add_worker_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("worker", help="start a Celery worker")
-    p.add_argument("--queues", default="train,render")
+    p.add_argument("--queues", default="train,render,outputs")
     p.add_argument("--concurrency", type=int, default=1)
     p.set_defaults(func=_worker)
 

@@ -76,7 +76,7 @@ def evaluate_views(
                 write_atomic(out_dir / split / f"{view.name}.png", encode_png(rgb.numpy()))
         scores = evaluate_images(preds, gts, lp)
         mean = scores["mean"]
-        renderer = FAST.describe() if path == "fast" else "full: every sample of every ray"
+        renderer = FAST.describe(model.device) if path == "fast" else "full: every sample of every ray"
         entry = {"psnr": mean["psnr"], "ssim": mean["ssim"], "lpips": mean["lpips"], "renderer": renderer, "views": [
             {"name": v.name, "psnr": scores["psnr"][i], "ssim": scores["ssim"][i],
              "lpips": None if scores["lpips"] is None else scores["lpips"][i]}

@@ -304,3 +304,14 @@ def point_cloud_ply(points: np.ndarray, colours: np.ndarray, normals: np.ndarray
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
     header += [f"property {types[t]} {name}" for name, t in fields] + ["end_header"]
     return ("\n".join(header) + "\n").encode() + table.tobytes()
+
+
+def distances_to_mesh(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarray:
+    """Unsigned distance [N] from each point [N, 3] to the surface of ``mesh`` (open3d's ray-casting scene),
+    in the points' units: the accuracy of an export against a true mesh, or completeness the other way round."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()

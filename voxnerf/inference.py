@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -39,13 +40,15 @@ class FastSettings:
     min_transmittance: float = 1e-4
     min_weight: float = 1e-4
     skip_empty: bool = False
-    block: int = 8192  # rays composited together
+    block: int = 16384  # rays sampled and composited together
     precision: str = "auto"  # of the MLPs: auto (bfloat16 where native), float32 or bfloat16
 
-    def describe(self) -> str:
+    def describe(self, device: torch.device | None = None) -> str:
+        """One line for reports: the bounds, and the MLPs' precision on ``device`` (when given)."""
         empty = ", empty cells skipped" if self.skip_empty else ""
+        precision = f", MLPs in {resolve_precision(self.precision, device)}" if device is not None else ""
         return (f"fast: rays stop below transmittance {self.min_transmittance:g}, no colour below weight "
-                f"{self.min_weight:g}{empty}")
+                f"{self.min_weight:g}{empty}{precision}")
 
 
 FAST = FastSettings()
@@ -110,13 +113,20 @@ def _cast(layer: nn.Linear, dtype: torch.dtype) -> nn.Linear:
     return copy.requires_grad_(False)
 
 
-def field_runner(model, precision: str = "auto") -> FieldRunner:
-    """The model's :class:`FieldRunner` for ``precision`` (auto: bfloat16 where native), built once per model
-    and precision. A runner holds copies of the MLP weights: rebuild the model after changing its field."""
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """``"float32"`` or ``"bfloat16"``: ``precision`` itself, or for ``"auto"`` bfloat16 where ``device`` has it
+    natively. ValueError for anything else."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if precision == "auto":
-        precision = "bfloat16" if native_bfloat16(model.device) else "float32"
+        return "bfloat16" if native_bfloat16(device) else "float32"
+    return precision
+
+
+def field_runner(model, precision: str = "auto") -> FieldRunner:
+    """The model's :class:`FieldRunner` for ``precision`` (auto: bfloat16 where native), built once per model
+    and precision. A runner holds copies of the MLP weights: rebuild the model after changing its field."""
+    precision = resolve_precision(precision, model.device)
     key = ("field_runner", precision)
     if key not in model._compiled:
         model._compiled[key] = FieldRunner(model.field, getattr(torch, precision))
@@ -128,22 +138,41 @@ def render_rays_fast(model, rays: RayBundle, sampler, settings: FastSettings = F
     """Render a ray batch like ``model.render_rays(rays, sampler)``: ``rgb`` [R, 3], ``depth`` [R] (ray
     distance, normalised units), ``opacity`` [R], float32 on the rays' device.
 
-    The rays are walked in blocks of ``settings.block`` (each column of a block is a few MB: it stays in cache).
+    The rays are sampled and walked in blocks of ``settings.block`` (each column of a block is a few MB: it stays
+    in cache). On the CPU the blocks go to one thread per torch thread, each running its operations
+    single-threaded: the operations on a block are too small to share among threads, and blocks are independent.
     """
-    starts, ends = sampler(rays, False)
-    occupied = _occupied(model, rays, 0.5 * (starts + ends)) if settings.skip_empty else None
     runner = field_runner(model, settings.precision)
-    dir_features = runner.direction_features(rays.dirs)
-    parts = []
-    for i in range(0, len(rays), settings.block):
-        block = slice(i, i + settings.block)
-        acc = _Composite.empty(len(rays.origins[block]), starts.device)
+
+    @torch.no_grad()  # grad mode is per thread
+    def block(i: int) -> tuple[Tensor, Tensor, Tensor]:
+        part = rays.slice(i, i + settings.block)
+        starts, ends = sampler(part, False)
+        occupied = _occupied(model, part, 0.5 * (starts + ends)) if settings.skip_empty else None
+        dir_features = runner.direction_features(part.dirs)
+        acc = _Composite.empty(len(part), starts.device)
         for j in range(starts.shape[1]):
-            acc.add_column(runner, rays.origins[block], rays.dirs[block], starts[block, j], ends[block, j],
-                           dir_features[block], None if occupied is None else occupied[block, j], settings)
-        parts.append(acc.finish(starts[block, 0], ends[block, -1], model.background))
+            acc.add_column(runner, part.origins, part.dirs, starts[:, j], ends[:, j], dir_features,
+                           None if occupied is None else occupied[:, j], settings)
+        return acc.finish(starts[:, 0], ends[:, -1], model.background)
+
+    parts = _map_blocks(block, range(0, len(rays), settings.block), rays.origins.device)
     rgb, opacity, depth = (torch.cat(values) for values in zip(*parts, strict=True))
     return {"rgb": rgb, "depth": depth, "opacity": opacity}
+
+
+def _map_blocks(fn, starts: range, device: torch.device) -> list:
+    """``[fn(i) for i in starts]``, on the CPU spread over ``torch.get_num_threads()`` threads whose operations
+    run single-threaded meanwhile (the setting is restored after)."""
+    threads = torch.get_num_threads()
+    if device.type != "cpu" or threads == 1 or len(starts) == 1:
+        return [fn(i) for i in starts]
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(threads) as pool:
+            return list(pool.map(fn, starts))
+    finally:
+        torch.set_num_threads(threads)
 
 
 @dataclass

@@ -45,6 +45,12 @@ class RayBundle:
     def __len__(self) -> int:
         return self.origins.shape[0]
 
+    def slice(self, start: int, stop: int) -> RayBundle:
+        """Rays ``start:stop`` (views of this bundle's tensors)."""
+        rows = slice(start, stop)
+        hits = (None, None) if self.hit_t is None or self.hit is None else (self.hit_t[rows], self.hit[rows])
+        return RayBundle(self.origins[rows], self.dirs[rows], self.near[rows], self.far[rows], *hits)
+
 
 def intervals_from_points(t: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
     """Sorted sample distances [R, S] -> intervals [R, S] split at the midpoints between samples, the first
