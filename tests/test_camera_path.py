@@ -374,3 +374,55 @@ def test_camera_path_refuses_mixed_sizes_lenses_and_count_mismatch(intrinsics, k
     with pytest.raises(CameraPathError) as err:
         CameraPath(_scene_poses(2), intrinsics)
     assert err.value.key == key
+
+
+def _ring(n: int) -> np.ndarray:
+    """n cameras on a horizontal circle of radius 2 (z up), looking at the origin, in capture order."""
+    from voxnerf.camera_path import look_at
+
+    angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([look_at(np.array([2 * np.cos(a), 2 * np.sin(a), 0.0]), np.zeros(3), np.array([0.0, 0, 1]))
+                     for a in angles])
+
+
+def test_generated_interpolation_thins_the_cameras_to_one_per_eight_frames():
+    from voxnerf.camera_path import FRAMES_PER_KEY, generated_path
+
+    poses = _ring(20)
+    path = generated_path("interpolate", poses, CAMERA, n_frames=4 * FRAMES_PER_KEY, fps=10.0)
+    assert len(path) == 4 * FRAMES_PER_KEY and path.fps == 10.0
+    hits = [np.abs(path.poses - p).sum(axis=(1, 2)).min() < 1e-6 for p in poses]
+    assert sum(hits) == 4 and hits[0] and hits[-1]  # 4 key cameras, first and last among them
+    assert len(generated_path("interpolate", poses, CAMERA, n_frames=100, keyframes=20)) == 100
+
+
+def test_generated_orbit_circles_the_cameras_centre_at_their_radius():
+    from voxnerf.camera_path import generated_path
+
+    path = generated_path("orbit", _ring(12), CAMERA, n_frames=8)
+    np.testing.assert_allclose(np.linalg.norm(path.poses[:, :2, 3], axis=1), 2.0, atol=1e-9)
+    np.testing.assert_allclose(path.poses[:, 2, 3], 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("kind", "poses", "options", "key"),
+    [
+        ("spiral", _ring(4), {}, "path"),
+        ("orbit", np.stack([np.eye(4)] * 3), {}, "radius"),  # cameras on one vertical line: no default radius
+        ("interpolate", _ring(4), {"keyframes": 1}, "keyframes"),
+        ("interpolate", _ring(4), {"n_frames": 0}, "n_frames"),
+    ],
+)
+def test_generated_paths_refuse_what_they_cannot_make(kind, poses, options, key):
+    from voxnerf.camera_path import generated_path
+
+    with pytest.raises(CameraPathError) as err:
+        generated_path(kind, poses, CAMERA, **{"n_frames": 16, **options})
+    assert err.value.key == key
+
+
+def test_one_camera_gives_a_still_path():
+    from voxnerf.camera_path import generated_path
+
+    path = generated_path("interpolate", _ring(1), CAMERA, n_frames=5)
+    assert len(path) == 5 and np.allclose(path.poses, _ring(1)[0])

@@ -13,7 +13,7 @@ import pytest
 import torch
 from tiny_run import DEFAULT_INTRINSICS, write_tiny_run
 
-from voxnerf.camera_path import read_nerfstudio
+from voxnerf.camera_path import FRAMES_PER_KEY, read_nerfstudio
 from voxnerf.camera_rules import Intrinsics
 from voxnerf.cli import main
 from voxnerf.outputs import encode_outputs
@@ -115,12 +115,13 @@ def test_camera_path_with_dataparser_transforms_renders_scene_poses(run, tmp_pat
 
 def test_interpolate_through_training_cameras_with_depth(run, scene, tmp_path):
     out = tmp_path / "frames"
-    assert _render(run, "--path", "interpolate", "--scene", scene, "--frames", 15, "--fps", 5, "--depth",
+    frames = 7 * FRAMES_PER_KEY  # enough for every one of the 7 training cameras to be a key camera
+    assert _render(run, "--path", "interpolate", "--scene", scene, "--frames", frames, "--fps", 5, "--depth",
                    "--out", out) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert len(names) == 1 + 2 * 15 and "frame_00014_depth.png" in names
+    assert len(names) == 1 + 2 * frames and f"frame_{frames - 1:05d}_depth.png" in names
     path = read_nerfstudio(out / "camera_path.json")
-    assert len(path) == 15 and path.fps == 5 and path.size == (DEFAULT_INTRINSICS.width, DEFAULT_INTRINSICS.height)
+    assert len(path) == frames and path.fps == 5 and path.size == (DEFAULT_INTRINSICS.width, DEFAULT_INTRINSICS.height)
     keys = _training_poses(scene)
     np.testing.assert_allclose(path.poses[0], keys[0], atol=1e-9)
     np.testing.assert_allclose(path.poses[-1], keys[-1], atol=1e-9)
@@ -235,7 +236,7 @@ def _bad_camera_path(tmp_path):
          lambda t, s: "--radius: must be a positive finite number, got -1.0"),
         (lambda t, s: ["--path", "orbit", "--width", 16, "--frames", 2, "--scene", s, "--out", t / "out"],
          lambda t, s: "--width, --height: give width and height together"),
-        (lambda t, s: ["--path", "interpolate", "--frames", 3, "--scene", s, "--out", t / "out"],
+        (lambda t, s: ["--path", "interpolate", "--frames", 3, "--keyframes", 7, "--scene", s, "--out", t / "out"],
          lambda t, s: "--frames: 3 frames cannot pass through 7 cameras (one frame each)"),
         (lambda t, s: ["--path", "interpolate", "--keyframes", 1, "--scene", s, "--out", t / "out"],
          lambda t, s: "--keyframes: must be at least 2, got 1"),

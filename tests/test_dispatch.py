@@ -89,3 +89,13 @@ def test_a_job_stays_stale_when_publishing_fails(settings, monkeypatch):
     assert jobstore.get_job(settings, job_id).state == "running"  # the next sweep tries again
     monkeypatch.undo()
     assert requeue_stale_jobs(settings, celery) == [job_id]
+
+
+def test_a_render_worker_polls_the_embedded_queue_faster(settings):
+    from app.core.celery_app import RENDER_QUEUE, TRAIN_QUEUE
+
+    def interval(queues):
+        return create_celery(settings, queues=queues).conf.broker_transport_options["polling_interval"]
+
+    assert interval([TRAIN_QUEUE]) == settings.broker_polling_interval_s
+    assert interval([TRAIN_QUEUE, RENDER_QUEUE]) == settings.render_polling_interval_s < interval([TRAIN_QUEUE])

@@ -139,7 +139,7 @@ def test_bad_video_requests_name_the_key(settings, request_body, key):
 
 
 def test_key_cameras_thin_evenly_and_keep_the_ends():
-    from worker.outputs import FRAMES_PER_KEY, key_cameras
+    from voxnerf.camera_path import FRAMES_PER_KEY, key_cameras
 
     poses = np.tile(np.eye(4), (20, 1, 1))
     poses[:, 0, 3] = np.arange(20)

@@ -572,3 +572,40 @@ def orbit_path(
     eyes = center + height * up + radius * (np.cos(angles)[:, None] * first + np.sin(angles)[:, None] * second)
     poses = np.stack([look_at(eye, center, up) for eye in eyes])
     return CameraPath(poses, [intrinsics.undistorted()] * n_frames, fps)
+
+
+FRAMES_PER_KEY = 8  # an interpolated path passes through one key camera per this many frames, at most
+GENERATED_PATHS = ("interpolate", "orbit")
+
+
+def key_cameras(poses: np.ndarray, n_frames: int, keyframes: int | None = None) -> np.ndarray:
+    """Evenly spaced cameras of ``poses`` [N, 4, 4] (capture order) for an interpolated path of ``n_frames``,
+    first and last kept: ``keyframes`` of them when given (at least 2), else as many as leave
+    :data:`FRAMES_PER_KEY` frames between two (at least 2 when N allows)."""
+    if keyframes is not None and keyframes < 2:
+        raise CameraPathError(f"must be at least 2, got {keyframes}", "keyframes")
+    count = min(len(poses), keyframes if keyframes is not None else max(2, n_frames // FRAMES_PER_KEY))
+    return poses[np.unique(np.linspace(0, len(poses) - 1, count).round().astype(int))]
+
+
+def generated_path(kind: str, poses: np.ndarray, intrinsics: Intrinsics, *, n_frames: int, fps: float = 30.0,
+                   radius: float | None = None, height: float = 0.0, keyframes: int | None = None) -> CameraPath:
+    """The ``interpolate`` or ``orbit`` path around cameras ``poses`` [N, 4, 4] (the training cameras in capture
+    order, scene units): ``interpolate`` through their :func:`key_cameras`; ``orbit`` around their centre at
+    ``radius`` (default: their mean distance from the vertical through it) and ``height`` above it, up being
+    their mean +Y axis. One camera (or one frame) gives a still path at the first camera."""
+    check_frame_count(n_frames, MAX_FRAMES, key="n_frames")
+    poses = np.asarray(poses, dtype=np.float64)
+    if kind == "interpolate":
+        keys = key_cameras(poses, n_frames, keyframes)
+        if n_frames < 2 or len(keys) < 2:
+            return CameraPath(np.repeat(keys[:1], n_frames, axis=0), [intrinsics] * n_frames, fps)
+        return interpolate_path(keys, intrinsics, n_frames=n_frames, fps=fps)
+    if kind != "orbit":
+        raise CameraPathError(f"must be one of {list(GENERATED_PATHS)}, got {kind!r}", "path")
+    up = mean_up(poses)
+    center, default_radius = orbit_defaults(poses, up)
+    if radius is None and default_radius < 1e-6:
+        raise CameraPathError("the cameras lie on one vertical line (no default radius); give one", "radius")
+    return orbit_path(center, radius=default_radius if radius is None else radius, height=height,
+                      n_frames=n_frames, intrinsics=intrinsics, fps=fps, up=up)

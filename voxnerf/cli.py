@@ -136,6 +136,7 @@ DEFAULT_PATH_SECONDS = 10.0
 DEFAULT_PATH_FPS = 30.0
 # Arguments of voxnerf.camera_path's functions, by the flag that gives them.
 PATH_ARG_FLAGS = {"n_frames": "--frames", "fps": "--fps", "radius": "--radius", "height": "--height-above",
+                  "keyframes": "--keyframes",
                   "poses": "the training cameras", "up": "the training cameras' up axes"}
 
 
@@ -240,33 +241,21 @@ def _frame_count(args: argparse.Namespace) -> tuple[int, float]:
 
 
 def _training_poses(args: argparse.Namespace, trained) -> np.ndarray:
-    """Training cameras ``[K, 4, 4]`` (scene units) in capture order (transforms.json's), ``--keyframes`` of
-    them evenly spaced when given."""
+    """Training cameras ``[K, 4, 4]`` (scene units) in capture order (transforms.json's)."""
     scene = _run_scene(args, trained)
-    poses = np.stack([scene.frames[i].c2w for i in sorted(scene.train_indices)])
-    if args.keyframes is not None:
-        if args.keyframes < 2:
-            raise RunError(f"--keyframes: must be at least 2, got {args.keyframes}")
-        poses = poses[np.unique(np.round(np.linspace(0, len(poses) - 1, args.keyframes)).astype(int))]
-    return poses
+    return np.stack([scene.frames[i].c2w for i in sorted(scene.train_indices)])
 
 
 def _generated_path(args: argparse.Namespace, mode: str, trained):
-    """The ``--path interpolate`` or ``--path orbit`` camera path of the run's training cameras."""
-    from voxnerf.camera_path import CameraPathError, interpolate_path, mean_up, orbit_defaults, orbit_path
+    """The ``--path interpolate`` or ``--path orbit`` camera path of the run's training cameras
+    (:func:`voxnerf.camera_path.generated_path`, the rule of the service's video jobs too)."""
+    from voxnerf.camera_path import CameraPathError, generated_path
 
     n_frames, fps = _frame_count(args)
     camera = _sized(args, trained.default_intrinsics)
-    poses = _training_poses(args, trained)
     try:
-        if mode == "interpolate":
-            return interpolate_path(poses, camera, n_frames=n_frames, fps=fps)
-        up = mean_up(poses)
-        center, radius = orbit_defaults(poses, up)
-        if args.radius is None and radius < 1e-6:
-            raise RunError("--radius: the training cameras lie on one vertical line (no default radius); give it")
-        return orbit_path(center, radius=radius if args.radius is None else args.radius,
-                          height=args.height_above or 0.0, n_frames=n_frames, intrinsics=camera, fps=fps, up=up)
+        return generated_path(mode, _training_poses(args, trained), camera, n_frames=n_frames, fps=fps,
+                              radius=args.radius, height=args.height_above or 0.0, keyframes=args.keyframes)
     except CameraPathError as err:
         raise RunError(f"{PATH_ARG_FLAGS.get(err.key, err.key)}: {err.message}") from None
 
@@ -467,7 +456,8 @@ def _add_render_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seconds", type=float, help=f"--path: duration (default {DEFAULT_PATH_SECONDS:g})")
     p.add_argument("--fps", type=float, help=f"--path: frames per second (default {DEFAULT_PATH_FPS:g})")
     p.add_argument("--keyframes", type=int, metavar="N",
-                   help="--path interpolate: through N training cameras evenly spaced in capture order (default all)")
+                   help="--path interpolate: through N training cameras evenly spaced in capture order "
+                        "(default: one per 8 frames, all when the path is long enough)")
     p.add_argument("--width", type=int, help="--path, --frame: image width (with --height; default the run's camera)")
     p.add_argument("--height", type=int, help="--path, --frame: image height (with --width)")
     p.add_argument("--radius", type=float,

@@ -40,7 +40,7 @@ class FastSettings:
     min_transmittance: float = 1e-4
     min_weight: float = 1e-4
     skip_empty: bool = False
-    block: int = 16384  # rays sampled and composited together
+    block: int = 16384  # most rays sampled and composited together
     precision: str = "auto"  # of the MLPs: auto (bfloat16 where native), float32 or bfloat16
 
     def describe(self, device: torch.device | None = None) -> str:
@@ -143,10 +143,12 @@ def render_rays_fast(model, rays: RayBundle, sampler, settings: FastSettings = F
     single-threaded: the operations on a block are too small to share among threads, and blocks are independent.
     """
     runner = field_runner(model, settings.precision)
+    workers = _block_workers(rays.origins.device)
+    size = _block_size(len(rays), settings.block, workers)
 
     @torch.no_grad()  # grad mode is per thread
     def block(i: int) -> tuple[Tensor, Tensor, Tensor]:
-        part = rays.slice(i, i + settings.block)
+        part = rays.slice(i, i + size)
         starts, ends = sampler(part, False)
         occupied = _occupied(model, part, 0.5 * (starts + ends)) if settings.skip_empty else None
         dir_features = runner.direction_features(part.dirs)
@@ -156,20 +158,32 @@ def render_rays_fast(model, rays: RayBundle, sampler, settings: FastSettings = F
                            None if occupied is None else occupied[:, j], settings)
         return acc.finish(starts[:, 0], ends[:, -1], model.background)
 
-    parts = _map_blocks(block, range(0, len(rays), settings.block), rays.origins.device)
+    parts = _map_blocks(block, range(0, len(rays), size), workers)
     rgb, opacity, depth = (torch.cat(values) for values in zip(*parts, strict=True))
     return {"rgb": rgb, "depth": depth, "opacity": opacity}
 
 
-def _map_blocks(fn, starts: range, device: torch.device) -> list:
-    """``[fn(i) for i in starts]``, on the CPU spread over ``torch.get_num_threads()`` threads whose operations
-    run single-threaded meanwhile (the setting is restored after)."""
-    threads = torch.get_num_threads()
-    if device.type != "cpu" or threads == 1 or len(starts) == 1:
+def _block_workers(device: torch.device) -> int:
+    """Threads the blocks are spread over: the torch threads on the CPU, one elsewhere."""
+    return torch.get_num_threads() if device.type == "cpu" else 1
+
+
+def _block_size(rays: int, most: int, workers: int) -> int:
+    """Rays per block: at most ``most``, the blocks as even as can be and their number a multiple of
+    ``workers`` (so no thread idles while another finishes a last block)."""
+    blocks = workers * max(1, math.ceil(rays / (workers * most)))
+    return max(1, math.ceil(rays / blocks))
+
+
+def _map_blocks(fn, starts: range, workers: int) -> list:
+    """``[fn(i) for i in starts]``, spread over ``workers`` threads whose torch operations run single-threaded
+    meanwhile (the setting is restored after)."""
+    if workers == 1 or len(starts) == 1:
         return [fn(i) for i in starts]
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        with ThreadPoolExecutor(threads) as pool:
+        with ThreadPoolExecutor(workers) as pool:
             return list(pool.map(fn, starts))
     finally:
         torch.set_num_threads(threads)

@@ -22,7 +22,7 @@ from voxnerf.outputs import OUTPUT_NAMES
 
 OUTPUTS = OUTPUT_NAMES
 RENDER_PATHS = ("fast", "full")
-FAST_CHUNK = 1 << 16  # rays per call of the fast path (it composites them in cache-sized blocks)
+FAST_CHUNK = 1 << 20  # rays per call of the fast path (it samples and composites them in cache-sized blocks)
 
 
 @dataclass

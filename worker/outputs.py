@@ -9,9 +9,8 @@ written at most every ``progress_interval_s``; a :class:`worker.tasks.Lease` ren
 view. The engine writes each file under a temporary name and renames it when complete; a failed or cancelled
 output's directory is removed, a succeeded one's is uploaded to the object store (when there is one).
 
-Generated video paths need the scene's training cameras: ``interpolate`` passes through them (evenly thinned
-to one key camera per :data:`FRAMES_PER_KEY` frames), ``orbit`` circles their centre
-(:func:`voxnerf.camera_path.orbit_defaults`, up: their mean +Y axis). Exports render from them too.
+Generated video paths need the scene's training cameras (:func:`voxnerf.camera_path.generated_path`:
+``interpolate`` through evenly spaced ones, ``orbit`` around their centre). Exports render from them too.
 """
 
 from __future__ import annotations
@@ -26,14 +25,8 @@ from app.core import jobstore, outputs, storage
 from app.core.celery_app import OUTPUT_TASK
 from app.core.models import OutputRow
 from app.core.settings import Settings, get_settings
-from voxnerf.camera_path import (
-    CameraPath,
-    interpolate_path,
-    mean_up,
-    orbit_defaults,
-    orbit_path,
-    parse_nerfstudio,
-)
+from voxnerf import camera_path as camera_paths
+from voxnerf.camera_path import CameraPath, parse_nerfstudio
 from voxnerf.camera_rules import CameraError, resolve_intrinsics
 from voxnerf.errors import RunError, VoxNeRFError
 from voxnerf.export import export_geometry
@@ -43,8 +36,6 @@ from voxnerf.video import render_path
 from worker.tasks import Lease, model_cache
 
 log = logging.getLogger(__name__)
-
-FRAMES_PER_KEY = 8  # an interpolated video passes through one training camera per this many frames, at most
 
 
 class OutputProgress:
@@ -78,30 +69,17 @@ def scene_of(settings: Settings, job, trained: TrainedModel) -> Scene:
     return load_scene(scene_dir, downscale=int(trained.model.config.downscale), load_images=False)
 
 
-def key_cameras(poses: np.ndarray, n_frames: int) -> np.ndarray:
-    """Evenly spaced cameras of ``poses`` [N, 4, 4] for a path of ``n_frames``: at least 2 (when N allows), at
-    most one per :data:`FRAMES_PER_KEY` frames, first and last kept."""
-    count = min(len(poses), max(2, n_frames // FRAMES_PER_KEY))
-    return poses[np.unique(np.linspace(0, len(poses) - 1, count).round().astype(int))]
-
-
 def generated_path(settings: Settings, params: dict, trained: TrainedModel, scene: Scene) -> CameraPath:
-    """The ``interpolate`` or ``orbit`` path of a video's ``params`` around ``scene``'s training cameras."""
+    """The ``interpolate`` or ``orbit`` path of a video's ``params`` around ``scene``'s training cameras in
+    capture order (:func:`voxnerf.camera_path.generated_path`, the rule of ``voxnerf render --path`` too)."""
     intrinsics = resolve_intrinsics(
         trained.default_intrinsics, width=params["width"], height=params["height"],
         max_pixels=settings.max_render_pixels,
     ).undistorted()
-    poses = np.stack([scene.frames[i].c2w for i in scene.train_indices])
-    n_frames, fps = params["frames"], params["fps"]
-    if params["path"] == "orbit":
-        up = mean_up(poses)
-        center, radius = orbit_defaults(poses, up)
-        return orbit_path(center, radius=params["radius"] or radius, height=params["height_above"] or 0.0,
-                          n_frames=n_frames, intrinsics=intrinsics, fps=fps, up=up)
-    keys = key_cameras(poses, n_frames)
-    if n_frames < 2 or len(keys) < 2:
-        return CameraPath(np.repeat(poses[:1], n_frames, axis=0), [intrinsics] * n_frames, fps)
-    return interpolate_path(keys, intrinsics, n_frames=n_frames, fps=fps)
+    poses = np.stack([scene.frames[i].c2w for i in sorted(scene.train_indices)])
+    return camera_paths.generated_path(params["path"], poses, intrinsics, n_frames=params["frames"],
+                                       fps=params["fps"], radius=params["radius"] or None,
+                                       height=params["height_above"] or 0.0)
 
 
 def video_path(settings: Settings, params: dict, trained: TrainedModel, job) -> CameraPath:

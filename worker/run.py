@@ -32,7 +32,7 @@ def run_worker(queues: list[str], concurrency: int) -> None:
     settings.make_dirs()
     storage.check_store(settings)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    celery_app = create_celery(settings, include=TASK_MODULES)
+    celery_app = create_celery(settings, include=TASK_MODULES, queues=queues)
     celery_app.worker_main(
         [
             "worker",

@@ -28,10 +28,11 @@ OUTPUTS_QUEUE = "outputs"  # output jobs: videos, meshes, point clouds (worker/o
 QUEUES = (TRAIN_QUEUE, RENDER_QUEUE, OUTPUTS_QUEUE)
 
 
-def create_celery(settings: Settings, include: Sequence[str] = ()) -> Celery:
+def create_celery(settings: Settings, include: Sequence[str] = (), queues: Sequence[str] = ()) -> Celery:
     """A Celery app for ``settings``: JSON messages, train/render/outputs routing, prefetch 1, no result backend.
 
-    ``include``: modules whose tasks a worker runs (the API only publishes by task name and needs none).
+    ``include``: modules whose tasks a worker runs (the API only publishes by task name and needs none);
+    ``queues``: those it consumes (they choose its polling interval on the embedded broker).
     """
     app = Celery("voxnerf", include=list(include))
     app.conf.update(
@@ -59,7 +60,7 @@ def create_celery(settings: Settings, include: Sequence[str] = ()) -> Celery:
                 "data_folder_out": queue,
                 "control_folder": str(settings.broker_dir / "control"),
                 "claimed_folder": str(settings.broker_dir / "claimed"),
-                "polling_interval": settings.broker_polling_interval_s,
+                "polling_interval": polling_interval_s(settings, queues),
             },
         )
     else:
@@ -72,3 +73,11 @@ def get_celery() -> Celery:
     """This process's publishing app for the environment's settings, built on first use (health checks,
     scripts); the API keeps its own in ``app.state.celery``."""
     return create_celery(get_settings())
+
+
+def polling_interval_s(settings: Settings, queues: Sequence[str]) -> float:
+    """How often a worker consuming ``queues`` polls the embedded filesystem queue when it is idle: the render
+    interval when it serves renders (the filesystem queue's latency is then a user's wait), else the broker's."""
+    if RENDER_QUEUE in queues:
+        return min(settings.render_polling_interval_s, settings.broker_polling_interval_s)
+    return settings.broker_polling_interval_s

@@ -39,6 +39,10 @@ class Settings(BaseSettings):
     broker_polling_interval_s: float = Field(
         default=0.05, gt=0, le=5, description="how often an idle worker looks into the filesystem queue"
     )
+    render_polling_interval_s: float = Field(
+        default=0.01, gt=0, le=5,
+        description="the same for a worker that consumes the render queue (a render's wait is a user's)",
+    )
     api_token: SecretStr | None = Field(
         default=None,
         description="when set, every endpoint but /healthz needs 'Authorization: Bearer <token>'",
