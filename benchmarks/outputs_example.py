@@ -5,9 +5,10 @@ with their sizes and times and the geometry's distance to the room's true mesh.
         [--voxel-size 0.02] [--write-docs]
 
 RUN: a run trained on ROOM, a scene from ``voxnerf synth`` (its ``gt_mesh.ply`` is the true geometry). Runs
-``voxnerf render RUN --path orbit`` and ``voxnerf export RUN --mesh/--pointcloud`` as a user would (the CLI, one
-process each), then measures the exported geometry: accuracy = distance of its vertices to the true mesh,
-completeness = distance of the true surface the training cameras see (their exact depth maps) to the export.
+``voxnerf render RUN --scene ROOM --path interpolate`` and ``voxnerf export RUN --scene ROOM --mesh/--pointcloud`` as a
+user would (the CLI, one process each), then measures the exported geometry: accuracy = distance of its
+vertices to the true mesh, completeness = distance of the true surface the training cameras see (their exact
+depth maps) to the export.
 Results go to DIR (the video, the PLYs, results.json, table.md); ``--write-docs`` puts the table into
 docs/outputs.md.
 """
@@ -78,8 +79,9 @@ def markdown(results: dict, command: str) -> str:
     video = results["video"]
     lines = [
         f"Measured {results['date']} on this 2-core CPU. Command:", "", "```", command, "```", "",
-        f"Video: `voxnerf render RUN --path orbit --frames {video['frames']} --width {video['width']} "
-        f"--height {video['height']} --out orbit.mp4`: {video['frames']} frames at {video['fps']:g} fps, "
+        f"Video: `voxnerf render RUN --scene ROOM --path {video['path']} --frames {video['frames']} --width "
+        f"{video['width']} --height {video['height']} --out {video['path']}.mp4`: {video['frames']} frames at "
+        f"{video['fps']:g} fps, "
         f"{video['width']}x{video['height']} H.264, {video['bytes'] / 1e6:.2f} MB, made in {video['seconds']:.1f} s "
         f"({video['seconds'] / video['frames'] * 1000:.0f} ms a frame, start-up and model load included).", "",
         "| export | command time | points | faces | file | accuracy mean / p90 | completeness mean / p90 |",
@@ -104,6 +106,7 @@ def main() -> None:
     parser.add_argument("run", type=Path)
     parser.add_argument("room", type=Path)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--path", choices=["interpolate", "orbit"], default="interpolate")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--size", default="320x240")
     parser.add_argument("--voxel-size", type=float, default=0.02)
@@ -111,11 +114,11 @@ def main() -> None:
     args = parser.parse_args()
     width, height = (int(x) for x in args.size.split("x"))
     args.out.mkdir(parents=True, exist_ok=True)
-    video = args.out / "orbit.mp4"
-    seconds = run_cli(["render", str(args.run), "--path", "orbit", "--frames", str(args.frames), "--width",
-                       str(width), "--height", str(height), "--out", str(video)])
+    video = args.out / f"{args.path}.mp4"
+    seconds = run_cli(["render", str(args.run), "--scene", str(args.room), "--path", args.path, "--frames",
+                       str(args.frames), "--width", str(width), "--height", str(height), "--out", str(video)])
     frames = iio.imread(video, index=None)  # decoded through imageio-ffmpeg
-    results = {"date": time.strftime("%Y-%m-%d"), "voxel_size": args.voxel_size, "video": {
+    results = {"date": time.strftime("%Y-%m-%d"), "voxel_size": args.voxel_size, "video": {"path": args.path,
         "frames": int(frames.shape[0]), "width": int(frames.shape[2]), "height": int(frames.shape[1]),
         "fps": float(json.loads(Path(f"{video}.camera_path.json").read_text())["fps"]),
         "bytes": video.stat().st_size, "seconds": seconds,
@@ -124,7 +127,8 @@ def main() -> None:
     seen = visible_truth(args.room)
     for kind in ("mesh", "pointcloud"):
         path = args.out / f"{kind}.ply"
-        took = run_cli(["export", str(args.run), f"--{kind}", str(path), "--voxel-size", str(args.voxel_size)])
+        took = run_cli(["export", str(args.run), "--scene", str(args.room), f"--{kind}", str(path), "--voxel-size",
+                        str(args.voxel_size)])
         results[kind] = {"seconds": took, **geometry_error(path, truth, seen)}
         print(kind, json.dumps(results[kind]), flush=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
