@@ -124,13 +124,13 @@ def resolve_precision(precision: str, device: torch.device) -> str:
 
 
 def field_runner(model, precision: str = "auto") -> FieldRunner:
-    """The model's :class:`FieldRunner` for ``precision`` (auto: bfloat16 where native), built once per model
-    and precision. A runner holds copies of the MLP weights: rebuild the model after changing its field."""
-    precision = resolve_precision(precision, model.device)
-    key = ("field_runner", precision)
-    if key not in model._compiled:
-        model._compiled[key] = FieldRunner(model.field, getattr(torch, precision))
-    return model._compiled[key]
+    """A :class:`FieldRunner` of the model's field for ``precision`` (auto: bfloat16 where native).
+
+    Built for each batch of rays (the casts cost microseconds): a runner holds copies of the MLP weights, and a
+    kept one went stale when training changed the weights between two evaluations (the optimiser's updates do
+    not all advance the parameters' version counters).
+    """
+    return FieldRunner(model.field, getattr(torch, resolve_precision(precision, model.device)))
 
 
 @torch.no_grad()
