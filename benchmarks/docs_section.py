@@ -21,3 +21,16 @@ def replace_section(page: Path, name: str, text: str) -> None:
     if start < 0 or stop < start:
         raise ValueError(f"{page}: no '{begin}' ... '{end}' section to replace")
     write_atomic(page, (doc[: start + len(begin)] + "\n" + text.strip("\n") + "\n" + doc[stop:]).encode())
+
+
+def publish(out: Path, results: dict, text: str, page: Path, name: str, write_docs: bool) -> None:
+    """A benchmark's ending: ``results`` to ``out/results.json``, its markdown ``text`` to ``out/table.md`` and
+    standard output, and with ``write_docs`` into section ``name`` of ``page``."""
+    import json
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    (out / "table.md").write_text(text + "\n")
+    print(text)
+    if write_docs:
+        replace_section(page, name, text)

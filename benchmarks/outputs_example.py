@@ -29,7 +29,7 @@ import trimesh
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from docs_section import replace_section  # noqa: E402
+from docs_section import publish  # noqa: E402
 
 from voxnerf.depth_fusion import DepthView, backproject  # noqa: E402
 from voxnerf.export import distances_to_mesh  # noqa: E402
@@ -131,13 +131,8 @@ def main() -> None:
                         str(args.voxel_size)])
         results[kind] = {"seconds": took, **geometry_error(path, truth, seen)}
         print(kind, json.dumps(results[kind]), flush=True)
-    (args.out / "results.json").write_text(json.dumps(results, indent=1))
     command = ".venv/bin/python benchmarks/outputs_example.py " + " ".join(sys.argv[1:])
-    text = markdown(results, command)
-    (args.out / "table.md").write_text(text + "\n")
-    print(text)
-    if args.write_docs:
-        replace_section(DOC, SECTION, text)
+    publish(args.out, results, markdown(results, command), DOC, SECTION, args.write_docs)
 
 
 if __name__ == "__main__":

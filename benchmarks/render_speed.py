@@ -34,7 +34,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))  # the process helpers the service tests use
 
-from docs_section import replace_section  # noqa: E402
+from docs_section import publish  # noqa: E402
 from service_fixtures import start_service, wait_for, zip_scene  # noqa: E402
 
 from voxnerf.camera_rules import resolve_intrinsics  # noqa: E402
@@ -210,14 +210,8 @@ def main() -> None:
             shutil.copytree(room, args.keep_runs / "room", dirs_exist_ok=True)
             for name, (run, _, _) in runs.items():
                 shutil.copytree(run, args.keep_runs / name.replace(" ", "-"), dirs_exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(results, indent=1))
     command = ".venv/bin/python benchmarks/render_speed.py " + " ".join(sys.argv[1:])
-    text = markdown(results, command.strip())
-    (args.out / "table.md").write_text(text + "\n")
-    print(text)
-    if args.write_docs:
-        replace_section(DOC, SECTION, text)
+    publish(args.out, results, markdown(results, command.strip()), DOC, SECTION, args.write_docs)
 
 
 if __name__ == "__main__":

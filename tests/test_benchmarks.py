@@ -311,3 +311,13 @@ def test_render_speed_table_states_both_paths_their_ratio_and_the_psnr_gap():
     assert "| room 60 s | 320x240 in process | 100 / 120 ms | 250 / 300 ms | 2.50x |" in text
     assert "200 / 220 ms then 300 / 330 ms | 500 / 600 ms | 2.00x |" in text  # against the mean of the fast rounds
     assert "| room 60 s | test | 25.100 dB | 25.200 dB | -0.100 dB |" in text and "cmd" in text
+
+
+def test_publish_writes_results_and_table_and_the_docs_section_only_when_asked(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("intro\n<!-- s:begin -->\nold\n<!-- s:end -->\n")
+    docs_section.publish(tmp_path / "out", {"a": 1}, "| t |", page, "s", write_docs=False)
+    assert json.loads((tmp_path / "out" / "results.json").read_text()) == {"a": 1}
+    assert (tmp_path / "out" / "table.md").read_text() == "| t |\n" and "old" in page.read_text()
+    docs_section.publish(tmp_path / "out", {"a": 1}, "| t |", page, "s", write_docs=True)
+    assert "| t |" in page.read_text() and "old" not in page.read_text()

@@ -60,6 +60,12 @@ def native_bfloat16(device: torch.device) -> bool:
     AVX512-BF16 or AMX); elsewhere bfloat16 is emulated and slower than float32."""
     if device.type == "cuda":
         return torch.cuda.is_bf16_supported()
+    return _cpu_bfloat16()
+
+
+@functools.cache
+def _cpu_bfloat16() -> bool:
+    """This CPU's answer, probed once per process."""
     try:
         return bool(torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
     except AttributeError:  # a torch without these probes
@@ -75,19 +81,16 @@ class FieldRunner:
 
     def __init__(self, field, dtype: torch.dtype) -> None:
         self.field, self.dtype = field, dtype
-        self.density_layers = [_cast(layer, dtype) for layer in field.density_mlp if isinstance(layer, nn.Linear)]
-        color = [_cast(layer, dtype) for layer in field.color_mlp if isinstance(layer, nn.Linear)]
-        n_sh = color[0].in_features - field.GEO_FEATURES
-        self.color_dir = (color[0].weight[:, :n_sh].contiguous(), color[0].bias)
-        self.color_geo_t = color[0].weight[:, n_sh:].t().contiguous()
-        self.color_layers = color[1:]
+        self.density_layers = _cast_linears(field.density_mlp, dtype)
+        (first_w, first_b), *self.color_layers = _cast_linears(field.color_mlp, dtype)
+        n_sh = first_w.shape[1] - field.GEO_FEATURES
+        self.color_dir = (first_w[:, :n_sh].contiguous(), first_b)
+        self.color_geo_t = first_w[:, n_sh:].t().contiguous()
 
     def geometry(self, positions: Tensor) -> tuple[Tensor, Tensor]:
         """[N, 3] normalised positions -> (density [N] float32, geometry features [N, 15] in ``dtype``)."""
         x = self.field.encoding((positions + 1.0) * 0.5).to(self.dtype)
-        for layer in self.density_layers[:-1]:
-            x = layer(x).relu_()
-        h = self.density_layers[-1](x)
+        h = _mlp(x, self.density_layers)
         return trunc_exp(h[:, 0].float()), h[:, 1:]
 
     def direction_features(self, dirs: Tensor) -> Tensor:
@@ -100,17 +103,19 @@ class FieldRunner:
         """[N, 3] float32 colour in [0, 1] of samples with geometry features ``geo`` [N, 15] whose rays have
         ``direction_features`` [N, hidden]."""
         x = torch.addmm(direction_features, geo, self.color_geo_t).relu_()
-        for layer in self.color_layers[:-1]:
-            x = layer(x).relu_()
-        return torch.sigmoid(self.color_layers[-1](x).float())
+        return torch.sigmoid(_mlp(x, self.color_layers).float())
 
 
-def _cast(layer: nn.Linear, dtype: torch.dtype) -> nn.Linear:
-    copy = nn.Linear(layer.in_features, layer.out_features, device=layer.weight.device, dtype=dtype)
-    with torch.no_grad():
-        copy.weight.copy_(layer.weight)
-        copy.bias.copy_(layer.bias)
-    return copy.requires_grad_(False)
+def _cast_linears(mlp: nn.Sequential, dtype: torch.dtype) -> list[tuple[Tensor, Tensor]]:
+    """(weight, bias) of each linear layer of ``mlp``, detached and cast to ``dtype``."""
+    return [(m.weight.detach().to(dtype), m.bias.detach().to(dtype)) for m in mlp if isinstance(m, nn.Linear)]
+
+
+def _mlp(x: Tensor, layers: list[tuple[Tensor, Tensor]]) -> Tensor:
+    """Linear layers with ReLU between them (none after the last)."""
+    for weight, bias in layers[:-1]:
+        x = nn.functional.linear(x, weight, bias).relu_()
+    return nn.functional.linear(x, *layers[-1])
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:
