@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf.octree import SparseVoxelOctree, coverage_octree, morton_decode, morton_encode
+from voxnerf import octree
+from voxnerf.octree import SparseVoxelOctree, coverage_octree, kernel_available, morton_decode, morton_encode
 
 TINY = np.float32(1e-30)  # the octree's stand-in for zero direction components
 
@@ -159,16 +160,23 @@ def test_state_dict_round_trip():
     assert torch.equal(t_a, t_b) and torch.equal(h_a, h_b)
 
 
+# Both tracing paths: the PyTorch frontier (any device) and the C kernel (CPU, where it could be built).
+_NO_KERNEL = pytest.mark.skipif(not kernel_available(), reason="the tracing kernel could not be built")
+TRACE_PATHS = pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=_NO_KERNEL)],
+                                      ids=["torch", "kernel"])
+
+
+@TRACE_PATHS
 @pytest.mark.parametrize(
     ("num_points", "leaf_size", "seed"), [(300, 0.05, 0), (2000, 0.01, 1), (40, 2.0**-16, 2), (1, 0.5, 3)]
 )
-def test_first_hit_matches_brute_force(num_points, leaf_size, seed):
+def test_first_hit_matches_brute_force(num_points, leaf_size, seed, use_kernel):
     rng = np.random.default_rng(seed)
     points = rng.uniform(0.0, 1.0, (num_points, 3)).astype(np.float32)
     svo = SparseVoxelOctree.from_points(torch.from_numpy(points), leaf_size)
     leaves = reference_leaves(points, svo)
     o, d, t_min, t_max = make_rays(svo, leaves, 4000, rng)
-    t, hit = svo.first_hit(*(torch.from_numpy(x) for x in (o, d, t_min, t_max)))
+    t, hit = svo.first_hit(*(torch.from_numpy(x) for x in (o, d, t_min, t_max)), use_kernel=use_kernel)
     t_ref, hit_ref = brute_first_hit(svo, leaves, o, d, t_min, t_max)
     assert not torch.isnan(t).any()
     assert np.array_equal(hit.numpy(), hit_ref)
@@ -182,14 +190,15 @@ def test_first_hit_matches_brute_force(num_points, leaf_size, seed):
         assert 0 < hit[6 * k :].sum() < len(o) - 6 * k  # clipping hides some hits
 
 
+@TRACE_PATHS
 @pytest.mark.parametrize(("num_points", "leaf_size", "seed"), [(2000, 0.01, 5), (300, 0.05, 6)])
-def test_first_hit_with_a_hint_is_bit_identical_whatever_the_hint(num_points, leaf_size, seed):
+def test_first_hit_with_a_hint_is_bit_identical_whatever_the_hint(num_points, leaf_size, seed, use_kernel):
     """Hints at, before and behind the true hit, NaN, before t_min and past t_max all give the plain result."""
     rng = np.random.default_rng(seed)
     points = rng.uniform(0.0, 1.0, (num_points, 3)).astype(np.float32)
     svo = SparseVoxelOctree.from_points(torch.from_numpy(points), leaf_size)
     o, d, t_min, t_max = (torch.from_numpy(x) for x in make_rays(svo, reference_leaves(points, svo), 4000, rng))
-    t, hit = svo.first_hit(o, d, t_min, t_max)
+    t, hit = svo.first_hit(o, d, t_min, t_max, use_kernel=use_kernel)
     assert 0.2 < hit.float().mean() < 0.95
     n = len(o)
     jitter = torch.from_numpy(rng.normal(0.0, 5 * leaf_size, n).astype(np.float32))
@@ -204,25 +213,27 @@ def test_first_hit_with_a_hint_is_bit_identical_whatever_the_hint(num_points, le
         "mixed": torch.from_numpy(rng.choice([np.nan, 0.0, 0.3, 1.0, 1e30], n).astype(np.float32)),
     }
     for name, hint in hints.items():
-        t_h, hit_h = svo.first_hit(o, d, t_min, t_max, t_hint=hint)
+        t_h, hit_h = svo.first_hit(o, d, t_min, t_max, t_hint=hint, use_kernel=use_kernel)
         assert torch.equal(hit_h, hit), name
         assert torch.equal(t_h, t), name
     with pytest.raises(ValueError, match=r"t_hint must be \[N\]"):
         svo.first_hit(o, d, t_min, t_max, t_hint=t[:10])
 
 
-def test_first_hit_ray_in_plane_takes_plus_side():
+@TRACE_PATHS
+def test_first_hit_ray_in_plane_takes_plus_side(use_kernel):
     # Two leaves sharing the plane x = 1: ray lies in that plane, so only the +x leaf counts.
     svo = SparseVoxelOctree.from_points(torch.tensor([[0.5, 0.5, 0.5], [1.5, 0.5, 2.5]]), 1.0)
     assert svo.origin.tolist() == [0.0, 0.0, 0.0]
     o = torch.tensor([[1.0, 0.5, -1.0], [0.999, 0.5, -1.0], [1.0, 1.0, -1.0]])
     d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
-    t, hit = svo.first_hit(o, d, 0.0, 10.0)
+    t, hit = svo.first_hit(o, d, 0.0, 10.0, use_kernel=use_kernel)
     assert hit.tolist() == [True, True, False]
     assert t.tolist() == [3.0, 1.0, 10.0]
 
 
-def test_first_hit_is_chunk_and_thread_independent():
+@TRACE_PATHS
+def test_first_hit_is_chunk_and_thread_independent(use_kernel):
     rng = np.random.default_rng(4)
     points = torch.from_numpy(rng.normal(size=(3000, 3)).astype(np.float32))
     svo = SparseVoxelOctree.from_points(points, 0.05)
@@ -231,10 +242,10 @@ def test_first_hit_is_chunk_and_thread_independent():
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        t_one, h_one = svo.first_hit(o, d, 0.0, 100.0)
+        t_one, h_one = svo.first_hit(o, d, 0.0, 100.0, use_kernel=use_kernel)
         torch.set_num_threads(2)
-        t_two, h_two = svo.first_hit(o, d, 0.0, 100.0)
-        t_small, h_small = svo.first_hit(o, d, 0.0, 100.0, chunk=4096)
+        t_two, h_two = svo.first_hit(o, d, 0.0, 100.0, use_kernel=use_kernel)
+        t_small, h_small = svo.first_hit(o, d, 0.0, 100.0, chunk=4096, use_kernel=use_kernel)
     finally:
         torch.set_num_threads(threads)
     assert 0.3 < h_one.float().mean() < 1.0
@@ -242,7 +253,8 @@ def test_first_hit_is_chunk_and_thread_independent():
     assert torch.equal(t_one, t_small) and torch.equal(h_one, h_small)
 
 
-def test_first_hit_never_nan_on_degenerate_input():
+@TRACE_PATHS
+def test_first_hit_never_nan_on_degenerate_input(use_kernel):
     svo = SparseVoxelOctree.from_points(torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]), 0.25)
     o = torch.tensor([[-1e6, 0.1, 0.1], [0.1, 0.1, -5.0], [0.1, 0.1, -5.0], [2.0, 2.0, 2.0], [0.1, 0.1, 0.1]])
     tiny = 1e-40  # subnormal
@@ -250,11 +262,42 @@ def test_first_hit_never_nan_on_degenerate_input():
     o = torch.cat([o, torch.tensor([[-1e30, 0.1, 0.1]])])
     d = torch.cat([d, torch.tensor([[1.0, 0.0, 0.0]])])
     t_min = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.05, 0.0])
-    t, hit = svo.first_hit(o, d, t_min, 1e38)
+    t, hit = svo.first_hit(o, d, t_min, 1e38, use_kernel=use_kernel)
     assert not torch.isnan(t).any()
     # At 1e30 the voxels are thinner than float32 resolution: a miss, but no NaN.
     assert hit.tolist() == [True, True, True, True, False, False]
     assert t[0].item() == pytest.approx(1e6 - 0.125) and t[1].item() == t[2].item() == pytest.approx(4.875)
+
+
+@TRACE_PATHS
+def test_first_hit_misses_rays_with_nan_or_inf_and_says_so(use_kernel):
+    svo = SparseVoxelOctree.from_points(torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]), 0.25)
+    nan, inf = float("nan"), float("inf")
+    o = torch.tensor([[nan, 0.1, 0.1], [0.1, 0.1, -5.0], [inf, 0.1, 0.1], [0.1, 0.1, -5.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [nan, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    t, hit = svo.first_hit(o, d, 0.0, 50.0, use_kernel=use_kernel)
+    assert hit.tolist() == [False, False, False, True]
+    assert t[:3].tolist() == [50.0] * 3
+
+
+def test_without_a_compiler_tracing_falls_back_to_torch(tmp_path, monkeypatch):
+    rng = np.random.default_rng(7)
+    svo = SparseVoxelOctree.from_points(torch.from_numpy(rng.uniform(0, 1, (500, 3)).astype(np.float32)), 0.05)
+    o = torch.full((2000, 3), 0.5) + torch.randn(2000, 3)
+    d = torch.nn.functional.normalize(torch.randn(2000, 3), dim=1)
+    expected = svo.first_hit(o, d, 0.0, 10.0, use_kernel=False)
+    monkeypatch.setenv("VOXNERF_CACHE", str(tmp_path))  # an empty cache: it would have to be built
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CC", raising=False)
+    octree._trace_library.cache_clear()
+    try:
+        assert not kernel_available()
+        t, hit = svo.first_hit(o, d, 0.0, 10.0)  # the default: the kernel where it can be had
+        assert torch.equal(t, expected[0]) and torch.equal(hit, expected[1])
+        with pytest.raises(RuntimeError, match="no C compiler"):
+            svo.first_hit(o, d, 0.0, 10.0, use_kernel=True)
+    finally:
+        octree._trace_library.cache_clear()
 
 
 def test_depth_clamp_grows_the_leaf():

@@ -5,78 +5,31 @@ per sample, level, corner and feature. The kernel splits the work by level inste
 its own slice of the gradient without atomics while that slice sits in cache (docs/performance.md, "A C kernel
 for the hash encoding", measures both).
 
-The kernel is plain C; it is compiled on first use with the C compiler that ``torch.compile`` already needs
-on the CPU, once per source version, into ``$VOXNERF_CACHE`` (default ``~/.cache/voxnerf``), and loaded with
-ctypes. Where it cannot be built (no compiler) :func:`available` is False and the field keeps its pure-PyTorch
-path; it is never used on CUDA or for positions that need a gradient.
+The kernel is plain C, built and loaded by :mod:`voxnerf.native`. Where it cannot be built (no compiler)
+:func:`available` is False and the field keeps its pure-PyTorch path; it is never used on CUDA or for positions
+that need a gradient.
 """
 
 from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
-import os
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from voxnerf import native
+
 SOURCE = Path(__file__).with_name("hashgrid.c")
-# -ffp-contract=off: no fused multiply-adds, so the blend rounds as the torch version's separate ops do.
-CFLAGS = ("-O3", "-std=c11", "-shared", "-fPIC", "-pthread", "-ffp-contract=off")
-
-
-def cache_dir() -> Path:
-    return Path(os.environ.get("VOXNERF_CACHE") or Path.home() / ".cache" / "voxnerf")
-
-
-def _compiler() -> str | None:
-    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
-        if name and shutil.which(name):
-            return name
-    return None
-
-
-def _build(compiler: str, target: Path) -> None:
-    """Compile ``SOURCE`` into ``target`` (written to a temporary name, then renamed)."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=target.parent, suffix=".so", delete=False) as tmp:
-        partial = Path(tmp.name)
-    try:
-        subprocess.run([compiler, *CFLAGS, str(SOURCE), "-o", str(partial)], check=True,
-                       capture_output=True, text=True)
-        os.replace(partial, target)
-    finally:
-        partial.unlink(missing_ok=True)
+_SIGNATURE = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.c_int64,
+              ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
 
 
 @functools.cache
 def _library() -> ctypes.CDLL | str:
     """The loaded kernel, or a one-line reason why there is none."""
-    compiler = _compiler()
-    digest = hashlib.sha256(SOURCE.read_bytes() + " ".join(CFLAGS).encode()).hexdigest()[:16]
-    target = cache_dir() / f"hashgrid-{digest}.so"
-    if not target.is_file():
-        if compiler is None:
-            return "no C compiler (cc, gcc or clang) on PATH"
-        try:
-            _build(compiler, target)
-        except (OSError, subprocess.CalledProcessError) as exc:
-            detail = getattr(exc, "stderr", None) or str(exc)
-            return f"building {SOURCE.name} failed: {detail.strip().splitlines()[-1] if detail.strip() else exc}"
-    try:
-        lib = ctypes.CDLL(str(target))
-    except OSError as exc:  # e.g. a cache on a noexec mount, or a library built for another machine
-        return f"loading {target} failed: {exc}"
-    args = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.c_int64,
-            ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
-    for fn in (lib.hash_encode_forward, lib.hash_encode_backward):
-        fn.argtypes, fn.restype = args, None
-    return lib
+    return native.load(SOURCE, {"hash_encode_forward": _SIGNATURE, "hash_encode_backward": _SIGNATURE})
 
 
 def available() -> bool:
@@ -116,10 +69,10 @@ def hash_encode(x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int)
     _check(x, table, resolution)
     x, table, resolution = x.contiguous(), table.contiguous(), resolution.contiguous()
     levels, (rows, features) = resolution.shape[0], table.shape
-    out = x.new_empty(levels, x.shape[0], features)  # level-major: each level's pass writes one stream
+    out = x.new_empty(x.shape[0], levels * features)
     _lib().hash_encode_forward(x.data_ptr(), x.shape[0], table.data_ptr(), levels, features, rows // levels,
                                dense_levels, resolution.data_ptr(), out.data_ptr(), torch.get_num_threads())
-    return out.transpose(0, 1).contiguous().view(x.shape[0], levels * features)
+    return out
 
 
 @hash_encode.register_fake

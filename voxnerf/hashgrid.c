@@ -7,9 +7,10 @@
  * written. Built and loaded by voxnerf/hash_kernel.py; plain C and POSIX threads, no Python or torch headers.
  *
  * Shapes: x [n, 3] in [0, 1] (clamped here), table and grad_table [levels * table_size, features],
- * out and grad_out [levels, n, features] (level-major: a level's pass reads and writes one stream and leaves the
- * cache to the table), resolution [levels] (float), all contiguous, row-major. Within a level, the corners of a
- * block of points are computed and prefetched before their rows are read, so the random reads overlap.
+ * out [n, levels, features] (the layout the MLP reads), grad_out [levels, n, features] (level-major: a level's
+ * pass reads one stream and leaves the cache to the table), resolution [levels] (float), all contiguous,
+ * row-major. Within a level, the corners of a block of points are computed and prefetched before their rows
+ * are read, so the random reads overlap.
  */
 #include <pthread.h>
 #include <stdint.h>
@@ -98,7 +99,7 @@ static void *forward_levels(void *arg) {
         for (int64_t p0 = 0; p0 < j->n; p0 += BLOCK) {
             const int nb = block_corners(j, l, p0, j->table, 0, rows, t);
             for (int i = 0; i < nb; i++) {
-                float *o = j->out + ((int64_t)l * j->n + p0 + i) * f;
+                float *o = j->out + ((p0 + i) * (int64_t)j->levels + l) * f;
                 blend(j->table, rows[i], t[i], f, o);
             }
         }

@@ -14,12 +14,17 @@ component counts as +1e-30: a ray lying exactly in a voxel plane belongs to the 
 from __future__ import annotations
 
 import copy
+import ctypes
+import functools
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 from torch import Tensor
+
+from voxnerf import native
 
 MAX_LEVELS = 21  # 21 bits per axis fit a 63-bit Morton code in an int64
 
@@ -92,7 +97,7 @@ class _TraversalTables:
             table[parent * 8 + (children & 7)] = index
             child_index.append(table)
             mid = (morton_decode(codes[level]).T.to(torch.float32) * 2 + 1) * float(2 ** (levels - level - 1))
-            planes.append(mid * v + origin[:, None])
+            planes.append((mid * v + origin[:, None]).contiguous())
         return _TraversalTables(child_index, planes)
 
     def to(self, device: torch.device) -> _TraversalTables:
@@ -264,6 +269,7 @@ class SparseVoxelOctree:
         *,
         chunk: int | None = None,
         t_hint: Tensor | None = None,
+        use_kernel: bool | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Distance to the first occupied leaf along each ray (exact).
 
@@ -278,6 +284,8 @@ class SparseVoxelOctree:
                 depth. The search first stops a leaf diagonal past the guess and looks again over the whole
                 segment only for the rays that found nothing there, so the result is the same with or without
                 it; good guesses save expanding the nodes behind the first surface.
+            use_kernel: trace CPU rays with the C kernel (``octree_trace.c``: the same arithmetic, one ray at a
+                time, stopping at its first hit). Default: where it could be built; False: the PyTorch path.
         Returns:
             t_hit [N] float32: ``max(entry, t_min)`` of the first hit leaf, ``t_max`` where there is none;
             hit [N] bool.
@@ -298,9 +306,13 @@ class SparseVoxelOctree:
         if t_hint is not None:
             if t_hint.shape != (n,):
                 raise ValueError(f"t_hint must be [N] = [{n}] like the rays, got {tuple(t_hint.shape)}")
-            return self._first_hit_near(origins, dirs, t_min, t_max, t_hint, chunk)
+            return self._first_hit_near(origins, dirs, t_min, t_max, t_hint, chunk, use_kernel)
+        if device.type == "cpu" and (kernel_available() if use_kernel is None else use_kernel):
+            best = self._trace_native(*self._root_segments(origins, dirs, t_min, t_max))
+            hit = torch.isfinite(best)
+            return torch.where(hit, best, t_max), hit
         tables = self._tables if device == self.device else self._tables.to(device)
-        rays, root = self._root_frontier(origins, dirs, t_min, t_max)
+        rays, root = self._root_frontier(*self._root_segments(origins, dirs, t_min, t_max))
         best = torch.full((n,), float("inf"), device=device)
         if chunk is None:
             chunk = _DEFAULT_CHUNK if device.type == "cpu" else _DEFAULT_CHUNK_GPU
@@ -317,11 +329,12 @@ class SparseVoxelOctree:
         hit = torch.isfinite(best)
         return torch.where(hit, best, t_max), hit
 
-    def _root_frontier(
+    def _root_segments(
         self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor
-    ) -> tuple[_Rays, _Frontier]:
-        """The rays' packed form and the frontier of (ray, root) pairs whose segment inside the root's cube
-        [origin, origin + 2**levels * leaf] and [t_min, t_max] has positive length (slab test)."""
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """float32 origins [N, 3], dirs [N, 3] (zero components as +1e-30) and each ray's segment (t0 [N], t1 [N])
+        inside the root's cube [origin, origin + 2**levels * leaf] and [t_min, t_max] (slab test); a ray whose
+        segment has no positive length (t0 >= t1, or NaN) misses."""
         device = origins.device
         origin = self.origin.to(device)
         v = torch.tensor(self.leaf_size, dtype=torch.float32, device=device)
@@ -333,10 +346,12 @@ class SparseVoxelOctree:
         ta, tb = (lo - o) / d, (hi - o) / d
         t0 = torch.maximum(torch.minimum(ta, tb).amax(1), t_min)
         t1 = torch.minimum(torch.maximum(ta, tb).amin(1), t_max)
-        rays = _Rays(
-            torch.cat([o, d], dim=1).T.contiguous(),
-            ((d < 0).int() << torch.arange(3, dtype=torch.int32, device=device)).sum(1, dtype=torch.int32),
-        )
+        return o, d, t0, t1
+
+    def _root_frontier(self, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor) -> tuple[_Rays, _Frontier]:
+        """The rays' packed form and the frontier of (ray, root) pairs whose root segment has positive length."""
+        device = o.device
+        rays = _Rays(torch.cat([o, d], dim=1).T.contiguous(), _first_slot(d))
         ray = torch.nonzero(t0 < t1).squeeze(1)
         root = _Frontier(
             ray,
@@ -345,8 +360,27 @@ class SparseVoxelOctree:
         )
         return rays, root
 
+    def _trace_native(self, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor) -> Tensor:
+        """Entry [N] of each ray's first hit leaf (+inf where none) by the C kernel; CPU float32 inputs as
+        :meth:`_root_segments` returns them."""
+        lib = _trace_library()
+        if isinstance(lib, str):
+            raise RuntimeError(f"the octree tracing kernel is unavailable: {lib}")
+        tables = self._tables if self.device.type == "cpu" else self._tables.to(torch.device("cpu"))
+        o, d, t0, t1 = (x.contiguous() for x in (o, d, t0, t1))
+        first_slot = _first_slot(d).contiguous()
+        planes = (ctypes.c_void_p * self.levels)(*(p.data_ptr() for p in tables.planes))
+        children = (ctypes.c_void_p * self.levels)(*(c.data_ptr() for c in tables.child_index))
+        nodes = torch.tensor([p.shape[1] for p in tables.planes], dtype=torch.int64)
+        t_hit = torch.empty_like(t0)
+        lib.octree_first_hit(o.data_ptr(), d.data_ptr(), t0.data_ptr(), t1.data_ptr(), first_slot.data_ptr(),
+                             planes, children, nodes.data_ptr(), self.levels, o.shape[0], t_hit.data_ptr(),
+                             torch.get_num_threads())
+        return t_hit
+
     def _first_hit_near(
-        self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, t_hint: Tensor, chunk: int | None
+        self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, t_hint: Tensor, chunk: int | None,
+        use_kernel: bool | None,
     ) -> tuple[Tensor, Tensor]:
         """``first_hit`` searching up to ``t_hint`` plus a leaf diagonal first, then the misses in full.
         t_min, t_max, t_hint: [N] float32."""
@@ -354,11 +388,11 @@ class SparseVoxelOctree:
         reach = self.leaf_size * math.sqrt(3.0) / dirs.to(torch.float32).norm(dim=1).clamp_min(_TINY_DIR)
         cap = t_hint.to(device=device, dtype=torch.float32) + reach
         cap = torch.where(torch.isfinite(cap), torch.minimum(cap, t_max), t_max)
-        t, hit = self.first_hit(origins, dirs, t_min, cap, chunk=chunk)
+        t, hit = self.first_hit(origins, dirs, t_min, cap, chunk=chunk, use_kernel=use_kernel)
         again = torch.nonzero(~hit & (cap < t_max)).squeeze(1)
         if again.numel():
             t_again, hit_again = self.first_hit(
-                origins[again], dirs[again], t_min[again], t_max[again], chunk=chunk
+                origins[again], dirs[again], t_min[again], t_max[again], chunk=chunk, use_kernel=use_kernel
             )
             t[again], hit[again] = t_again, hit_again
         return t, hit
@@ -389,6 +423,29 @@ _DEFAULT_CHUNK_GPU = 1 << 21  # ~400 MB of temporaries; large enough to keep the
 _MIN_RAYS_PER_PART = 16384
 _MAX_WORKERS = 4  # more Python threads contend for the GIL and oversubscribe the intra-op pool
 _TINY_DIR = 1e-30  # stands in for zero direction components: no 0/0 in the slab tests
+
+
+_TRACE_SOURCE = Path(__file__).with_name("octree_trace.c")
+_c_ptr, _c_i64 = ctypes.c_void_p, ctypes.c_int64
+
+
+@functools.cache
+def _trace_library() -> ctypes.CDLL | str:
+    """The loaded tracing kernel, or a one-line reason why there is none."""
+    signature = [_c_ptr] * 8 + [ctypes.c_int, _c_i64, _c_ptr, ctypes.c_int]
+    return native.load(_TRACE_SOURCE, {"octree_first_hit": signature})
+
+
+def kernel_available() -> bool:
+    """Whether the C tracing kernel is built and loaded (building it on the first call)."""
+    return not isinstance(_trace_library(), str)
+
+
+def _first_slot(d: Tensor) -> Tensor:
+    """[N] int32: the child slot ``x | y << 1 | z << 2`` a ray of direction ``d`` [N, 3] enters first (the
+    octant opposite its direction)."""
+    bits = torch.arange(3, dtype=torch.int32, device=d.device)
+    return ((d < 0).int() << bits).sum(1, dtype=torch.int32)
 
 
 @dataclass
