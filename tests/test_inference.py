@@ -8,9 +8,10 @@ import math
 import pytest
 import torch
 
+from voxnerf import inference
 from voxnerf.config import TrainConfig
 from voxnerf.errors import RunError
-from voxnerf.inference import FastSettings, FieldRunner, field_runner, native_bfloat16, render_rays_fast
+from voxnerf.inference import FastSettings, FieldRunner, field_runner, linear_relu, native_bfloat16, render_rays_fast
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree
 from voxnerf.render import render_normalized
@@ -49,6 +50,18 @@ def test_without_skipping_the_fast_path_is_the_full_path(sampler):
     fast = render_rays_fast(model, rays, model.sampler(), EXACT)
     for name in ("rgb", "depth", "opacity"):
         assert torch.allclose(fast[name], full[name].detach(), atol=2e-6), name
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("fused", [False, True])
+def test_linear_relu_is_relu_of_the_linear_layer(dtype, fused, monkeypatch):
+    if fused and not inference._fused_linear_relu():
+        pytest.skip("this torch has no fused oneDNN linear + ReLU")
+    monkeypatch.setattr(inference, "_fused_linear_relu", lambda: fused)
+    x, w, b = (torch.randn(*shape).to(dtype) for shape in ((300, 24), (64, 24), (64,)))
+    out = linear_relu(x, w, b)
+    assert out.dtype == dtype and out.shape == (300, 64) and bool((out >= 0).all())
+    assert torch.equal(out, torch.nn.functional.linear(x, w, b).relu())
 
 
 def test_the_runner_splits_the_field_without_changing_it():

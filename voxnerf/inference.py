@@ -114,8 +114,27 @@ def _cast_linears(mlp: nn.Sequential, dtype: torch.dtype) -> list[tuple[Tensor, 
 def _mlp(x: Tensor, layers: list[tuple[Tensor, Tensor]]) -> Tensor:
     """Linear layers with ReLU between them (none after the last)."""
     for weight, bias in layers[:-1]:
-        x = nn.functional.linear(x, weight, bias).relu_()
+        x = linear_relu(x, weight, bias)
     return nn.functional.linear(x, *layers[-1])
+
+
+def linear_relu(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+    """``relu(x @ weight.T + bias)``; on the CPU in one oneDNN call (the ReLU fused into the matrix product's
+    output) where this torch has it, else two operations."""
+    if x.device.type == "cpu" and _fused_linear_relu():
+        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "relu", [None], "")
+    return nn.functional.linear(x, weight, bias).relu_()
+
+
+@functools.cache
+def _fused_linear_relu() -> bool:
+    """Whether oneDNN's fused linear + ReLU runs here and agrees with the unfused pair (probed once)."""
+    try:
+        x, w, b = torch.randn(4, 8), torch.randn(3, 8), torch.randn(3)
+        fused = torch.ops.mkldnn._linear_pointwise(x, w, b, "relu", [None], "")
+        return bool(torch.allclose(fused, nn.functional.linear(x, w, b).relu(), atol=1e-5))
+    except (AttributeError, RuntimeError, NotImplementedError):
+        return False
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:
