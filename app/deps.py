@@ -30,13 +30,19 @@ SceneId = Annotated[str, Path(pattern=ID_RE.pattern, description=f"scene id, {ID
 JobId = Annotated[str, Path(pattern=ID_RE.pattern, description=f"job id, {ID_DOC}")]
 
 
-def require_token(request: Request, settings: SettingsDep) -> None:
-    """Refuse with 401 unless the request carries ``Authorization: Bearer <VOXNERF_API_TOKEN>`` (when set)."""
+def has_valid_token(request: Request, settings: Settings) -> bool:
+    """Whether the request may act as the token holder: ``Authorization: Bearer <VOXNERF_API_TOKEN>``, or
+    any request when no token is set (the service then answers loopback clients only)."""
     if settings.api_token is None:
-        return
+        return True
     scheme, _, token = request.headers.get("authorization", "").partition(" ")
     expected = settings.api_token.get_secret_value().encode()
-    if scheme.lower() != "bearer" or not secrets.compare_digest(token.strip().encode(), expected):
+    return scheme.lower() == "bearer" and secrets.compare_digest(token.strip().encode(), expected)
+
+
+def require_token(request: Request, settings: SettingsDep) -> None:
+    """Refuse with 401 unless the request carries ``Authorization: Bearer <VOXNERF_API_TOKEN>`` (when set)."""
+    if not has_valid_token(request, settings):
         raise HTTPException(
             status_code=401,
             detail="missing or wrong bearer token: send 'Authorization: Bearer <VOXNERF_API_TOKEN>'",

@@ -1,4 +1,4 @@
-"""The FastAPI application: routes, auth, body limits, the dashboard, and stale-job recovery.
+"""The FastAPI application: routes, auth, request guards, body limits, the dashboard, and stale-job recovery.
 
 ``create_app(settings)`` builds one app; ``uvicorn --factory app.main:create_app`` serves it with settings
 from the environment.
@@ -22,12 +22,15 @@ from fastapi.staticfiles import StaticFiles
 from app.body_limit import BodyLimitMiddleware
 from app.core import db, storage
 from app.core.celery_app import create_celery
-from app.core.dispatch import requeue_stale_jobs, requeue_stale_outputs
+from app.core.cleanup import clean_leftovers
+from app.core.dispatch import sweep_jobs
 from app.core.progress import json_safe
+from app.core.redact import install_log_masking
 from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
-from app.routes import health, jobs, outputs, render, scenes
+from app.origin_guard import RequestGuardMiddleware, log_exposure
+from app.routes import health, jobs, outputs, render, scenes, viewer
 from app.uploads import UploadError
 
 log = logging.getLogger(__name__)
@@ -35,10 +38,9 @@ STATIC_DIR = Path(__file__).parent / "static"
 
 
 def sweep_once(app: FastAPI) -> None:
-    """Requeue jobs and output jobs whose worker died and drop render results nobody collected."""
+    """Requeue jobs and output jobs whose worker died, re-send lost messages, drop uncollected render results."""
     settings: Settings = app.state.settings
-    requeue_stale_jobs(settings, app.state.celery)
-    requeue_stale_outputs(settings, app.state.celery)
+    sweep_jobs(settings, app.state.celery)
     remove_old_outcomes(settings.render_results_dir, 2 * settings.render_timeout_s)
 
 
@@ -54,9 +56,12 @@ async def _sweep_forever(app: FastAPI) -> None:
 @contextlib.asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
+    log_exposure(settings)
     settings.make_dirs()
     await run_in_threadpool(storage.check_store, settings)  # a bad store URL or credentials stop start-up
     db.get_engine(settings)
+    install_log_masking()  # credentials in URLs never reach a log line
+    await run_in_threadpool(clean_leftovers, settings)  # staging and half-made scenes a crash left
     sweeper = asyncio.create_task(_sweep_forever(app))  # its first round is the startup recovery
     try:
         yield
@@ -83,6 +88,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="0.1.0",
         summary="Upload indoor scans, train prior-guided radiance fields, render any pose.",
         lifespan=_lifespan,
+        docs_url=None,  # Swagger UI and ReDoc would load scripts from a CDN; /openapi.json stays
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.celery = create_celery(settings)
@@ -93,11 +100,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             settings.max_upload_bytes if (method, path) == ("POST", "/scenes") else settings.max_request_bytes
         ),
     )
+    app.add_middleware(RequestGuardMiddleware, settings=settings)  # added last: runs first
     app.add_exception_handler(UploadError, _upload_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, jobs, outputs, render):
+    for module in (scenes, jobs, outputs, render, viewer):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
 

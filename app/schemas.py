@@ -125,8 +125,9 @@ JOB_OPTION_FIELDS = (
     "n_rest",
 )
 # TrainConfig fields a job cannot set because the worker's settings set them (VOXNERF_DEVICE,
-# VOXNERF_CHECKPOINT_EVERY_S): where a job trains and how often it saves are the deployment's business.
-WORKER_SET_FIELDS = frozenset({"device", "checkpoint_every_s"})
+# VOXNERF_CHECKPOINT_EVERY_S, VOXNERF_MAX_EVAL_AT_SECONDS): where a job trains, how often it saves and how long
+# its eval_at evaluations may take are the deployment's business.
+WORKER_SET_FIELDS = frozenset({"device", "checkpoint_every_s", "eval_at_max_seconds"})
 # TrainConfig fields deliberately internal: reachable from neither the REST API nor the CLI, only from the Python
 # API (`train(scene, run, TrainConfig(...))`). The presets own the model's size and the batch; the loss weights,
 # the learning rate and the samplers' knobs are tuned values (docs/performance.md) that a job should not move
@@ -392,7 +393,102 @@ class Check(BaseModel):
 
 
 class HealthOut(BaseModel):
+    """The service's health. Callers without the API token get ``status`` alone (the other fields are left
+    out of the JSON); token holders, and everyone when no token is set, get every field."""
+
     status: Literal["ok", "unavailable"]
-    database: Check
-    broker: Check
-    workers: dict[str, list[str]] = Field(description="queue name -> names of live workers consuming it")
+    database: Check | None = None
+    broker: Check | None = None
+    workers: dict[str, list[str]] | None = Field(
+        default=None, description="queue name -> names of live workers consuming it"
+    )
+
+
+# ------------------------------------------------------------------------------------------------ viewer
+
+Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4)]], Field(min_length=4, max_length=4)]
+
+
+class ViewerCamera(BaseModel):
+    """One of the scene's cameras as the viewer draws and snaps to it (the undistorted view of its lens)."""
+
+    index: int = Field(description="the frame's position in transforms.json's frames")
+    name: str = Field(description="the frame's file_path in transforms.json")
+    splits: list[str] = Field(description="the splits holding the frame: train, test, named evaluation splits")
+    transform_matrix: list[list[float]] = Field(description="4x4 camera-to-world, OpenGL axes, scene units")
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    image_url: str = Field(description="GET it (with the token) for the frame's ground-truth image")
+
+
+class CamerasOut(BaseModel):
+    """A job's scene cameras, and what the viewer needs to show depth and the scene's scale."""
+
+    job_id: str
+    scene_id: str
+    units: Literal["metres", "scene units"] = Field(
+        description="metres when the scene carries sensor depth maps (metres by the scene format), else the "
+        "poses' own units")
+    depth_unit_scale: float = Field(description="scene units per stored unit of a 16-bit depth PNG render")
+    frames: list[ViewerCamera]
+
+
+class PriorPreviewOut(BaseModel):
+    """A sparse random sample of the prior (the scene's prior file, or the run's fused one), for drawing."""
+
+    points: list[float] = Field(description="x y z of each point, flat [N*3], scene units")
+    colors: list[float] | None = Field(description="r g b in [0, 1] of each point, flat [N*3]; null without")
+    total: int = Field(description="points (vertices) in the prior file")
+
+
+class CameraPathRequest(BaseModel):
+    """A video path for the viewer: either ``keyframes`` (camera-to-world poses, scene units, in order) with
+    ``frames`` and the camera (``width height fl_x fl_y cx cy``) to interpolate through them
+    (:func:`voxnerf.camera_path.interpolate_path`, as videos through training cameras do), or a nerfstudio
+    ``camera_path`` (with its ``dataparser_transforms`` when needed) to read back in scene units."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    keyframes: list[Matrix4] | None = Field(None, min_length=2, max_length=1000)
+    frames: int | None = Field(None, ge=2)
+    fps: float = Field(30.0, gt=0, le=MAX_FPS)
+    width: int | None = Field(None, ge=1, le=MAX_OUTPUT_SIDE)
+    height: int | None = Field(None, ge=1, le=MAX_OUTPUT_SIDE)
+    fl_x: float | None = Field(None, gt=0)
+    fl_y: float | None = Field(None, gt=0)
+    cx: float | None = None
+    cy: float | None = None
+    camera_path: dict | None = Field(None, description="nerfstudio camera-path JSON object")
+    dataparser_transforms: dict | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> CameraPathRequest:
+        if (self.keyframes is None) == (self.camera_path is None):
+            raise ValueError("give keyframes (to interpolate) or camera_path (nerfstudio JSON), not both")
+        camera = ("frames", "width", "height", "fl_x", "fl_y", "cx", "cy")
+        if self.keyframes is not None and any(getattr(self, key) is None for key in camera):
+            raise ValueError(f"keyframes need {', '.join(camera)}")
+        return self
+
+
+class PathFrame(BaseModel):
+    transform_matrix: list[list[float]] = Field(description="4x4 camera-to-world, OpenGL axes, scene units")
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+
+
+class CameraPathOut(BaseModel):
+    """The path's frames (to preview) and its nerfstudio camera-path JSON (to export, or to send as
+    ``camera_path`` to ``POST /jobs/{id}/videos``)."""
+
+    width: int
+    height: int
+    fps: float
+    frames: list[PathFrame]
+    camera_path: dict

@@ -3,6 +3,8 @@
 Exit status 0 when healthy, 1 otherwise (the reason on stderr).
 
 * ``api``: ``GET /healthz`` of this container answers, with 200 or with 503, and its database check is ok.
+  The request carries ``VOXNERF_API_TOKEN`` from the environment when set (without it /healthz tells only
+  ok or unavailable).
   A 503 that only reports a missing broker or missing workers still counts as healthy: the API process
   works and says what is missing; the workers have their own health checks.
 * ``worker``: a Celery ``ping`` broadcast over the configured broker gets a reply from a worker node on this
@@ -14,16 +16,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import sys
 import urllib.error
 import urllib.request
 
 
-def check_api(url: str, timeout_s: float) -> str | None:
-    """None when ``url`` (the /healthz endpoint) answers 200 or 503 with ``database.ok``; else the reason."""
+def check_api(url: str, timeout_s: float, token: str | None = None) -> str | None:
+    """None when ``url`` (the /healthz endpoint) answers 200 or 503 with ``database.ok``; else the reason.
+    ``token``: the API token, sent as a bearer token when given (needed for the database check's details)."""
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
     try:
-        with urllib.request.urlopen(url, timeout=timeout_s) as response:
+        with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=timeout_s) as response:
             body = json.load(response)
     except urllib.error.HTTPError as err:
         if err.code != 503:
@@ -55,7 +60,10 @@ def main() -> int:
     parser.add_argument("--url", default="http://127.0.0.1:8000/healthz", help="api: the /healthz URL")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for an answer")
     args = parser.parse_args()
-    problem = check_api(args.url, args.timeout) if args.role == "api" else check_worker(args.timeout)
+    if args.role == "api":
+        problem = check_api(args.url, args.timeout, os.environ.get("VOXNERF_API_TOKEN") or None)
+    else:
+        problem = check_worker(args.timeout)
     if problem:
         print(problem, file=sys.stderr)
         return 1

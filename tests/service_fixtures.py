@@ -208,9 +208,12 @@ class Service:
             return False
 
     def wait_healthy(self, timeout_s: float = 120.0) -> dict:
+        """Poll GET /healthz (with the token, for the details) until 200; its JSON."""
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+
         def healthy():
             try:
-                response = httpx.get(f"{self.base_url}/healthz", timeout=5, trust_env=False)
+                response = httpx.get(f"{self.base_url}/healthz", headers=headers, timeout=5, trust_env=False)
             except httpx.HTTPError:
                 return None
             return response.json() if response.status_code == 200 else None

@@ -426,3 +426,16 @@ def test_one_camera_gives_a_still_path():
 
     path = generated_path("interpolate", _ring(1), CAMERA, n_frames=5)
     assert len(path) == 5 and np.allclose(path.poses, _ring(1)[0])
+
+
+def test_rotation_angle_is_accurate_for_small_and_large_angles():
+    for degrees in (0.0, 1e-9, 1e-4, 30.0, 179.9):
+        a, b = _rotation((1, 2, 3), 10.0), _rotation((1, 2, 3), 10.0 + degrees)
+        assert rotation_angle(a, b) == pytest.approx(math.radians(degrees), rel=1e-6, abs=1e-15)
+
+
+def test_two_keyframes_at_the_same_pose_are_refused():
+    """The same pose twice (as a viewer sends it: float32 rounded) has no path through it."""
+    pose = _pose((0.3, -0.2, 1.0), (1, 2, 3), 37.0).astype(np.float32).astype(np.float64)
+    with pytest.raises(CameraPathError, match="all at one pose"):
+        interpolate_path(np.stack([pose, pose.copy()]), CAMERA, n_frames=10)

@@ -6,14 +6,13 @@ size and duration. A screenshot is saved under the test's temporary directory.""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
+from browser_fixtures import browser_page, csp_reports
 from service_fixtures import first_pose, start_service, zip_scene
 
 pytestmark = pytest.mark.slow
 
-CHROMIUM = Path("/usr/bin/chromium")
 TOKEN = "dash-token"
 
 
@@ -28,16 +27,9 @@ def service(tmp_path_factory):
 
 
 @pytest.fixture
-def page(tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api")
-    if not CHROMIUM.exists():
-        pytest.skip("Debian's chromium is not installed (scripts/install.sh installs it)")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
-        try:
-            yield browser.new_page(viewport={"width": 1400, "height": 900})
-        finally:
-            browser.close()
+def page():
+    with browser_page(1400, 900) as opened:
+        yield opened
 
 
 def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page, small_room, tmp_path):
@@ -49,6 +41,7 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
             f"/scenes/{scene['id']}/jobs", json={"max_seconds": 45, "compile": False, "eval_every_s": 8.0}
         ).json()
 
+    csp = csp_reports(page)
     page.goto(service.base_url + "/")
     page.wait_for_selector("text=needs an API token")  # no token yet: the dashboard asks for it
     page.fill("#token", TOKEN)
@@ -98,6 +91,7 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
     size = page.eval_on_selector(video, "v => [v.videoWidth, v.videoHeight, v.duration]")
     assert size[:2] == [32, 24] and abs(size[2] - 0.5) < 0.05, size
 
+    assert csp == [], csp
     shot = tmp_path / "dashboard.png"
     page.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 10_000

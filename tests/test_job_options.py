@@ -114,6 +114,7 @@ def _row(**progress) -> object:
         id="a" * 32, scene_id="b" * 32, state="running", metrics=None, error=None, cancel_requested=False,
         options={"max_iters": 5}, attempt=1, requeues=0, created_at=now, started_at=now, finished_at=None,
         stage="train", iteration=3, elapsed_s=1.5, progress=0.3, eta_s=None, loss=None, history=[], stages=[],
+        loss_series=None,  # a column added later: null in the rows written before it (app.core.db adds it)
     )
     return type("Row", (), {**base, **progress})()
 

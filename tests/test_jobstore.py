@@ -3,12 +3,13 @@ progress from the engine's ProgressEvent, final states from its TrainReport, sta
 
 from __future__ import annotations
 
+import sqlite3
 import time
 
 import pytest
 from sqlalchemy import inspect
 
-from app.core import jobstore, progress
+from app.core import db, jobstore, progress
 from app.core.db import get_engine, session_scope
 from app.core.models import JobRow
 from app.core.settings import Settings
@@ -157,3 +158,18 @@ def test_cancel_and_fail(settings):
     assert (row.state, row.error) == ("failed", "the broker refused the job")
     with pytest.raises(jobstore.SceneBusy):
         jobstore.delete_scene(settings, SCENE)
+
+
+
+def test_a_database_from_an_earlier_version_gains_the_new_columns(tmp_path):
+    """A jobs table made before a progress column existed: opening it adds the column, and its old row reads."""
+    settings = Settings(data_dir=tmp_path)
+    jobstore.add_scene(settings, SCENE, "room", {"frames": 1}, 10)
+    job = jobstore.create_job(settings, SCENE, {"max_iters": 5})
+    with sqlite3.connect(tmp_path / "voxnerf.sqlite") as conn:
+        conn.execute("ALTER TABLE jobs DROP COLUMN loss_series")
+    db._engines.clear()  # a new process opens the old database
+    engine = get_engine(settings)
+    assert "loss_series" in {c["name"] for c in inspect(engine).get_columns("jobs")}
+    assert jobstore.get_job(settings, job.id).loss_series is None  # read by JobOut as []
+    assert db.add_missing_columns(engine) == []  # added once

@@ -219,11 +219,8 @@ def test_a_job_whose_worker_is_killed_is_requeued_and_finishes(service, client, 
         service, client, job["id"], lambda j: j["state"] == "running" and j["iteration"] > 0, TRAIN_TIMEOUT_S
     )
     service.kill("train")
-    with service.client(auth=False) as anonymous:
-        health = wait_for(
-            lambda: (r := anonymous.get("/healthz")).status_code == 503 and r, 30, "healthz 503"
-        )
-    assert health.json()["workers"]["train"] == []
+    health = wait_for(lambda: (r := client.get("/healthz")).status_code == 503 and r, 30, "healthz 503")
+    assert health.json()["workers"]["train"] == []  # the details: asked with the token
     service.start_worker("train")
     done = _watch(service, client, job["id"], lambda j: j["state"] == "succeeded", TRAIN_TIMEOUT_S)[-1]
     assert done["requeues"] == 1 and done["attempt"] == 2 and done["iteration"] == 6

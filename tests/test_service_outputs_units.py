@@ -73,17 +73,17 @@ def test_cancel_a_queued_output_at_once_and_a_running_one_through_its_lease(sett
 def test_stale_outputs_are_requeued_then_failed_after_max_requeues(settings):
     row = _output(settings)
     publisher = Publisher()
-    for attempt in range(outputs.MAX_REQUEUES + 1):
+    for attempt in range(settings.max_worker_deaths):
         claimed = outputs.claim_output(settings, row.id, "host:1")
         assert claimed is not None and claimed.attempt == attempt + 1
         with session_scope(settings) as session:
             session.execute(update(OutputRow).where(OutputRow.id == row.id).values(heartbeat_at=0.0))
         requeued = requeue_stale_outputs(settings, publisher)
-        if attempt < outputs.MAX_REQUEUES:
+        if attempt < settings.max_worker_deaths - 1:
             assert requeued == [row.id] and outputs.get_output(settings, row.id).state == "queued"
     final = outputs.get_output(settings, row.id)
-    assert final.state == "failed" and "stopped 3 times" in final.error
-    assert len(publisher.sent) == outputs.MAX_REQUEUES
+    assert final.state == "failed" and "died 3 times" in final.error
+    assert len(publisher.sent) == settings.max_worker_deaths - 1
 
 
 def _job(settings: Settings, state: str):

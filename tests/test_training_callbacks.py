@@ -173,8 +173,8 @@ def test_progress_evaluations_run_every_eval_every_s_and_full_ones_at_eval_at():
     clock.now = 5.0
     evaluation.before_step(state)  # the --eval-at time: a full evaluation, neither training time nor charged
     assert evaluate.calls == [(3, 0.25, True)]
-    assert budget.paused == 2.0 and budget.excluded == 2.0 and evaluation.next_at == pytest.approx(13.0)
-    clock.now = 15.0  # 13 s of training time (2 s paused), 10 s after the full one: a progress evaluation
+    assert budget.paused == 2.0 and budget.excluded == 2.0 and evaluation.next_at == pytest.approx(10.0)
+    clock.now = 15.0  # 13 s of training time (2 s paused), past the progress evaluation due at 10 s
     evaluation.before_step(state)
     assert evaluate.calls[-1] == (3, 0.25, False) and budget.paused == 4.0 and budget.excluded == 2.0
     evaluation.before_step(state)

@@ -23,7 +23,7 @@ VIEWS = {"test": [_view(i) for i in range(5)], "extra": [_view(i) for i in range
 def evaluated(monkeypatch):
     calls = []
 
-    def evaluate_views(model, views, cfg, out_dir=None, lpips=False):
+    def evaluate_views(model, views, cfg, out_dir=None, lpips=False, should_stop=None):
         calls.append({"views": {k: [v.name for v in vs] for k, vs in views.items()}, "out_dir": out_dir,
                       "lpips": lpips})
         return {k: {"psnr": 20.0 + len(vs), "ssim": 0.5, "views": [{"psnr": 10.0 + i} for i in range(len(vs))]}

@@ -74,7 +74,7 @@ def test_a_fenced_off_writer_writes_nothing(settings):
 
 
 def _fake_train(status: str, seen: list):
-    def train(scene_dir, run_dir, config, on_progress, should_stop, resume, progress_bar):
+    def train(scene_dir, run_dir, config, on_progress, should_stop, resume, progress_bar, may_write):
         seen.append((scene_dir, run_dir, config, resume))
         on_progress(ProgressEvent(stage="train", iteration=25, progress=0.5, loss=0.2))
         return TrainReport(

@@ -413,9 +413,11 @@ def slerp(r0: np.ndarray, r1: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle(r0: np.ndarray, r1: np.ndarray) -> float:
-    """Angle in radians of the rotation taking ``r0`` to ``r1`` ([3, 3] each)."""
-    cos = (np.trace(r0.T @ r1) - 1) / 2
-    return math.acos(min(1.0, max(-1.0, cos)))
+    """Angle in radians of the rotation taking ``r0`` to ``r1`` ([3, 3] each), accurate near 0 and pi alike
+    (from both its sine and its cosine: ``acos`` of the cosine alone loses half the digits of a small angle)."""
+    r = r0.T @ r1
+    sin2 = np.linalg.norm([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(angle)
+    return math.atan2(sin2, np.trace(r) - 1.0)  # atan2(2 sin, 2 cos)
 
 
 # ------------------------------------------------------------------------------------------------ interpolation

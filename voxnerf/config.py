@@ -116,6 +116,10 @@ class TrainConfig(BaseModel):
     eval_at: list[float] = Field(
         default_factory=list, description="full evaluations at these training seconds (not charged to max_seconds)"
     )
+    eval_at_max_seconds: float | None = Field(
+        default=None, ge=0, description="seconds the eval_at evaluations may take in all (unbounded when None); "
+        "the later ones are skipped once they are spent"
+    )
     checkpoint_every_s: float = Field(default=60.0, gt=0)
     final_eval: bool = True
 

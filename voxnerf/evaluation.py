@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import functools
+from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import torch
 
@@ -17,9 +19,14 @@ from voxnerf.model import VoxNeRFModel
 from voxnerf.render import render_normalized
 
 
+class EvaluationStopped(Exception):
+    """``should_stop()`` said yes between two views of :func:`evaluate_views`."""
+
+
 @dataclass
 class EvalView:
-    """A held-out view: name (file stem), c2w [4, 4] normalised units, intrinsics, ground truth uint8 [H, W, 3].
+    """A held-out view: name (unique in its split, see :func:`view_names`), c2w [4, 4] normalised units,
+    intrinsics, ground truth uint8 [H, W, 3].
 
     The intrinsics keep the frame's lens: the view renders through it, so a distorted camera is scored against
     its own distorted ground-truth image (no image is ever resampled).
@@ -35,6 +42,23 @@ class EvalView:
         return self.intrinsics.width * self.intrinsics.height
 
 
+def view_names(file_paths: Sequence[str], frame_indices: Sequence[int]) -> list[str]:
+    """The names of a split's views, one per frame: the file's stem, made unique within the split.
+
+    A stem that several frames share (``a/frame1.png``, ``b/frame1.png``) gets each frame's index in the scene
+    appended (``frame1-3``, ``frame1-8``; its position in the split when the split lists a frame twice), again
+    until no two names are equal (an appended name may meet another frame's own stem), so the renders
+    ``<split>/<name>.png`` never overwrite each other.
+    """
+    names = [PurePosixPath(path).stem for path in file_paths]
+    keys = list(frame_indices) if len(set(frame_indices)) == len(names) else list(range(len(names)))
+    while True:
+        counts = Counter(names)
+        if all(n == 1 for n in counts.values()):
+            return names
+        names = [f"{name}-{key}" if counts[name] > 1 else name for name, key in zip(names, keys, strict=True)]
+
+
 @functools.lru_cache(maxsize=1)
 def lpips_model() -> LPIPS | None:
     """The LPIPS(AlexNet) network on the CPU, or None when its weights are not installed."""
@@ -48,6 +72,7 @@ def evaluate_views(
     out_dir: Path | None = None,
     lpips: bool = True,
     path: str = "fast",
+    should_stop: Callable[[], bool] | None = None,
 ) -> dict[str, dict]:
     """Render every view of every split (on the render ``path``, see :func:`voxnerf.render.render_normalized`)
     and score it.
@@ -55,7 +80,8 @@ def evaluate_views(
     Returns ``{split: {"psnr", "ssim", "lpips" (None if unavailable or not asked), "lpips_note"?, "renderer",
     "views": [{"name", "psnr", "ssim", "lpips"}]}}`` (means at the top; ``renderer`` says which path rendered
     them); LPIPS is also left out, with a note saying why, when a view is smaller than its network accepts.
-    Writes ``out_dir/<split>/<name>.png`` when ``out_dir`` is given.
+    Writes ``out_dir/<split>/<name>.png`` when ``out_dir`` is given. Raises EvaluationStopped when
+    ``should_stop()`` (asked before each view) returns True.
     """
     lp = lpips_model() if lpips else None
     note = LPIPS_UNAVAILABLE if lpips and lp is None else None
@@ -67,6 +93,8 @@ def evaluate_views(
     for split, split_views in views.items():
         preds, gts = [], []
         for view in split_views:
+            if should_stop is not None and should_stop():
+                raise EvaluationStopped()
             rgb = render_normalized(model, view.c2w, view.intrinsics, ("rgb",), path=path)["rgb"]
             rgb = rgb.float().cpu().clamp(0.0, 1.0)
             preds.append(rgb)

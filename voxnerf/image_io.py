@@ -265,8 +265,9 @@ def build_dir_atomic(out: Path, fill: Callable[[Path], T], check: Callable[[Path
 def write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that readers see the old file or the complete new one, never a part.
 
-    The bytes go to a temporary file in the same directory, are flushed to disk, then moved over
-    ``path`` with ``os.replace``. The temporary file is removed if anything fails.
+    The bytes go to a temporary file in the same directory, are flushed to disk (fsync), then moved over
+    ``path`` with ``os.replace``, and the directory is fsynced so the rename itself survives a power cut.
+    The temporary file is removed if anything fails.
     """
     path = Path(path)
     fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -280,3 +281,19 @@ def write_atomic(path: Path, data: bytes) -> None:
     except BaseException:
         Path(tmp_name).unlink(missing_ok=True)
         raise
+    fsync_dir(path.parent)
+
+
+def fsync_dir(directory: Path) -> None:
+    """Flush ``directory``'s entries to disk (after a rename into it). A no-op where a directory cannot be
+    opened (Windows) or fsynced (some network filesystems answer EINVAL)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

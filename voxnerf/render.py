@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import pickle
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +18,7 @@ from voxnerf.files import CHECKPOINT
 from voxnerf.inference import FAST, render_rays_fast
 from voxnerf.model import VoxNeRFModel
 from voxnerf.outputs import OUTPUT_NAMES
+from voxnerf.training.checkpoint import load_checkpoint
 
 OUTPUTS = OUTPUT_NAMES
 RENDER_PATHS = ("fast", "full")
@@ -47,8 +47,8 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
     if not path.is_file():
         raise RunError(f"{path}: no checkpoint (has the run trained yet?)")
     dev = resolve_device(device)
+    state = load_checkpoint(path, dev)  # weights_only: a checkpoint carrying code is refused, not run
     try:
-        state = torch.load(path, map_location=dev, weights_only=False)
         model = VoxNeRFModel.from_state_dict(state["model"], dev)
         trained = TrainedModel(
             model,
@@ -57,8 +57,8 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
             int(state["iteration"]),
             state.get("scene_dir"),
         )
-    # EOFError: an empty file; UnpicklingError: not a checkpoint; TypeError, KeyError: not a checkpoint's dict
-    except (OSError, RuntimeError, KeyError, ValueError, TypeError, EOFError, pickle.UnpicklingError) as exc:
+    # TypeError, KeyError, AttributeError: not a checkpoint's dict; RuntimeError: weights of another shape
+    except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as exc:
         why = " ".join(str(exc).split())  # one line: load_state_dict lists its mismatches line by line
         why = why if len(why) <= 200 else f"{why[:200]}..."
         raise RunError(f"{path}: unreadable checkpoint ({type(exc).__name__}: {why})") from None

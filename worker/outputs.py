@@ -24,6 +24,7 @@ from celery import shared_task
 from app.core import jobstore, outputs, storage
 from app.core.celery_app import OUTPUT_TASK
 from app.core.models import OutputRow
+from app.core.redact import public_error
 from app.core.settings import Settings, get_settings
 from voxnerf import camera_path as camera_paths
 from voxnerf.camera_path import CameraPath, parse_nerfstudio
@@ -33,7 +34,7 @@ from voxnerf.export import export_geometry
 from voxnerf.render import TrainedModel
 from voxnerf.scene import Scene, load_scene
 from voxnerf.video import render_path
-from worker.tasks import Lease, model_cache
+from worker.tasks import DeathNotingRequest, Lease, model_cache
 
 log = logging.getLogger(__name__)
 
@@ -136,14 +137,20 @@ def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
         outputs.publish_output(settings, row, outputs.output_dir(settings, row.job_id, row.id))
     except (VoxNeRFError, CameraError) as err:
         log.warning("output %s failed: %s", row.id, err)
-        return {"state": "failed", "error": f"{type(err).__name__}: {err}"}
+        return {"state": "failed", "error": public_error(f"{type(err).__name__}: {err}", settings)}
     except Exception as err:
         log.exception("output %s crashed", row.id)
-        return {"state": "failed", "error": f"internal error: {type(err).__name__}: {err}"}
+        return {"state": "failed", "error": public_error(f"internal error: {type(err).__name__}: {err}", settings)}
     return {"state": "succeeded", "summary": summary, "file_name": outputs.FILE_NAMES[row.kind]}
 
 
-@shared_task(name=OUTPUT_TASK, acks_late=True, reject_on_worker_lost=True)
+class OutputDeathNotingRequest(DeathNotingRequest):
+    """:class:`worker.tasks.DeathNotingRequest` for output jobs."""
+
+    table = OutputRow
+
+
+@shared_task(name=OUTPUT_TASK, acks_late=True, reject_on_worker_lost=True, Request=OutputDeathNotingRequest)
 def make_output(output_id: str) -> None:
     """Make output ``output_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
     settings = get_settings()

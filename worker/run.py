@@ -8,6 +8,7 @@ import socket
 
 from app.core import storage
 from app.core.celery_app import QUEUES, create_celery
+from app.core.redact import install_log_masking
 from app.core.settings import get_settings
 
 TASK_MODULES = ("worker.tasks",)  # imported by the worker (and its pool processes) for their tasks
@@ -32,6 +33,7 @@ def run_worker(queues: list[str], concurrency: int) -> None:
     settings.make_dirs()
     storage.check_store(settings)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    install_log_masking()  # broker and storage URLs' credentials never reach a log line
     celery_app = create_celery(settings, include=TASK_MODULES, queues=queues)
     celery_app.worker_main(
         [

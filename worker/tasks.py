@@ -5,7 +5,12 @@ Training: the task claims the job in the job store (fenced by its attempt number
 :func:`voxnerf.trainer.train` with ``resume=True`` (a redelivered job continues from its checkpoint),
 writes progress at most every ``progress_interval_s``, and renews its lease every ``heartbeat_s`` from a
 side thread that also picks up cancellation. ``acks_late`` + ``reject_on_worker_lost`` give the message
-back to the broker if the process dies; the job store's stale-job sweep covers the rest.
+back to the broker if the process dies (the Celery main process notes the death on the job's row first,
+:class:`DeathNotingRequest`); the job store's stale-job sweep covers the rest, and fails a job whose worker
+died ``max_worker_deaths`` times. Every job trains for at most ``max_job_seconds`` of wall clock, its
+``eval_at`` evaluations for at most ``max_eval_at_seconds``; before each file it writes, the trainer asks the
+job store whether this attempt still owns the job (:meth:`Lease.still_owned`), so a worker that lost its
+lease writes nothing more into the run.
 
 With an object store (``VOXNERF_STORAGE_URL``, :mod:`app.core.storage`) the scene and the run's last uploaded
 checkpoint are fetched into this machine's cache first, and the run is uploaded after every checkpoint and
@@ -19,7 +24,10 @@ the contract with the trainer: ``on_progress`` receives :class:`ProgressEvent` o
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import os
+import signal
 import threading
 import time
 from collections import OrderedDict
@@ -29,11 +37,15 @@ from pathlib import Path
 
 import numpy as np
 from celery import shared_task
+from celery.exceptions import WorkerLostError
 from celery.signals import worker_ready
+from celery.worker.request import Request
 
 from app.core import jobstore, storage
 from app.core.celery_app import RENDER_TASK, TRAIN_TASK
-from app.core.dispatch import requeue_stale_jobs, requeue_stale_outputs
+from app.core.dispatch import sweep_jobs
+from app.core.models import JobRow
+from app.core.redact import public_error
 from app.core.render_request import RenderRequest
 from app.core.render_results import RenderOutcome, deliver_outcome
 from app.core.settings import Settings, get_settings
@@ -45,6 +57,7 @@ from voxnerf.outputs import encode_outputs
 from voxnerf.render import TrainedModel, load_model, render
 from voxnerf.trainer import train
 from voxnerf.training.records import ProgressEvent, TrainReport
+from voxnerf.training.run import LeaseLost
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +101,21 @@ class Lease:
     def should_stop(self) -> bool:
         return self.cancelled.is_set() or self.lost.is_set()
 
+    def still_owned(self) -> bool:
+        """Ask the job store now (the fence before each file the trainer writes) whether this attempt still
+        owns the job; a no sets ``lost``. A store that cannot answer counts as a no: better an attempt that
+        stops than two that write."""
+        if self.lost.is_set():
+            return False
+        try:
+            owned = self.renew(self.settings, self.job_id, self.attempt).owned
+        except Exception:
+            log.warning("job %s: cannot confirm the lease before writing", self.job_id, exc_info=True)
+            owned = False
+        if not owned:
+            self.lost.set()
+        return owned
+
     def __enter__(self) -> Lease:
         self._thread.start()
         return self
@@ -128,16 +156,38 @@ class ProgressWriter:
 
 
 def _fail(settings: Settings, job_id: str, attempt: int, error: str) -> None:
-    jobstore.finish_job(settings, job_id, attempt, "failed", {"error": error, "stage": "failed", "eta_s": None})
+    """Mark the job failed with ``error`` as clients may read it (:func:`app.core.redact.public_error`)."""
+    values = {"error": public_error(error, settings), "stage": "failed", "eta_s": None}
+    jobstore.finish_job(settings, job_id, attempt, "failed", values)
+
+
+def job_config(settings: Settings, options: dict) -> TrainConfig:
+    """A job's training config: its options, with what the deployment decides: the device, the checkpoint
+    period, ``max_seconds`` capped at ``max_job_seconds`` (set to it for a ``max_iters``-only job) and the time
+    its ``eval_at`` evaluations may take."""
+    requested = options.get("max_seconds")
+    max_seconds = settings.max_job_seconds if requested is None else min(requested, settings.max_job_seconds)
+    return TrainConfig(**{**options, "max_seconds": max_seconds}, device=settings.device,
+                       checkpoint_every_s=settings.checkpoint_every_s,
+                       eval_at_max_seconds=settings.max_eval_at_seconds)
+
+
+def _kill_if_poison_test(settings: Settings, scene_id: str) -> None:
+    """The poison-job test's hook (``kill_worker_on_scene``, a setting only tests set): die like an out-of-memory
+    kill while loading that scene."""
+    if settings.kill_worker_on_scene is not None and settings.kill_worker_on_scene == scene_id:
+        log.warning("scene %s: kill_worker_on_scene is set, the worker kills itself (SIGKILL)", scene_id)
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _train_claimed(settings: Settings, job, writer: ProgressWriter, lease: Lease) -> TrainReport | None:
-    """Train a claimed job; None when it failed (the job is then marked failed)."""
-    config = TrainConfig(**job.options, device=settings.device, checkpoint_every_s=settings.checkpoint_every_s)
+    """Train a claimed job; None when it failed (the job is then marked failed) or its lease was lost."""
     try:
+        config = job_config(settings, job.options)
         scene_dir = storage.ensure_scene(settings, job.scene_id)
+        _kill_if_poison_test(settings, job.scene_id)
         run_dir = storage.ensure_run(settings, job.id)
-        with storage.RunPublisher(settings, job.id, run_dir):
+        with storage.RunPublisher(settings, job.id, run_dir, may_upload=lease.still_owned):
             return train(
                 scene_dir,
                 run_dir,
@@ -146,7 +196,10 @@ def _train_claimed(settings: Settings, job, writer: ProgressWriter, lease: Lease
                 should_stop=lease.should_stop,
                 resume=True,
                 progress_bar=False,
+                may_write=lease.still_owned,
             )
+    except LeaseLost as err:
+        log.warning("job %s: %s", job.id, err)
     except VoxNeRFError as err:
         log.warning("job %s failed: %s", job.id, err)
         _fail(settings, job.id, job.attempt, f"{type(err).__name__}: {err}")
@@ -156,7 +209,25 @@ def _train_claimed(settings: Settings, job, writer: ProgressWriter, lease: Lease
     return None
 
 
-@shared_task(name=TRAIN_TASK, acks_late=True, reject_on_worker_lost=True)
+class DeathNotingRequest(Request):
+    """A task request that, in the worker's main process, notes on the job's row why its pool process died
+    (Celery's "Worker exited prematurely: signal 9 (SIGKILL)") before the message goes back to the queue; a
+    job failed for dying too often names the last death. ``table``: the rows the task's first argument names."""
+
+    table = JobRow
+
+    def on_failure(self, exc_info, send_failed_event=True, return_ok=False):
+        exc = getattr(exc_info, "exception", None)
+        exc = getattr(exc, "exc", exc)  # unwrap Celery's ExceptionWithTraceback
+        if isinstance(exc, WorkerLostError) and self.args:
+            try:
+                jobstore.record_worker_death(get_settings(), self.table, self.args[0], str(exc))
+            except Exception:  # the store is down: the death still counts, only its reason is lost
+                log.warning("cannot note the worker's death on %s", self.args[0], exc_info=True)
+        return super().on_failure(exc_info, send_failed_event, return_ok)
+
+
+@shared_task(name=TRAIN_TASK, acks_late=True, reject_on_worker_lost=True, Request=DeathNotingRequest)
 def train_job(job_id: str) -> None:
     """Train job ``job_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
     settings = get_settings()
@@ -229,15 +300,18 @@ def render_pose(request_id: str, job_id: str, request: dict) -> None:
     except Exception as err:
         log.exception("render %s of job %s failed", request_id, job_id)
         outcome = RenderOutcome(500, detail=f"render failed: {type(err).__name__}: {err}")
-    deliver_outcome(get_settings(), request_id, outcome)
+    settings = get_settings()
+    if outcome.detail:  # the API answers with it: no server paths, no credentials
+        outcome = dataclasses.replace(outcome, detail=public_error(outcome.detail, settings))
+    deliver_outcome(settings, request_id, outcome)
 
 
 @worker_ready.connect
 def _recover_stale_jobs(sender=None, **_) -> None:
-    """At worker start-up, requeue jobs whose previous worker died (the API also does so periodically)."""
+    """At worker start-up, requeue jobs whose previous worker died and re-send lost messages (the API also
+    does so periodically)."""
     try:
-        requeue_stale_jobs(get_settings(), sender.app)
-        requeue_stale_outputs(get_settings(), sender.app)
+        sweep_jobs(get_settings(), sender.app)
     except Exception:
         log.exception("start-up recovery of stale jobs failed")
 

@@ -12,10 +12,11 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy import Engine, create_engine, event, inspect, text
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.models import Base
+from app.core.progress import NULL_READS_AS_DEFAULT
 from app.core.settings import Settings
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
@@ -46,8 +47,33 @@ def _engine_and_factory(settings: Settings) -> tuple[Engine, sessionmaker[Sessio
             else:
                 engine = create_engine(url, pool_pre_ping=True)
             Base.metadata.create_all(engine)
+            add_missing_columns(engine)
             _engines[key] = (engine, sessionmaker(engine, expire_on_commit=False))
         return _engines[key]
+
+
+def add_missing_columns(engine: Engine) -> list[str]:
+    """Add to existing tables the columns the models have gained since the tables were created (``create_all``
+    creates missing tables only), so a database written by an earlier version keeps working; returns
+    ``table.column`` of each column added. Only columns whose old rows may hold null are added (nullable ones,
+    and those marked ``NULL_READS_AS_DEFAULT``, such as the progress fields); any other missing column is a
+    RuntimeError: it needs a migration of its own."""
+    added = []
+    existing = inspect(engine)
+    for table in Base.metadata.sorted_tables:
+        if not existing.has_table(table.name):
+            continue
+        present = {column["name"] for column in existing.get_columns(table.name)}
+        for column in table.columns:
+            if column.name in present:
+                continue
+            if not (column.nullable or column.info.get(NULL_READS_AS_DEFAULT)):
+                raise RuntimeError(f"table {table.name} lacks the non-null column {column.name}: migrate it")
+            kind = column.type.compile(dialect=engine.dialect)
+            with engine.begin() as conn:
+                conn.execute(text(f'ALTER TABLE "{table.name}" ADD COLUMN "{column.name}" {kind}'))
+            added.append(f"{table.name}.{column.name}")
+    return added
 
 
 def get_engine(settings: Settings) -> Engine:

@@ -29,7 +29,7 @@ from sqlalchemy import select, update
 
 from app.core import storage
 from app.core.db import session_scope
-from app.core.jobstore import LeaseStatus, is_stale, new_id
+from app.core.jobstore import LeaseStatus, claim_row, is_stale, new_id
 from app.core.models import ACTIVE_STATES, JobRow, OutputRow
 from app.core.progress import json_safe
 from app.core.settings import Settings
@@ -41,7 +41,6 @@ FILE_NAMES = {"video": "video.mp4", "mesh": "mesh.ply", "pointcloud": "pointclou
 MEDIA_TYPES = {"video": "video/mp4", "mesh": "application/octet-stream", "pointcloud": "application/octet-stream"}
 UNITS = {"video": "frames", "mesh": "views", "pointcloud": "views"}
 GENERATORS = ("interpolate", "orbit")  # through the training cameras, around their centre
-MAX_REQUEUES = 2  # an output whose worker died this often is failed (it may be what kills the worker)
 
 
 class NotRenderable(Exception):
@@ -183,8 +182,7 @@ def list_outputs(settings: Settings, job_id: str, limit: int = 100) -> list[Outp
 
 
 def fail_output(settings: Settings, output_id: str, error: str) -> None:
-    """Fail an output that is queued or running whoever holds it (the broker refused it, or it was requeued
-    too often)."""
+    """Fail an output that is queued or running whoever holds it (the broker refused it)."""
     with session_scope(settings) as session:
         session.execute(
             update(OutputRow)
@@ -212,31 +210,11 @@ def request_cancel(settings: Settings, output_id: str) -> OutputRow | None:
 
 
 def claim_output(settings: Settings, output_id: str, worker: str) -> OutputRow | None:
-    """Take a queued (or stale running) output for ``worker``; None when it is not there to take. The returned
-    row's ``attempt`` fences every later write (as :func:`app.core.jobstore.claim_job`)."""
-    now = time.time()
-    row = get_output(settings, output_id)
-    if row is None or row.state not in ACTIVE_STATES:
-        return None
-    if row.state == "running" and not is_stale(row, settings, now):
-        return None
-    with session_scope(settings) as session:
-        claimed = session.execute(
-            update(OutputRow)
-            .where(OutputRow.id == output_id, OutputRow.attempt == row.attempt, OutputRow.state == row.state)
-            .values(
-                state="running",
-                attempt=row.attempt + 1,
-                requeues=row.requeues + int(row.state == "running"),
-                worker=worker,
-                heartbeat_at=now,
-                started_at=now,
-                progress=0.0,
-                done=0,
-                eta_s=None,
-            )
-        ).rowcount
-    return get_output(settings, output_id) if claimed else None
+    """Take a queued (or stale running) output for ``worker``; None when it is not there to take (the rule of
+    :func:`app.core.jobstore.claim_row`, a worker that died too often included). The returned row's
+    ``attempt`` fences every later write; a claim starts the output again from its first frame."""
+    return claim_row(settings, OutputRow, output_id, worker,
+                     lambda _row, now: {"started_at": now, "progress": 0.0, "done": 0, "eta_s": None})
 
 
 def _write_running(settings: Settings, output_id: str, attempt: int, values: dict) -> bool:

@@ -56,6 +56,9 @@ def initial_values() -> dict[str, Any]:
     return {name: default(name) for name in PROGRESS_FIELDS}
 
 
+NULL_READS_AS_DEFAULT = "null_reads_as_default"  # column info: rows that predate the column may hold null
+
+
 def progress_columns() -> dict[str, MappedColumn]:
     """One ``mapped_column`` per stored progress field, typed after the event's field."""
     columns = {}
@@ -66,6 +69,7 @@ def progress_columns() -> dict[str, MappedColumn]:
             _SQL_TYPES[base](),
             nullable=nullable(name),
             default=list if isinstance(initial, list) else initial,
+            info={NULL_READS_AS_DEFAULT: True},  # JobOut reads a null as the field's default
         )
     return columns
 

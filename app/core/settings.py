@@ -47,6 +47,11 @@ class Settings(BaseSettings):
         default=None,
         description="when set, every endpoint but /healthz needs 'Authorization: Bearer <token>'",
     )
+    allow_unauthenticated_remote: bool = Field(
+        default=False,
+        description="without api_token the service answers only loopback clients and refuses to bind another "
+        "address; true lifts both (logged as a WARNING): anyone who reaches the port then controls the service",
+    )
 
     max_upload_bytes: int = Field(default=2048 * MiB, gt=0, description="request body of POST /scenes")
     max_request_bytes: int = Field(default=1 * MiB, gt=0, description="request body of every other endpoint")
@@ -57,6 +62,30 @@ class Settings(BaseSettings):
     )
     max_image_pixels: int = Field(
         default=64_000_000, gt=0, description="declared width x height of one image"
+    )
+    max_scene_pixels: int = Field(
+        default=2_000_000_000,
+        gt=0,
+        description="declared width x height summed over every image and depth map of one uploaded scene",
+    )
+    max_transforms_bytes: int = Field(
+        default=64 * MiB, gt=0, description="size of an uploaded transforms.json, checked before it is parsed"
+    )
+    max_concurrent_uploads: int = Field(
+        default=2,
+        ge=1,
+        le=32,
+        description="POST /scenes requests one API process takes at once; more are answered 429 with "
+        "Retry-After (each holds a worker thread, staging disk and a validation process)",
+    )
+    upload_validation_memory_bytes: int = Field(
+        default=4096 * MiB,
+        gt=0,
+        description="address space an upload's validation process may add to what it starts with "
+        "(RLIMIT_AS); past it the upload is refused with 413",
+    )
+    upload_validation_timeout_s: float = Field(
+        default=900.0, gt=0, description="wall-clock seconds an upload's validation may take; then it is killed"
     )
     max_render_pixels: int = Field(default=4096 * 4096, gt=0, description="width x height of one render")
     max_video_frames: int = Field(
@@ -92,8 +121,48 @@ class Settings(BaseSettings):
         default=60.0, gt=0, description="a running job whose lease is this old is requeued (its worker died)"
     )
     sweep_interval_s: float = Field(default=10.0, gt=0, description="how often the API looks for stale jobs")
+    leftover_age_s: float = Field(
+        default=3600.0, ge=0,
+        description="at start-up the API removes what a crash left: staging directories and scene directories "
+        "without a database row, once nothing in them changed for this long (younger ones may belong to "
+        "another process sharing data_dir)",
+    )
+    max_worker_deaths: int = Field(
+        default=3, ge=1, le=100,
+        description="a training or output job whose worker died this many times while running it (killed, out of "
+        "memory, crashed) is failed naming why, not requeued again",
+    )
+    resend_queued_after_s: float = Field(
+        default=300.0, gt=0,
+        description="a job queued this long since its message was sent has the message sent again (it may have "
+        "been lost); a duplicate is refused by the claim's fence",
+    )
+    max_job_seconds: float = Field(
+        default=86_400.0, gt=0,
+        description="wall-clock cap of every training job: the worker trains for min(max_seconds, this), a "
+        "max_iters-only job included",
+    )
+    max_eval_at_seconds: float = Field(
+        default=600.0, ge=0,
+        description="seconds a training job may spend in its eval_at evaluations (they are not charged to "
+        "max_seconds); once spent, the later eval_at times are skipped",
+    )
+    max_queued_jobs: int = Field(
+        default=100, ge=1,
+        description="queued training jobs per client (the API token's holder; everyone without a token); "
+        "POST /scenes/{id}/jobs beyond it is answered 429",
+    )
+    kill_worker_on_scene: str | None = Field(
+        default=None,
+        description="tests only: a training worker that loads this scene id kills itself with SIGKILL (a poison "
+        "job); no upload can set it",
+    )
     health_timeout_s: float = Field(
         default=1.0, gt=0, description="how long /healthz waits for worker replies"
+    )
+    health_cache_s: float = Field(
+        default=2.0, gt=0, le=60,
+        description="an anonymous /healthz answer (status only) is reused this long before one check refreshes it",
     )
 
     storage_url: str | None = Field(

@@ -32,6 +32,7 @@ import shutil
 import tempfile
 import threading
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from types import TracebackType
@@ -39,6 +40,7 @@ from types import TracebackType
 import fsspec
 from fsspec.core import url_to_fs
 
+from app.core.redact import mask_url
 from app.core.settings import Settings
 from voxnerf.errors import VoxNeRFError
 from voxnerf.files import CHECKPOINT
@@ -69,8 +71,8 @@ class Store:
         return f"{self.root}/{key}" if self.root else key
 
     def where(self, key: str) -> str:
-        """``key`` as a URL, for messages."""
-        return f"{self.url.rstrip('/')}/{key}"
+        """``key`` as a URL, for messages (credentials masked)."""
+        return mask_url(f"{self.url.rstrip('/')}/{key}")
 
 
 def storage_options(settings: Settings) -> dict:
@@ -86,7 +88,7 @@ def storage_options(settings: Settings) -> dict:
     protocol = (settings.storage_url or "").split("://", 1)[0]
     if given and protocol not in ("s3", "s3a"):
         names = ", ".join(s3_fields[option][0] for option in given)
-        raise ValueError(f"{names} apply to s3:// stores only, not to {settings.storage_url!r}")
+        raise ValueError(f"{names} apply to s3:// stores only, not to {mask_url(settings.storage_url)!r}")
     options.update(given)
     return options
 
@@ -113,7 +115,7 @@ def check_store(settings: Settings) -> None:
         store.fs.makedirs(store.root, exist_ok=True)
     except Exception as err:  # each backend raises its own types (botocore, OSError, PermissionError...)
         raise StorageError(
-            f"the object store {store.url} (VOXNERF_STORAGE_URL) cannot be used: {type(err).__name__}: {err}"
+            mask_url(f"the object store {store.url} (VOXNERF_STORAGE_URL) cannot be used: {type(err).__name__}: {err}")
         ) from err
 
 
@@ -287,6 +289,14 @@ def delete_scene(settings: Settings, scene_id: str) -> None:
         delete_prefix(store, f"{SCENES}/{scene_id}")
 
 
+def delete_keys(settings: Settings, keys: list[str]) -> None:
+    """Delete directories ``keys`` (e.g. ``runs/<job id>``) from the store; no-op without a store."""
+    store = open_store(settings)
+    if store is not None:
+        for key in keys:
+            delete_prefix(store, key)
+
+
 def ensure_scene(settings: Settings, scene_id: str) -> Path:
     """The local directory of a scene, fetched from the store if this machine's cache lacks it.
 
@@ -330,11 +340,15 @@ class RunPublisher:
     A side thread looks at ``run_dir/checkpoint.pt`` every ``storage_sync_interval_s`` and uploads the run
     when the file changed (the trainer replaces it atomically, so an upload reads one whole checkpoint).
     Leaving the context uploads the final run (checkpoint, report.json, evaluation renders); an upload error
-    there propagates unless the block already raised. Does nothing without a store.
+    there propagates unless the block already raised. Does nothing without a store. ``may_upload()`` (a
+    worker's lease: :meth:`worker.tasks.Lease.still_owned`) is asked before every upload, so an attempt that
+    lost its job never overwrites its successor's run in the store.
     """
 
-    def __init__(self, settings: Settings, job_id: str, run_dir: Path) -> None:
+    def __init__(self, settings: Settings, job_id: str, run_dir: Path,
+                 may_upload: Callable[[], bool] = lambda: True) -> None:
         self.store = open_store(settings)
+        self.may_upload = may_upload
         self.key = f"{RUNS}/{job_id}"
         self.run_dir = run_dir
         self.interval_s = settings.storage_sync_interval_s
@@ -351,7 +365,7 @@ class RunPublisher:
     def upload_if_changed(self) -> bool:
         """Upload the run if its checkpoint changed since the last upload; True if it uploaded."""
         stamp = self._checkpoint_stamp()
-        if self.store is None or stamp is None or stamp == self._uploaded:
+        if self.store is None or stamp is None or stamp == self._uploaded or not self.may_upload():
             return False
         put_dir(self.store, self.run_dir, self.key)
         self._uploaded = stamp
@@ -376,7 +390,7 @@ class RunPublisher:
             return
         self._done.set()
         self._thread.join()
-        if not self.run_dir.is_dir():
+        if not self.run_dir.is_dir() or not self.may_upload():
             return
         try:
             put_dir(self.store, self.run_dir, self.key)

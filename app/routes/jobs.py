@@ -1,19 +1,24 @@
-"""``/jobs``: list, show, cancel, and the evaluation renders of a finished job."""
+"""``/jobs``: list, show, cancel, delete; the evaluation renders, report.json and checkpoint of a job's run."""
 
 from __future__ import annotations
 
+import logging
+import shutil
 from pathlib import Path
 from urllib.parse import quote
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.responses import FileResponse
 
-from app.core import jobstore, storage
+from app.core import jobstore, outputs, storage
 from app.core.models import JobRow
+from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import JobId, SettingsDep
 from app.schemas import EvalRender, JobOut
+from voxnerf.files import CHECKPOINT, REPORT
 
+log = logging.getLogger(__name__)
 router = APIRouter(tags=["jobs"])
 
 EVAL_DIR = "eval"  # the trainer writes <run_dir>/eval/<split>/<view name>.png
@@ -51,15 +56,40 @@ def cancel_job(job_id: JobId, settings: SettingsDep) -> JobOut:
     return JobOut.from_row(job)
 
 
-def _eval_root(settings: Settings, job: JobRow) -> Path:
-    """Where job ``job``'s evaluation renders are; a succeeded job's run is fetched from the store first when
-    this process's cache lacks it (a no-op without ``storage_url``)."""
-    if job.state != "succeeded":
-        return settings.runs_dir / job.id / EVAL_DIR
+@router.delete("/jobs/{job_id}", status_code=204, summary="Delete a finished job, its run and its outputs")
+def delete_job(job_id: JobId, settings: SettingsDep) -> Response:
+    """Delete a succeeded, failed or cancelled job: its row, its output jobs, its run directory (checkpoint,
+    report, renders, outputs) here and in the object store. 409 while it or one of its outputs is queued or
+    running (cancel it first), 404 for an unknown job."""
     try:
-        return storage.ensure_run(settings, job.id, refresh=False) / EVAL_DIR
+        output_ids = jobstore.delete_job(settings, job_id)
+    except jobstore.JobActive as busy:
+        raise HTTPException(409, str(busy)) from None
+    if output_ids is None:
+        raise HTTPException(404, f"no job {job_id}")
+    shutil.rmtree(settings.runs_dir / job_id, ignore_errors=True)
+    try:
+        storage.delete_keys(settings, [f"{storage.RUNS}/{job_id}", *map(outputs.store_key, output_ids)])
+    except Exception:  # the job is gone for the service; its unreferenced copy in the store is only waste
+        log.error("job %s: deleting its run in the object store failed", job_id, exc_info=True)
+    return Response(status_code=204)
+
+
+def _run_dir(settings: Settings, job: JobRow) -> Path:
+    """Job ``job``'s run directory; a succeeded job's run is fetched from the store first when this process's
+    cache lacks it (a no-op without ``storage_url``)."""
+    if job.state != "succeeded":
+        return settings.runs_dir / job.id
+    try:
+        return storage.ensure_run(settings, job.id, refresh=False)
     except storage.StorageError as err:
-        raise HTTPException(503, f"the run of job {job.id} cannot be fetched from the store: {err}") from None
+        detail = public_error(f"the run of job {job.id} cannot be fetched from the store: {err}", settings)
+        raise HTTPException(503, detail) from None
+
+
+def _eval_root(settings: Settings, job: JobRow) -> Path:
+    """Where job ``job``'s evaluation renders are (:func:`_run_dir`)."""
+    return _run_dir(settings, job) / EVAL_DIR
 
 
 @router.get("/jobs/{job_id}/renders", response_model=list[EvalRender], summary="Evaluation renders of a job")
@@ -104,3 +134,35 @@ def get_render(job_id: JobId, split: str, filename: str, settings: SettingsDep) 
     if not path.is_relative_to(root) or not path.is_file():
         raise HTTPException(404, "no such render")
     return FileResponse(path, media_type="image/png")
+
+
+@router.get(
+    "/jobs/{job_id}/report",
+    response_class=FileResponse,
+    responses={200: {"content": {"application/json": {}}}},
+    summary="Download the run's report.json (config, stages, history, metrics); written when the run ends",
+)
+def get_report(job_id: JobId, settings: SettingsDep) -> FileResponse:
+    job = _job_or_404(settings, job_id)
+    path = _run_dir(settings, job) / REPORT
+    if not path.is_file():
+        raise HTTPException(404, f"job {job_id} has no report.json ({job.state}): a run writes it when it ends")
+    return FileResponse(path, media_type="application/json", filename=f"report-{job_id}.json")
+
+
+@router.get(
+    "/jobs/{job_id}/checkpoint",
+    response_class=FileResponse,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+    summary="Download the run's checkpoint (checkpoint.pt: `voxnerf render` reads it from a run directory)",
+)
+def get_checkpoint(job_id: JobId, settings: SettingsDep) -> FileResponse:
+    """The last checkpoint of a finished job (succeeded, cancelled, or failed after training started); 409 while
+    the job is queued or running (the file is being replaced), 404 when no checkpoint was written."""
+    job = _job_or_404(settings, job_id)
+    if job.state in ("queued", "running"):
+        raise HTTPException(409, f"job {job_id} is {job.state}: its checkpoint is still being written")
+    path = _run_dir(settings, job) / CHECKPOINT
+    if not path.is_file():
+        raise HTTPException(404, f"job {job_id} has no checkpoint ({job.state} before training started)")
+    return FileResponse(path, media_type="application/octet-stream", filename=f"checkpoint-{job_id}.pt")

@@ -18,6 +18,7 @@ from app.core import jobstore, storage
 from app.core import outputs as store
 from app.core.dispatch import send_output
 from app.core.models import OutputRow
+from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import ID_DOC, CeleryDep, JobId, SettingsDep
 from app.schemas import ExportRequest, OutputOut, VideoRequest
@@ -45,8 +46,9 @@ def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: d
     try:
         send_output(celery, row.id)
     except (KombuError, OSError) as err:
-        store.fail_output(settings, row.id, f"the queue refused it: {err}")
-        raise HTTPException(503, f"the outputs queue is unavailable ({err}); try again later") from None
+        store.fail_output(settings, row.id, public_error(f"the queue refused it: {err}", settings))
+        raise HTTPException(503, public_error(f"the outputs queue is unavailable ({err}); try again later",
+                                              settings)) from None
     return OutputOut.from_row(row)
 
 
@@ -113,7 +115,8 @@ def get_output_file(output_id: OutputId, settings: SettingsDep) -> FileResponse:
     try:
         path = store.output_file(settings, row)
     except storage.StorageError as err:
-        raise HTTPException(503, f"the output cannot be fetched from the store: {err}") from None
+        detail = public_error(f"the output cannot be fetched from the store: {err}", settings)
+        raise HTTPException(503, detail) from None
     except FileNotFoundError:
         raise HTTPException(404, f"output {output_id}: its file is gone from the data directory") from None
     return FileResponse(path, media_type=store.MEDIA_TYPES[row.kind], filename=f"{row.id}-{row.file_name}")

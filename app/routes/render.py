@@ -21,6 +21,7 @@ from redis import RedisError
 from app.core import jobstore
 from app.core.dispatch import send_render
 from app.core.outputs import NotRenderable, trained_source
+from app.core.redact import public_error
 from app.core.render_request import RenderRequest
 from app.core.render_results import receive_outcome
 from app.core.settings import Settings
@@ -51,11 +52,11 @@ class RenderSlots:
         self.in_use -= 1
 
 
-def _queue_unavailable(err: Exception) -> HTTPException:
+def _queue_unavailable(err: Exception, settings: Settings) -> HTTPException:
     """503 with Retry-After: the broker (or Redis, which carries the outcome back) cannot be reached."""
     return HTTPException(
         503,
-        f"the render queue is unavailable ({err}); try again later",
+        public_error(f"the render queue is unavailable ({err}); try again later", settings),
         headers={"Retry-After": str(RETRY_AFTER_S)},
     )
 
@@ -82,11 +83,11 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
     try:
         send_render(celery, request_id, body.job_id, body.model_dump(), settings.render_timeout_s)
     except (KombuError, OSError) as err:
-        raise _queue_unavailable(err) from None
+        raise _queue_unavailable(err, settings) from None
     try:
         outcome = receive_outcome(settings, request_id, settings.render_timeout_s)
     except RedisError as err:
-        raise _queue_unavailable(err) from None
+        raise _queue_unavailable(err, settings) from None
     if outcome is None:
         raise HTTPException(504, f"no render worker answered within {settings.render_timeout_s:g} s")
     if outcome.status != 200:

@@ -13,12 +13,17 @@ from starlette.datastructures import UploadFile
 from app import uploads
 from app.core import jobstore, storage
 from app.core.dispatch import send_train
+from app.core.redact import public_error
+from app.core.settings import Settings
 from app.deps import CeleryDep, SceneId, SettingsDep
+from app.routes.render import RenderSlots
 from app.schemas import JobOptions, JobOut, SceneOut
+from app.upload_form import read_form
 from voxnerf.config import TrainConfig
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["scenes"])
+UPLOAD_RETRY_AFTER_S = 10  # what a client refused for too many uploads in progress is told to wait
 
 UPLOAD_BODY = {
     "required": True,
@@ -76,8 +81,31 @@ def _split_rule(value: object, is_zip: bool):
     "imported",
 )
 async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
-    form = await request.form(max_files=settings.max_files + 1, max_fields=8, max_part_size=64 * 1024)
+    slots = _upload_slots(request, settings)
+    if not slots.try_acquire():  # before the body is read: a refused upload costs no disk and no thread
+        raise HTTPException(
+            429,
+            f"{slots.limit} uploads are already in progress on this API process "
+            f"(VOXNERF_MAX_CONCURRENT_UPLOADS); retry in {UPLOAD_RETRY_AFTER_S} s",
+            headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)},
+        )
     try:
+        return await _receive_scene(request, settings)
+    finally:
+        slots.release()
+
+
+def _upload_slots(request: Request, settings: Settings) -> RenderSlots:
+    """This app's counter of uploads in progress, made on first use (only the event loop touches it)."""
+    state = request.app.state
+    if not hasattr(state, "upload_slots"):
+        state.upload_slots = RenderSlots(settings.max_concurrent_uploads)
+    return state.upload_slots
+
+
+async def _receive_scene(request: Request, settings: Settings) -> SceneOut:
+    """Read the form (file parts spooled to disk), then stage, validate and store the scene in a thread."""
+    async with read_form(request, settings) as form:
         archive = form.get("file")
         parts = [p for p in form.getlist("files") if isinstance(p, UploadFile)]
         if isinstance(archive, UploadFile) and parts:
@@ -100,8 +128,6 @@ async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
                 422,
                 "no scene: send a multipart form with a .zip in field 'file', or the files in field 'files'",
             )
-    finally:
-        await form.close()
     return SceneOut.from_row(jobstore.get_scene(settings, stored.id))
 
 
@@ -153,14 +179,18 @@ def create_job(
     except ValidationError as err:
         raise HTTPException(422, f"invalid training options: {err}") from None
     _scene_or_404(settings, scene_id)
-    job = jobstore.create_job(settings, scene_id, values)
+    try:
+        job = jobstore.create_job(settings, scene_id, values)
+    except jobstore.QueueFull as full:
+        raise HTTPException(429, str(full)) from None
     if job is None:
         raise HTTPException(404, f"no scene {scene_id}")
     try:
         send_train(celery, job.id)
     except (KombuError, OSError) as err:
         log.error("cannot queue job %s: %s", job.id, err)
-        jobstore.fail_job(settings, job.id, f"the broker refused the job: {err}")
-        raise HTTPException(503, f"the job queue is unavailable ({err}); try again later") from None
+        jobstore.fail_job(settings, job.id, public_error(f"the broker refused the job: {err}", settings))
+        raise HTTPException(503, public_error(f"the job queue is unavailable ({err}); try again later",
+                                              settings)) from None
     response.headers["Location"] = f"/jobs/{job.id}"
     return JobOut.from_row(jobstore.get_job(settings, job.id))

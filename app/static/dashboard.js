@@ -2,7 +2,6 @@
 // No framework and no build step. Every request carries the API token saved in localStorage (if any).
 "use strict";
 
-const TOKEN_KEY = "voxnerf.token";
 const POLL_MS = 1000;
 const HEALTH_MS = 5000;
 const MAX_THUMBS = 12;
@@ -20,38 +19,7 @@ const OUTPUT_BUTTONS = [  // [data-output, label, endpoint, body builder]
 ];
 
 // ------------------------------------------------------------------------------------------- API access
-
-function savedToken() {
-  return localStorage.getItem(TOKEN_KEY) || "";
-}
-
-function detailText(body, status) {
-  const detail = body && body.detail;
-  if (typeof detail === "string") return detail;
-  if (Array.isArray(detail)) {
-    return detail.map((d) => `${(d.loc || []).slice(1).join(".") || "body"}: ${d.msg}`).join("; ");
-  }
-  return `HTTP ${status}`;
-}
-
-async function api(path, options = {}) {
-  const headers = new Headers(options.headers || {});
-  const token = savedToken();
-  if (token) headers.set("Authorization", `Bearer ${token}`);
-  const response = await fetch(path, { ...options, headers });
-  if (response.ok) return response;
-  let body = null;
-  try {
-    body = await response.json();
-  } catch (_) {
-    body = null;
-  }
-  if (response.status === 401) {
-    $("token").focus();
-    throw new Error("This server needs an API token: enter it above and press Save.");
-  }
-  throw new Error(detailText(body, response.status));
-}
+// savedToken, saveToken, api and apiBlobUrl are /static/api.js's (loaded first).
 
 function showMessage(text, kind = "error") {
   const box = $("message");
@@ -194,10 +162,22 @@ function jobRow(job) {
   return row;
 }
 
+// A link to a job's or scene's own page, showing the id's first 8 digits.
+function pageLink(href, id, className) {
+  const link = Object.assign(document.createElement("a"), { href, className, title: id });
+  link.appendChild(Object.assign(document.createElement("code"), { textContent: id.slice(0, 8) }));
+  return link;
+}
+
+// The viewer of a succeeded job (or of a cancelled one's checkpoint, rendered as partial).
+function viewerLink(job) {
+  return Object.assign(document.createElement("a"), { href: `/static/viewer.html?job=${job.id}`, className: "viewer-link", textContent: "view" });
+}
+
 function updateRow(row, job) {
   const cell = (name) => row.querySelector(`.col-${name}`);
-  cell("id").replaceChildren(Object.assign(document.createElement("code"), { textContent: job.id.slice(0, 8), title: job.id }));
-  cell("scene").replaceChildren(Object.assign(document.createElement("code"), { textContent: job.scene_id.slice(0, 8), title: job.scene_id }));
+  cell("id").replaceChildren(pageLink(`/static/job.html?id=${job.id}`, job.id, "job-page"));
+  cell("scene").replaceChildren(pageLink(`/static/scene.html?id=${job.scene_id}`, job.scene_id, "scene-page"));
   const state = Object.assign(document.createElement("span"), { className: `state state-${job.state}`, textContent: job.state });
   cell("state").replaceChildren(state);
   if (job.error) cell("state").appendChild(Object.assign(document.createElement("div"), { className: "error", textContent: job.error }));
@@ -209,7 +189,8 @@ function updateRow(row, job) {
     cell("plot").replaceChildren(psnrPlot(job.history));
   }
   if (job.state === "succeeded" && !thumbsLoaded.has(job.id)) loadThumbnails(job, cell("thumbs").firstChild);
-  cell("actions").replaceChildren(...(job.state === "queued" || job.state === "running" ? [cancelButton(job)] : []));
+  cell("actions").replaceChildren(...(job.state === "queued" || job.state === "running" ? [cancelButton(job)] : []),
+    ...(job.state === "succeeded" || job.state === "cancelled" ? [viewerLink(job)] : []));
   if (job.state === "succeeded") {
     const buttons = cell("outputs").querySelector(".output-buttons");
     if (!buttons.childElementCount) buttons.append(...outputButtons(job));
@@ -341,11 +322,18 @@ async function refreshScenes() {
 async function refreshHealth() {
   const badge = $("health");
   try {
-    const response = await fetch("/healthz");
+    // with the token the details come too; without it (when the server needs one) the status alone
+    const token = savedToken();
+    const response = await fetch("/healthz", token ? { headers: { Authorization: `Bearer ${token}` } } : {});
     const health = await response.json();
+    badge.className = `health ${response.ok ? "ok" : "bad"}`;
+    if (!health.workers) {
+      badge.textContent = health.status;
+      badge.title = "details need the API token";
+      return;
+    }
     const workers = Object.entries(health.workers).map(([q, names]) => `${q}: ${names.length}`).join(", ");
     badge.textContent = `${health.status} · workers ${workers}`;
-    badge.className = `health ${response.ok ? "ok" : "bad"}`;
     badge.title = `database: ${health.database.detail}\nbroker: ${health.broker.detail}`;
   } catch (err) {
     badge.textContent = "API unreachable";
@@ -357,8 +345,7 @@ async function refreshHealth() {
 
 $("token-form").addEventListener("submit", (event) => {
   event.preventDefault();
-  const token = $("token").value.trim();
-  if (token) localStorage.setItem(TOKEN_KEY, token); else localStorage.removeItem(TOKEN_KEY);
+  saveToken($("token").value.trim());
   showMessage("");
   refreshJobs();
   refreshScenes();

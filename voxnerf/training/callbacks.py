@@ -18,9 +18,15 @@ from voxnerf.config import TrainConfig
 from voxnerf.model import VoxNeRFModel
 from voxnerf.training.budget import Budget, Clock
 from voxnerf.training.loop import Callback, LoopState
-from voxnerf.training.records import ProgressEvent, StageRecord, TrainReport
+from voxnerf.training.records import LossSeries, ProgressEvent, StageRecord, TrainReport
 
 DEFAULT_EVAL_SECONDS_PER_RAY = 1.5e-5  # the final-evaluation cost per ray assumed until one is measured
+# Progress evaluations before the first ``eval_every_s`` (those below it), so that a short run's error curve has
+# points in its first minute; each runs only while the progress evaluations, it included (costed as the last
+# one), take at most EARLY_EVAL_MAX_SHARE of the training seconds so far. The first always runs.
+EARLY_EVAL_S = (10.0, 20.0, 30.0, 45.0)
+EARLY_EVAL_MAX_SHARE = 0.15
+PROGRESS_EVALS_STAGE = "progress_evals"
 COMPILE_RAN_WHY = "torch.compile of the training step (time of the first step)"
 COMPILE_NO_STEP_WHY = "no training step ran"
 ProgressCallback = Callable[[ProgressEvent], None]
@@ -65,12 +71,14 @@ class OccupancyGridUpdate(Callback):
 
 class ProgressEvents(Callback):
     """``on_progress`` events: at every stage, after each progress evaluation and at the end (forced), and
-    while training at most one per ``interval`` seconds. Also the run's stage log (:meth:`stage`)."""
+    while training at most one per ``interval`` seconds. Also the run's stage log (:meth:`stage`) and its
+    training-loss series (the report's ``loss_series``: at most a point per ``train`` event, :class:`LossSeries`)."""
 
     def __init__(self, on_progress: ProgressCallback | None, cfg: TrainConfig, budget: Budget,
                  report: TrainReport, clock: Clock = time.perf_counter, interval: float = 1.0) -> None:
         self.on_progress, self.cfg, self.budget, self.report = on_progress, cfg, budget, report
         self.clock, self.interval, self.last = clock, interval, 0.0
+        self.series = LossSeries(gap=interval)
 
     def stage(self, record: StageRecord, iteration: int) -> None:
         """Add a finished stage to the report and tell ``on_progress``."""
@@ -78,15 +86,17 @@ class ProgressEvents(Callback):
         self.emit(record.name, iteration)
 
     def emit(self, stage: str, iteration: int = 0, loss: float | None = None, force: bool = True) -> None:
-        if self.on_progress is None:
-            return
         now = self.clock()
         if not force and now - self.last < self.interval:
             return
         self.last = now
-        self.on_progress(self.event(stage, iteration, loss))
+        if stage == "train" and self.series.close(self.budget.train_seconds):  # at a stage's event the
+            self.report.loss_series = list(self.series.points)  # clock may hold a checkpoint's save
+        if self.on_progress is not None:
+            self.on_progress(self.event(stage, iteration, loss))
 
     def after_step(self, state: LoopState) -> None:
+        self.series.add(state.last_loss)
         self.emit("train", state.iteration, state.last_loss, force=False)
 
     def event(self, stage: str, iteration: int, loss: float | None) -> ProgressEvent:
@@ -103,34 +113,91 @@ class ProgressEvents(Callback):
             progress=1.0 if stage == "done" else progress, eta_s=eta,
             loss=loss if loss is not None and math.isfinite(loss) else None,
             history=list(self.report.history), stages=list(self.report.stages),
+            loss_series=list(self.series.points),
         )
 
 
+def next_progress_eval(after: float, every: float) -> float:
+    """The first progress-evaluation time (training seconds) later than ``after``: the :data:`EARLY_EVAL_S`
+    times below ``every``, then every multiple of ``every``."""
+    early = [t for t in EARLY_EVAL_S if after < t < every]
+    return early[0] if early else (math.floor(after / every) + 1) * every
+
+
+def seconds_list(times: Sequence[float], most: int = 8) -> str:
+    """``10, 20, 30`` (seconds, rounded); a long list shows its first ones, then ``…`` and the last."""
+    shown = [f"{t:.0f}" for t in times]
+    if len(shown) > most:
+        shown = [*shown[: most - 2], "…", shown[-1]]
+    return ", ".join(shown)
+
+
 class ProgressEvaluation(Callback):
-    """Progress evaluations every ``eval_every_s`` training seconds and full ones at the ``eval_at`` times,
+    """Progress evaluations at the :func:`next_progress_eval` times and full ones at the ``eval_at`` times,
     before a step. Their time is paused (not training time); a full one's is also not charged to the budget.
 
     They also measure the evaluation cost per ray, which sizes the final evaluation's reserve of the budget
     (:meth:`final_eval_reserve`): the first one compiles when training is compiled, so it does not count.
+
+    An early progress evaluation (:data:`EARLY_EVAL_S`) after the first is skipped when the progress
+    evaluations, it included (costed as the last one), would take more than :data:`EARLY_EVAL_MAX_SHARE` of the
+    training seconds so far. The progress evaluations that ran, and those skipped, are the stage
+    ``progress_evals`` of the report (``events.report``), added at the first one and kept up to date.
+
+    The full ones may take ``cfg.eval_at_max_seconds`` in all: once that is spent the later ``eval_at`` times
+    are skipped and ``warnings`` (the report's) says so.
     """
 
     def __init__(self, evaluate: Evaluate, budget: Budget, cfg: TrainConfig, final_eval_rays: int,
-                 events: ProgressEvents | None = None) -> None:
+                 events: ProgressEvents | None = None, warnings: list[str] | None = None) -> None:
         self.evaluate, self.budget, self.events = evaluate, budget, events
         self.every, self.compiled, self.final_eval = cfg.eval_every_s, cfg.compile, cfg.final_eval
+        self.views_per_split = cfg.eval_views
         self.final_eval_rays = final_eval_rays
-        self.next_at = budget.train_seconds + cfg.eval_every_s
+        self.next_at = next_progress_eval(budget.train_seconds, cfg.eval_every_s)
         self.pending_full = sorted(t for t in cfg.eval_at if t > budget.train_seconds)
         self.seconds_per_ray = DEFAULT_EVAL_SECONDS_PER_RAY
         self.done = 0
+        self.full_cap, self.full_spent = cfg.eval_at_max_seconds, 0.0
+        self.warnings = warnings if warnings is not None else []
+        self.progress_times: list[float] = []  # training seconds of the progress evaluations that ran
+        self.progress_spent, self.last_progress_cost = 0.0, 0.0
+        self.skipped_early: list[float] = []
+        self.record: StageRecord | None = None
+
+    def _full_due(self) -> bool:
+        """Whether an ``eval_at`` time has come; drops the pending ones once their time cap is spent."""
+        pending = self.pending_full
+        if not (pending and self.budget.train_seconds >= pending[0]):
+            return False
+        if self.full_cap is not None and self.full_spent >= self.full_cap:
+            self.warnings.append(f"eval_at: {len(pending)} full evaluation(s) from {pending[0]:g} s on skipped: "
+                                 f"the {self.full_cap:g} s allowed for them were spent")
+            pending.clear()
+            return False
+        return True
+
+    def _too_dear(self) -> bool:
+        """Whether the due progress evaluation is an early one that would take the progress evaluations over
+        their share of the training seconds so far (never the first one)."""
+        if self.next_at >= self.every or not self.progress_times:
+            return False
+        cost = self.progress_spent + self.last_progress_cost
+        return cost > EARLY_EVAL_MAX_SHARE * self.budget.train_seconds
 
     def before_step(self, state: LoopState) -> None:
         budget, pending = self.budget, self.pending_full
-        if not (budget.train_seconds >= self.next_at or (pending and budget.train_seconds >= pending[0])):
+        full = self._full_due()
+        if not (full or budget.train_seconds >= self.next_at):
             return
-        full = bool(pending) and budget.train_seconds >= pending[0]
+        if not full and self._too_dear():
+            self.skipped_early.append(self.next_at)
+            self.next_at = next_progress_eval(budget.train_seconds, self.every)
+            self._update_record()
+            return
         if full:
             pending.pop(0)
+        at = budget.train_seconds
         spent, per_ray = self.evaluate(state.iteration, state.last_loss, full)
         self.done += 1
         if self.done > 1 or not self.compiled:
@@ -138,9 +205,30 @@ class ProgressEvaluation(Callback):
         budget.paused += spent
         if full:
             budget.excluded += spent
-        self.next_at = budget.train_seconds + self.every
+            self.full_spent += spent
+        else:
+            self.progress_times.append(at)
+            self.progress_spent += spent
+            self.last_progress_cost = spent
+            self._update_record()
+        self.next_at = next_progress_eval(at, self.every)
         if self.events is not None:
             self.events.emit("train", state.iteration, state.last_loss)
+
+    def _update_record(self) -> None:
+        """The stage ``progress_evals`` in the report: added at the first progress evaluation, then updated."""
+        if self.events is None or not self.progress_times:
+            return
+        if self.record is None:
+            self.record = StageRecord(name=PROGRESS_EVALS_STAGE, ran=True, why="")
+            self.events.report.stages.append(self.record)
+        n = len(self.progress_times)
+        why = (f"{n} progress evaluation{'s' if n > 1 else ''} of up to {self.views_per_split} views per split at "
+               f"{seconds_list(self.progress_times)} s of training: not training time, but charged to max_seconds")
+        if self.skipped_early:
+            why += (f"; early one(s) at {seconds_list(self.skipped_early)} s skipped: they would have taken the "
+                    f"progress evaluations over {EARLY_EVAL_MAX_SHARE:.0%} of the training time")
+        self.record.why, self.record.seconds = why, round(self.progress_spent, 3)
 
     def final_eval_reserve(self) -> float:
         """Seconds kept back for the final evaluation: 1.5x its estimated cost plus 2 s."""

@@ -1,27 +1,95 @@
-"""The checkpoint (``run_dir/checkpoint.pt``, written atomically) and the report file."""
+"""The checkpoint (``run_dir/checkpoint.pt``, written atomically) and the report file.
+
+A checkpoint holds only tensors, numbers, strings, None, and dicts, lists and tuples of them: saving refuses
+anything else (:func:`check_plain`) and loading unpickles with ``weights_only=True`` (:func:`load_checkpoint`),
+so a checkpoint written by someone else cannot run code in the process that loads it.
+"""
 
 from __future__ import annotations
 
 import io
 import json
+import pickle
+import re
 from pathlib import Path
 
 import torch
 
-from voxnerf.errors import TrainingDiverged
+from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.image_io import write_atomic
 from voxnerf.model import VoxNeRFModel
 from voxnerf.scene import Scene
 from voxnerf.training.budget import Budget
 from voxnerf.training.records import EvalRecord, TrainReport
 
+PLAIN_LEAVES = (torch.Tensor, bool, int, float, str, type(None))
+
+
+def check_plain(obj: object, where: str = "checkpoint") -> None:
+    """Raise TypeError naming the key path (e.g. ``checkpoint/model/config``) of the first value that is not a
+    tensor, number, string or None, or a dict (string or integer keys), list or tuple of those."""
+    if isinstance(obj, dict):
+        for key, value in obj.items():
+            if not isinstance(key, (str, int)):
+                raise TypeError(f"{where}: key {key!r} is a {type(key).__name__}, not a string or integer")
+            check_plain(value, f"{where}/{key}")
+    elif isinstance(obj, (list, tuple)):
+        for i, value in enumerate(obj):
+            check_plain(value, f"{where}[{i}]")
+    elif not isinstance(obj, PLAIN_LEAVES):
+        raise TypeError(f"{where}: a {type(obj).__module__}.{type(obj).__name__} cannot go in a checkpoint "
+                        "(tensors, numbers, strings, None, dicts and lists only)")
+
+
+def _refusal(exc: pickle.UnpicklingError) -> str:
+    """One line on why ``weights_only`` unpickling stopped (torch's own text advises turning it off: left out).
+
+    A global (a class or function the file names) is how a pickle reaches code: the file is *refused*; any
+    other stop (an unknown opcode: not a pickle) leaves it *unreadable*.
+    """
+    text = str(exc)
+    named = re.search(r"GLOBAL ([\w.]+)", text)
+    if named:
+        return f"refused: it names {named.group(1)}, not only tensors, numbers, strings, dicts and lists; not loaded"
+    _, marker, rest = text.partition("WeightsUnpickler error:")
+    detail = _one_line(rest.split("Check the documentation")[0]) if marker else "not a checkpoint"
+    return f"unreadable checkpoint (UnpicklingError: {detail})"
+
+
+def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict:
+    """The dict saved at ``path``, unpickled with ``weights_only=True``: nothing in the file is called.
+
+    Raises RunError naming ``path`` when the file is not a checkpoint: unreadable, truncated, not a dict, or
+    carrying any other object (a pickled callable is refused before it runs).
+    """
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise RunError(f"{path}: {_refusal(exc)}") from None
+    # EOFError: an empty file; RuntimeError: not a torch zip; OSError: unreadable; and whatever else a
+    # hostile or damaged file makes the (restricted) unpickler raise: IndexError, KeyError, AssertionError...
+    except Exception as exc:
+        raise RunError(f"{path}: unreadable checkpoint ({type(exc).__name__}: {_one_line(exc)})") from None
+    if not isinstance(state, dict):
+        raise RunError(f"{path}: unreadable checkpoint (holds a {type(state).__name__}, not a dict)")
+    return state
+
+
+def _one_line(exc: object, limit: int = 200) -> str:
+    why = " ".join(str(exc).split())  # load_state_dict lists its mismatches line by line
+    return why if len(why) <= limit else f"{why[:limit]}..."
+
 
 def load_previous(path: Path, resume: bool) -> dict | None:
-    """The checkpoint a resumed run continues from, or None (no resume, or none written yet)."""
-    return torch.load(path, map_location="cpu", weights_only=False) if resume and path.is_file() else None
+    """The checkpoint a resumed run continues from (:func:`load_checkpoint`), or None (no resume, or none
+    written yet)."""
+    return load_checkpoint(path) if resume and path.is_file() else None
 
 
 def save_atomic_torch(obj: dict, path: Path) -> None:
+    """``torch.save`` of ``obj`` to ``path``, atomically; TypeError (:func:`check_plain`) when ``obj`` holds
+    anything ``weights_only`` loading would refuse."""
+    check_plain(obj)
     buffer = io.BytesIO()
     torch.save(obj, buffer)
     write_atomic(path, buffer.getvalue())

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.evaluation import EvalView, evaluate_views
+from voxnerf.evaluation import EvaluationStopped, EvalView, evaluate_views, view_names
 from voxnerf.model import VoxNeRFModel
 from voxnerf.scene import Scene, SceneTransform
 from voxnerf.training.budget import Budget
@@ -29,14 +30,16 @@ def eval_views_of(scene: Scene, transform: SceneTransform, names: list[str] | No
         if names is None and scene.splits[name] in seen:  # e.g. test_filenames repeating an eval split: evaluate once
             continue
         seen.append(scene.splits[name])
+        indices = scene.splits[name]
+        unique = view_names([scene.frames[i].file_path for i in indices], indices)
         views[name] = [
             EvalView(
-                Path(scene.frames[i].file_path).stem,
+                view_name,
                 torch.from_numpy(transform.c2w_to_normalized(scene.frames[i].c2w)).float(),
                 scene.intrinsics(i),
                 torch.from_numpy(scene.images[i]),
             )
-            for i in scene.splits[name]
+            for i, view_name in zip(indices, unique, strict=True)
         ]
     return views
 
@@ -76,10 +79,15 @@ def progress_eval(
 
 
 def final_eval(model: VoxNeRFModel, views: EvalViews, cfg: TrainConfig, out_dir: Path, budget: Budget,
-               train_seconds: float, iteration: int, loss: float) -> tuple[dict, EvalRecord]:
+               train_seconds: float, iteration: int, loss: float,
+               should_stop: Callable[[], bool] | None = None) -> tuple[dict, EvalRecord] | None:
     """Every view of every split, renders written under ``out_dir``: (metrics per split, the history record
-    at ``train_seconds``, the training time when the loop ended)."""
-    metrics = evaluate_views(model, views, cfg, out_dir=out_dir)
+    at ``train_seconds``, the training time when the loop ended); None when ``should_stop()`` (asked before
+    each view) interrupted it."""
+    try:
+        metrics = evaluate_views(model, views, cfg, out_dir=out_dir, should_stop=should_stop)
+    except EvaluationStopped:
+        return None
     record = EvalRecord(
         elapsed_s=round(train_seconds, 3), wall_s=round(budget.wall, 3), iteration=iteration, loss=loss,
         final=True, psnr={k: v["psnr"] for k, v in metrics.items()},

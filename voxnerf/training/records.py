@@ -6,17 +6,21 @@ These pydantic models are the contract between the engine and its callers: ``tra
 This module imports no torch, so the API process can use it.
 
 Units: seconds are wall-clock seconds; ``elapsed_s`` / ``train_seconds`` are training seconds (evaluation
-time excluded), ``wall_s`` / ``wall_seconds`` the command's wall clock; PSNR in dB.
+time excluded), ``wall_s`` / ``wall_seconds`` the command's wall clock; PSNR in dB. ``loss_series`` is
+the training loss against training seconds, bounded by :class:`LossSeries`.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 RunStatus = Literal["running", "succeeded", "cancelled", "diverged"]
 EventStage = str  # a set-up stage's name (StageRecord.name), "train", "final_eval" or "done"
+LossPoint = tuple[float, float]  # (training seconds, mean training loss of the steps the point covers)
+LOSS_SERIES_MAX_POINTS = 300
 
 
 class StageRecord(BaseModel):
@@ -68,6 +72,58 @@ class ProgressEvent(BaseModel):
     loss: float | None = Field(None, description="the last training loss (None until the first finite one)")
     history: list[EvalRecord] = Field([], description="the evaluations so far: PSNR per split against seconds")
     stages: list[StageRecord] = Field([], description="pipeline stages so far, whether each ran and why")
+    loss_series: list[LossPoint] = Field(
+        [], description=f"the training loss against training seconds: [seconds, mean loss of the steps since the "
+        f"previous point] pairs, evenly thinned to at most {LOSS_SERIES_MAX_POINTS} points")
+
+
+class LossSeries:
+    """The training loss against training seconds, bounded: at most ``max_points`` points, evenly spaced.
+
+    :meth:`add` takes every step's loss (non-finite ones are left out); :meth:`close` ends a point at the given
+    training seconds, holding the mean loss of the steps added since the previous point, once ``gap`` seconds
+    have passed since it. When the series outgrows ``max_points`` its points are merged in pairs
+    (:func:`merge_pairs`) and the gap doubles, so the points always cover the whole run at one spacing.
+    """
+
+    def __init__(self, max_points: int = LOSS_SERIES_MAX_POINTS, gap: float = 1.0) -> None:
+        if max_points < 3:
+            raise ValueError(f"max_points must be at least 3, got {max_points}")
+        self.max_points, self.gap = max_points, gap
+        self.points: list[LossPoint] = []
+        self._sum, self._count = 0.0, 0
+
+    def add(self, loss: float) -> None:
+        if math.isfinite(loss):
+            self._sum += loss
+            self._count += 1
+
+    def close(self, seconds: float) -> bool:
+        """End a point at ``seconds`` when steps were added and ``gap`` has passed; whether one was added."""
+        if not self._count or (self.points and seconds - self.points[-1][0] < self.gap):
+            return False
+        self.points.append((round(seconds, 2), float(f"{self._sum / self._count:.5g}")))
+        self._sum, self._count = 0.0, 0
+        if len(self.points) > self.max_points:
+            self.points = merge_pairs(self.points)
+            self.gap *= 2
+        return True
+
+
+def merge_pairs(points: list[LossPoint]) -> list[LossPoint]:
+    """About half as many points: the first kept as it is (a series' start never moves, so a job store can
+    tell a resumed run's series from the points before it), each following pair merged into one at the later
+    one's seconds holding the pair's mean loss, and an odd last point kept as it is."""
+    rest = points[1:]
+    merged = [(b[0], float(f"{(a[1] + b[1]) / 2:.5g}")) for a, b in zip(rest[0::2], rest[1::2], strict=False)]
+    return points[:1] + merged + ([rest[-1]] if len(rest) % 2 else [])
+
+
+def thin_series(points: list[LossPoint], max_points: int = LOSS_SERIES_MAX_POINTS) -> list[LossPoint]:
+    """``points`` merged in pairs (:func:`merge_pairs`) until at most ``max_points`` are left."""
+    while len(points) > max_points:
+        points = merge_pairs(points)
+    return points
 
 
 class TrainReport(BaseModel):
@@ -86,6 +142,7 @@ class TrainReport(BaseModel):
     device: str
     stages: list[StageRecord] = []
     history: list[EvalRecord] = []
+    loss_series: list[LossPoint] = []
     scene: dict[str, Any] | None = None
     prior: dict[str, Any] | None = None
     resumed_from_iteration: int | None = None

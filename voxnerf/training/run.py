@@ -4,11 +4,19 @@ It writes ``run_dir/checkpoint.pt`` (atomically: temp file + rename), ``run_dir/
 that ran and why, timings, the error-against-run-time history, final metrics) and
 ``run_dir/eval/<split>/<frame>.png``. The set-up stages are ``stages.py``, the loop ``loop.py``, its periodic
 duties ``callbacks.py``.
+
+``should_stop()`` is asked between set-up stages, at every step and between the final evaluation's views: a
+cancelled run stops in whichever stage it is. ``may_write()`` (a service worker's lease) is asked before every
+file the run writes: when it says no, another attempt owns the run directory, and this one raises
+:class:`LeaseLost` having written nothing more (the final evaluation renders into a private directory that
+replaces ``eval/`` only after that check).
 """
 
 from __future__ import annotations
 
+import shutil
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -18,7 +26,7 @@ import torch
 
 from voxnerf.config import TrainConfig
 from voxnerf.devices import resolve_device
-from voxnerf.errors import TrainingDiverged
+from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.files import CHECKPOINT, REPORT
 from voxnerf.octree import SparseVoxelOctree
 from voxnerf.prior import GeometryPrior
@@ -44,9 +52,26 @@ from voxnerf.training.records import StageRecord, TrainReport
 from voxnerf.training.step import PAPER_BETA, TrainStep, make_loss_fn
 
 
+class LeaseLost(RunError):
+    """``may_write()`` said no: another attempt owns the run directory, so this one stops writing."""
+
+
+class StoppedInSetUp(Exception):
+    """``should_stop()`` said yes between two set-up stages."""
+
+
+def always() -> bool:
+    return True
+
+
+def never() -> bool:
+    return False
+
+
 @dataclass
 class Run:
-    """What every part of a run shares: config, run directory, budget, report and its progress events."""
+    """What every part of a run shares: config, run directory, budget, report and its progress events, and
+    the caller's ``should_stop`` (cancel) and ``may_write`` (still the run's owner) questions."""
 
     cfg: TrainConfig
     dir: Path
@@ -54,6 +79,18 @@ class Run:
     budget: Budget
     report: TrainReport
     events: ProgressEvents
+    should_stop: Callable[[], bool] = never
+    may_write: Callable[[], bool] = always
+
+    def stop_point(self) -> None:
+        """Between set-up stages: raise StoppedInSetUp when the caller asks to stop."""
+        if self.should_stop():
+            raise StoppedInSetUp()
+
+    def fence(self) -> None:
+        """Before writing into the run directory: raise LeaseLost unless the caller still owns it."""
+        if not self.may_write():
+            raise LeaseLost(f"{self.dir}: another attempt owns this run now; this one stopped without writing")
 
 
 @dataclass
@@ -78,13 +115,16 @@ def train(
     should_stop: Callable[[], bool] | None = None,
     resume: bool = True,
     progress_bar: bool = True,
+    may_write: Callable[[], bool] | None = None,
 ) -> TrainReport:
     """Train a model on ``scene_dir`` into ``run_dir`` and return the report (also written to report.json).
 
     Stops at ``max_iters``, when ``max_seconds`` of wall clock would be exceeded (set-up, octree, pseudo depth
-    and the final evaluation included), or when ``should_stop()`` returns True (status "cancelled"; the
-    checkpoint is saved). Raises TrainingDiverged if the loss or the weights become NaN/inf; the last good
-    checkpoint is kept and the report says why.
+    and the final evaluation included), or when ``should_stop()`` returns True (status "cancelled": asked
+    between set-up stages, at every step and between final-evaluation views; the checkpoint is saved once
+    training started). Raises TrainingDiverged if the loss or the weights become NaN/inf; the last good
+    checkpoint is kept and the report says why. Raises LeaseLost, having written nothing more, as soon as
+    ``may_write()`` (asked before each file) returns False.
     """
     cfg = config.resolved()
     run_path = Path(run_dir)
@@ -94,9 +134,26 @@ def train(
     device = resolve_device(cfg.device)
     stages.seed_everything(cfg.seed + (previous["iteration"] if previous else 0))
     report = TrainReport(config=cfg.model_dump(), device=str(device))
-    run = Run(cfg, run_path, device, budget, report, ProgressEvents(on_progress, cfg, budget, report))
-    setup = _set_up_scene(run, scene_dir, previous)
-    return _optimise(run, setup, should_stop, progress_bar)
+    run = Run(cfg, run_path, device, budget, report, ProgressEvents(on_progress, cfg, budget, report),
+              should_stop or never, may_write or always)
+    try:
+        setup = _set_up_scene(run, scene_dir, previous)
+    except StoppedInSetUp:
+        return _stopped_in_set_up(run, previous)
+    return _optimise(run, setup, progress_bar)
+
+
+def _stopped_in_set_up(run: Run, previous: dict | None) -> TrainReport:
+    """The report of a run cancelled before its first step (a resumed run keeps its checkpoint as it was)."""
+    report, budget = run.report, run.budget
+    iteration = previous["iteration"] if previous else 0
+    report.stages.append(StageRecord(name="train", ran=False, why="cancelled during set-up", seconds=0.0))
+    report.status, report.iteration = "cancelled", iteration
+    report.train_seconds, report.wall_seconds = round(budget.train_seconds, 3), round(budget.wall, 3)
+    run.fence()
+    write_report(report, run.dir / REPORT)
+    run.events.emit("done", iteration)
+    return report
 
 
 def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Setup:
@@ -105,18 +162,23 @@ def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Set
     loaded = stages.load_scene_stage(scene_dir, cfg)
     report.scene = loaded.scene.summary()
     events.stage(loaded.record, 0)
+    run.stop_point()
+    run.fence()  # the prior stage may write the fused prior into the run directory
     found = stages.prior_stage(loaded.scene, cfg, run.dir)
     events.stage(found.record, 0)
+    run.stop_point()
     if found.prior is not None:
         report.prior = found.prior.summary() | ({"fused": found.fused.summary()} if found.fused else {})
     if found.warning:
         report.warnings.append(found.warning)
     events.stage(stages.hash_kernel_stage(cfg, run.device), 0)
+    run.stop_point()
     built = stages.model_stage(cfg, loaded.scene, found.prior, run.device, previous)
     if built.resumed:
         report.history.extend(built.history)
         report.resumed_from_iteration = built.iteration
     pixels = training_pixels(loaded.scene, built.transform, run.device)
+    run.stop_point()
     return _set_up_geometry(run, loaded.scene, found, built, pixels)
 
 
@@ -129,19 +191,23 @@ def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: st
         built.model.octree = tree.octree
         report.octree = tree.octree.summary()
     events.stage(tree.record, iteration)
+    run.stop_point()
     depth = stages.pseudo_depth_stage(cfg, scene, built.prior_n, tree.octree, pixels, built.model, run.device)
     pixels.pseudo_t = depth.pseudo_t
     if depth.warning:
         report.warnings.append(depth.warning)
     events.stage(depth.record, iteration)
+    run.stop_point()
     target = stages.depth_target_stage(cfg, scene, found.prior, found.fused, pixels, built.transform)
     pixels.depth_t, pixels.depth_beta_scale = target.target_t, target.beta_scale
     if target.summary is not None:
         report.depth = target.summary
     events.stage(target.record, iteration)
+    run.stop_point()
     hits = stages.first_hit_stage(tree.octree, pixels, built.model)
     pixels.hit_t, pixels.hit = hits.hit_t, hits.hit
     events.stage(hits.record, iteration)
+    run.stop_point()
     return Setup(scene, found.prior, built, pixels, tree.octree, target.target_t is not None, target.beta)
 
 
@@ -168,14 +234,14 @@ def _make_step(run: Run, setup: Setup) -> tuple[TrainStep, stages.CompileStage]:
     return step, compiled
 
 
-def _optimise(run: Run, setup: Setup, should_stop: Callable[[], bool] | None, progress_bar: bool) -> TrainReport:
+def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     cfg, budget, built = run.cfg, run.budget, setup.built
     step, compiled = _make_step(run, setup)
     views = eval_views_of(setup.scene, built.transform)
     evaluate = partial(progress_eval, built.model, views, cfg, run.report.history, budget)
-    evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(views), run.events)
-    save = CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget, run.report.history,
-                            setup.scene)
+    evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(views), run.events, run.report.warnings)
+    save = _fenced(run, CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget,
+                                         run.report.history, setup.scene))
     saving = Checkpointing(save, cfg.checkpoint_every_s)
     timer = CompileTimer(compiled.started, run.events.stage) if compiled.record is None else None
     bar = ProgressBar.create(cfg.max_iters, built.iteration, progress_bar)
@@ -185,7 +251,7 @@ def _optimise(run: Run, setup: Setup, should_stop: Callable[[], bool] | None, pr
     state = LoopState(built.iteration)
     try:
         status = run_loop(step, state, callbacks, Limits(cfg.max_iters, budget, evaluation.final_eval_reserve,
-                                                         should_stop))
+                                                         run.should_stop))
     except TrainingDiverged as exc:
         bar.close()
         raise _diverged(run, exc, state.iteration) from None
@@ -195,18 +261,29 @@ def _optimise(run: Run, setup: Setup, should_stop: Callable[[], bool] | None, pr
     return _finish(run, setup, views, save, status, state)
 
 
+def _fenced(run: Run, save: Callable[[int], None]) -> Callable[[int], None]:
+    """``save`` behind the run's fence (:meth:`Run.fence`)."""
+
+    def fenced_save(iteration: int) -> None:
+        run.fence()
+        save(iteration)
+
+    return fenced_save
+
+
 def _diverged(run: Run, exc: TrainingDiverged, iteration: int) -> TrainingDiverged:
     """Write the diverged report; the error to raise, saying whether a good checkpoint is kept."""
     ckpt_path = run.dir / CHECKPOINT
     kept = ckpt_path.is_file()
     report = run.report
     report.status, report.error, report.iteration, report.checkpoint_kept = "diverged", str(exc), iteration, kept
+    run.fence()
     write_report(report, run.dir / REPORT)
     where = f"last good checkpoint kept at {ckpt_path}" if kept else "no checkpoint yet"
     return TrainingDiverged(f"{exc}; {where}")
 
 
-def _finish(run: Run, setup: Setup, views: EvalViews, save: CheckpointWriter, status: str,
+def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None], status: str,
             state: LoopState) -> TrainReport:
     """The train stage, the last checkpoint, the final evaluation and the report."""
     report, budget, iteration = run.report, run.budget, state.iteration
@@ -214,32 +291,61 @@ def _finish(run: Run, setup: Setup, views: EvalViews, save: CheckpointWriter, st
     report.stages.append(StageRecord(name="train", ran=iteration > 0, why=f"{status} at iteration {iteration}",
                                      seconds=train_seconds))
     save(iteration)
-    _final_eval_stage(run, setup, views, status, train_seconds, state)
+    status = _final_eval_stage(run, setup, views, status, train_seconds, state)
     use_patches, _, n_patch_rays = _patches(run.cfg, setup)
     report.status, report.iteration = status, iteration
     report.train_seconds, report.wall_seconds = round(train_seconds, 3), round(budget.wall, 3)
     report.throughput = throughput(run.cfg, iteration, report.stages, use_patches, n_patch_rays)
+    run.fence()
     write_report(report, run.dir / REPORT)
     run.events.emit("done", iteration, state.last_loss)
     return report
 
 
 def _final_eval_stage(run: Run, setup: Setup, views: EvalViews, status: str, train_seconds: float,
-                      state: LoopState) -> None:
+                      state: LoopState) -> str:
+    """Evaluate every view (when the run succeeded and has views); the run's status: ``cancelled`` when
+    ``should_stop()`` interrupted the evaluation (its renders are then dropped)."""
     cfg, iteration, t0 = run.cfg, state.iteration, time.perf_counter()
     if not (cfg.final_eval and status == "succeeded" and views):
         why = ("disabled" if not cfg.final_eval else "run cancelled" if status == "cancelled"
                else "the scene has no evaluation split")
         run.events.stage(StageRecord(name="final_eval", ran=False, why=why, seconds=time.perf_counter() - t0),
                          iteration)
-        return
+        return status
     run.events.emit("final_eval", iteration, state.last_loss)
-    metrics, record = final_eval(setup.built.model, views, cfg, run.dir / "eval", run.budget, train_seconds,
-                                 iteration, state.last_loss)
+    private = run.dir / f".eval-{uuid.uuid4().hex}"
+    try:
+        done = final_eval(setup.built.model, views, cfg, private, run.budget, train_seconds, iteration,
+                          state.last_loss, should_stop=run.should_stop)
+        if done is not None:
+            _replace_eval_dir(run, private)
+    finally:
+        shutil.rmtree(private, ignore_errors=True)
+    seconds = time.perf_counter() - t0
+    if done is None:
+        run.events.stage(StageRecord(name="final_eval", ran=False, why="run cancelled during the evaluation",
+                                     seconds=seconds), iteration)
+        return "cancelled"
+    metrics, record = done
     run.report.history.append(record)
     run.report.metrics = metrics
     run.events.stage(StageRecord(name="final_eval", ran=True, why=f"all views of splits {sorted(views)}",
-                                 seconds=time.perf_counter() - t0), iteration)
+                                 seconds=seconds), iteration)
+    return status
+
+
+def _replace_eval_dir(run: Run, rendered: Path) -> None:
+    """Make the final evaluation's renders (written to the private ``rendered``) the run's ``eval/``, once the
+    fence says this attempt still owns the run."""
+    run.fence()
+    target = run.dir / "eval"
+    if target.exists():
+        doomed = run.dir / f".eval-old-{uuid.uuid4().hex}"
+        target.rename(doomed)
+        shutil.rmtree(doomed, ignore_errors=True)
+    if rendered.is_dir():
+        rendered.rename(target)
 
 
 def throughput(cfg: TrainConfig, iterations: int, records: list[StageRecord], patches: bool,

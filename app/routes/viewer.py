@@ -1,0 +1,111 @@
+"""What the viewer page (``/static/viewer.html``) reads besides ``POST /render``: a job's scene cameras, a sparse
+sample of its prior, a camera's ground-truth image, and video paths made from keyframes.
+
+The scene is read by the engine's scene rules in a child process (:mod:`app.viewer_scene`; the API process never
+imports torch) and cached by scene id. A camera's image is found through the validated scene's own frame list,
+never through a path from the request.
+"""
+
+from __future__ import annotations
+
+import mimetypes
+from pathlib import Path
+
+import numpy as np
+from fastapi import APIRouter, HTTPException
+from fastapi.responses import FileResponse
+
+from app.core import jobstore, storage
+from app.core.models import JobRow
+from app.core.redact import public_error
+from app.core.settings import Settings
+from app.deps import JobId, SettingsDep
+from app.schemas import CameraPathOut, CameraPathRequest, CamerasOut, PathFrame, PriorPreviewOut, ViewerCamera
+from app.viewer_scene import SceneViewCache, SceneViewError, read_scene_view
+from voxnerf.camera_path import CameraPath, CameraPathError, interpolate_path, parse_nerfstudio
+from voxnerf.camera_rules import CameraError, Intrinsics, resolve_intrinsics
+from voxnerf.files import FUSED_PRIOR
+
+router = APIRouter(tags=["viewer"])
+SCENE_READ_TIMEOUT_S = 120.0  # a stored scene's transforms.json and image headers; generous for a slow disk
+_VIEWS = SceneViewCache()
+
+
+def _scene_view(settings: Settings, job_id: str) -> tuple[JobRow, dict]:
+    """Job ``job_id`` and its scene's view (cameras, prior sample); 404 for an unknown job, 503 when the
+    scene cannot be fetched or read."""
+    job = jobstore.get_job(settings, job_id)
+    if job is None:
+        raise HTTPException(404, f"no job {job_id}")
+    fused = settings.runs_dir / job.id / FUSED_PRIOR  # the prior a run fused when its scene has no prior file
+    key = f"{job.scene_id}:{fused}"
+    view = _VIEWS.get(key)
+    if view is None:
+        try:
+            root = storage.ensure_scene(settings, job.scene_id)
+            view = read_scene_view(root, fused, SCENE_READ_TIMEOUT_S)
+        except (storage.StorageError, SceneViewError) as err:
+            raise HTTPException(503, public_error(f"scene {job.scene_id} of job {job.id}: {err}", settings)) from None
+        _VIEWS.put(key, view)
+    return job, view
+
+
+@router.get("/jobs/{job_id}/cameras", response_model=CamerasOut,
+            summary="The cameras of a job's scene (poses in scene units, intrinsics, splits), for the viewer")
+def get_cameras(job_id: JobId, settings: SettingsDep) -> CamerasOut:
+    job, view = _scene_view(settings, job_id)
+    frames = [
+        ViewerCamera(**{k: v for k, v in frame.items() if k != "image_path"},
+                     image_url=f"/jobs/{job.id}/cameras/{frame['index']}/image")
+        for frame in view["frames"]
+    ]
+    return CamerasOut(job_id=job.id, scene_id=job.scene_id, units="metres" if view["metric"] else "scene units",
+                      depth_unit_scale=view["depth_unit_scale"], frames=frames)
+
+
+@router.get("/jobs/{job_id}/prior-preview", response_model=PriorPreviewOut,
+            summary="A sparse sample of the prior (at most a few thousand points, scene units), for the viewer")
+def get_prior_preview(job_id: JobId, settings: SettingsDep) -> PriorPreviewOut:
+    _job, view = _scene_view(settings, job_id)
+    if view["prior"] is None:
+        raise HTTPException(404, f"job {job_id}: its scene has no prior and its run fused none")
+    return PriorPreviewOut(**view["prior"])
+
+
+@router.get("/jobs/{job_id}/cameras/{index}/image", response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}},
+            summary="The ground-truth image of one of a job's scene cameras")
+def get_camera_image(job_id: JobId, index: int, settings: SettingsDep) -> FileResponse:
+    job, view = _scene_view(settings, job_id)
+    if not 0 <= index < len(view["frames"]):
+        raise HTTPException(404, f"job {job_id}: its scene has no camera {index}")
+    root = storage.ensure_scene(settings, job.scene_id).resolve()
+    path = Path(view["frames"][index]["image_path"]).resolve()
+    if not path.is_relative_to(root) or not path.is_file():  # the scene rules resolved it inside the scene
+        raise HTTPException(404, f"job {job_id}: the image of camera {index} is gone")
+    return FileResponse(path, media_type=mimetypes.guess_type(path.name)[0] or "application/octet-stream")
+
+
+@router.post("/camera-paths", response_model=CameraPathOut,
+             summary="Interpolate a video path through keyframes, or read a nerfstudio camera path, for the viewer")
+def make_camera_path(body: CameraPathRequest, settings: SettingsDep) -> CameraPathOut:
+    try:
+        path = _camera_path(body, settings)
+    except (CameraPathError, CameraError) as err:
+        raise HTTPException(422, str(err)) from None
+    width, height = path.size
+    frames = [PathFrame(transform_matrix=pose.tolist(), fl_x=intr.fl_x, fl_y=intr.fl_y, cx=intr.cx, cy=intr.cy)
+              for pose, intr in zip(path.poses, path.intrinsics, strict=True)]
+    return CameraPathOut(width=width, height=height, fps=path.fps, frames=frames, camera_path=path.to_nerfstudio())
+
+
+def _camera_path(body: CameraPathRequest, settings: Settings) -> CameraPath:
+    """The request's path; CameraPathError or CameraError naming the key at fault."""
+    if body.camera_path is not None:
+        return parse_nerfstudio(body.camera_path, dataparser_transforms=body.dataparser_transforms,
+                                max_frames=settings.max_video_frames, max_pixels=settings.max_render_pixels)
+    if body.frames > settings.max_video_frames:
+        raise CameraPathError(f"{body.frames} exceeds the limit of {settings.max_video_frames} frames", "frames")
+    camera = Intrinsics(body.fl_x, body.fl_y, body.cx, body.cy, body.width, body.height)
+    camera = resolve_intrinsics(camera, max_pixels=settings.max_render_pixels)
+    return interpolate_path(np.asarray(body.keyframes, dtype=np.float64), camera, n_frames=body.frames, fps=body.fps)

@@ -1,0 +1,204 @@
+"""Bounded work per job and per client (issue #22, item 6) and a running job's files fenced (item 8): the queue
+limit (429), ``DELETE /jobs/{id}``, the wall-clock cap a worker puts on every job, the cap of ``eval_at``
+evaluations, cancelling in set-up and in the final evaluation, and a trainer that lost its lease writing
+nothing more. Real parts throughout: SQLite job store, the filesystem broker, ``train()`` on a tiny room."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.core import jobstore, outputs
+from app.core.db import session_scope
+from app.core.models import JobRow
+from app.core.settings import Settings
+from app.main import create_app
+from voxnerf.config import TrainConfig
+from voxnerf.files import CHECKPOINT
+from voxnerf.synthetic import RoomSpec, make_room_scene
+from voxnerf.training.budget import Budget
+from voxnerf.training.callbacks import ProgressEvaluation
+from voxnerf.training.loop import LoopState
+from voxnerf.training.records import ProgressEvent
+from voxnerf.training.run import REPORT, LeaseLost, train
+from worker.tasks import job_config
+
+TOKEN = "limits-token"
+SCENE = "c" * 32
+
+
+@pytest.fixture
+def api(tmp_path):
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", device="cpu", api_token=TOKEN,
+                        max_queued_jobs=2, sweep_interval_s=3600)
+    with TestClient(create_app(settings), headers={"Authorization": f"Bearer {TOKEN}"}) as client:
+        jobstore.add_scene(settings, SCENE, "room", {"frames": 1}, 10)
+        yield client, settings
+
+
+def _submit(client: TestClient):
+    return client.post(f"/scenes/{SCENE}/jobs", json={"max_iters": 5})
+
+
+def _set_state(settings: Settings, job_id: str, state: str) -> None:
+    with session_scope(settings) as session:
+        session.get(JobRow, job_id).state = state
+
+
+# ------------------------------------------------------------------------------------------------ per client
+
+
+def test_queued_jobs_beyond_the_limit_are_answered_429(api):
+    client, settings = api
+    first, second = _submit(client), _submit(client)
+    assert first.status_code == second.status_code == 202
+    refused = _submit(client)
+    assert refused.status_code == 429 and "limit is 2" in refused.json()["detail"]
+    assert len(jobstore.list_jobs(settings)) == 2  # the refused job left no row
+    _set_state(settings, first.json()["id"], "running")  # one started: room for one more
+    assert _submit(client).status_code == 202
+
+
+# ------------------------------------------------------------------------------------------------ DELETE
+
+
+def test_deleting_a_finished_job_removes_its_row_run_and_outputs(api):
+    client, settings = api
+    job_id = _submit(client).json()["id"]
+    _set_state(settings, job_id, "succeeded")
+    run_dir = settings.runs_dir / job_id
+    (run_dir / "eval" / "test").mkdir(parents=True)
+    (run_dir / CHECKPOINT).write_bytes(b"ckpt")
+    output = outputs.create_output(settings, job_id, "mesh", {}, 4, False)
+    outputs.fail_output(settings, output.id, "done with it")
+    assert client.delete(f"/jobs/{job_id}").status_code == 204
+    assert not run_dir.exists() and jobstore.get_job(settings, job_id) is None
+    assert outputs.get_output(settings, output.id) is None
+    assert client.get(f"/jobs/{job_id}").status_code == 404
+
+
+def test_deleting_an_unknown_job_is_404(api):
+    client, _ = api
+    assert client.delete(f"/jobs/{'d' * 32}").status_code == 404
+
+
+@pytest.mark.parametrize("state", ["queued", "running"])
+def test_deleting_an_active_job_is_409_and_keeps_everything(api, state):
+    client, settings = api
+    job_id = _submit(client).json()["id"]
+    _set_state(settings, job_id, state)
+    (settings.runs_dir / job_id).mkdir(parents=True)
+    response = client.delete(f"/jobs/{job_id}")
+    assert response.status_code == 409 and state in response.json()["detail"]
+    assert (settings.runs_dir / job_id).is_dir() and jobstore.get_job(settings, job_id) is not None
+
+
+def test_deleting_a_job_whose_output_is_running_is_409(api):
+    client, settings = api
+    job_id = _submit(client).json()["id"]
+    _set_state(settings, job_id, "succeeded")
+    output = outputs.create_output(settings, job_id, "video", {}, 4, False)
+    response = client.delete(f"/jobs/{job_id}")
+    assert response.status_code == 409 and output.id in response.json()["detail"]
+
+
+# ------------------------------------------------------------------------------------------------ caps
+
+
+def test_every_job_trains_under_the_wall_clock_cap(tmp_path):
+    settings = Settings(_env_file=None, data_dir=tmp_path, max_job_seconds=60.0, max_eval_at_seconds=5.0)
+    assert job_config(settings, {"max_iters": 10}).max_seconds == 60.0  # a max_iters-only job included
+    assert job_config(settings, {"max_seconds": 3600}).max_seconds == 60.0
+    assert job_config(settings, {"max_seconds": 10}).max_seconds == 10.0
+    assert job_config(settings, {"max_iters": 10}).eval_at_max_seconds == 5.0
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_eval_at_evaluations_stop_once_their_time_cap_is_spent():
+    clock = Clock()
+    budget = Budget(None, clock=clock)
+    warnings: list[str] = []
+    done: list[bool] = []
+
+    def evaluate(_iteration: int, _loss: float, full: bool) -> tuple[float, float]:
+        done.append(full)
+        clock.now += 4.0  # each full evaluation takes 4 s
+        return 4.0, 1e-5
+
+    cfg = TrainConfig(max_iters=1, eval_at=[1, 2, 3, 4], eval_at_max_seconds=6.0, eval_every_s=1e9)
+    evaluation = ProgressEvaluation(evaluate, budget, cfg, 100, warnings=warnings)
+    for t in (1.0, 2.0, 3.0, 4.0):
+        clock.now = t + budget.paused  # training time t
+        evaluation.before_step(LoopState(0))
+    assert done == [True, True]  # 8 s spent after the second: the third and fourth are skipped
+    assert warnings == ["eval_at: 2 full evaluation(s) from 3 s on skipped: the 6 s allowed for them were spent"]
+
+
+# ------------------------------------------------------------------------------------------------ cancel, fence
+
+
+@pytest.fixture(scope="module")
+def tiny_room(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("limits") / "tiny"
+    return make_room_scene(out, RoomSpec(width=24, height=18, n_frames=40, train_every=4, n_gaps=0, gap_len=0,
+                                         prior_max_points=20_000))
+
+
+def _config(**overrides) -> TrainConfig:
+    values = dict(max_iters=3, compile=False, device="cpu", rays_per_batch=128, hash_levels=4, hash_log2_size=10,
+                  hidden_dim=16, n_importance=4, n_rest=2, checkpoint_every_s=1e9)
+    return TrainConfig(**{**values, **overrides})
+
+
+def test_a_cancel_during_set_up_stops_before_the_next_stage(tiny_room, tmp_path):
+    stages: list[str] = []
+    report = train(tiny_room, tmp_path, _config(), on_progress=lambda e: stages.append(e.stage),
+                   should_stop=lambda: "prior" in stages, progress_bar=False)
+    assert report.status == "cancelled" and report.iteration == 0
+    assert [s.name for s in report.stages] == ["load_scene", "prior", "train"]
+    assert report.stages[-1].why == "cancelled during set-up"
+    assert not (tmp_path / CHECKPOINT).exists() and (tmp_path / REPORT).is_file()
+
+
+def test_a_cancel_during_the_final_evaluation_stops_it(tiny_room, tmp_path):
+    stages: list[str] = []
+    report = train(tiny_room, tmp_path, _config(), on_progress=lambda e: stages.append(e.stage),
+                   should_stop=lambda: "final_eval" in stages, progress_bar=False)
+    assert report.status == "cancelled" and report.iteration == 3 and report.metrics is None
+    final = report.stages[-1]
+    assert final.name == "final_eval" and not final.ran and final.why == "run cancelled during the evaluation"
+    assert (tmp_path / CHECKPOINT).is_file()  # the trained model is kept, as for any cancel
+    assert not (tmp_path / "eval").exists() and not list(tmp_path.glob(".eval-*"))  # no half evaluation
+
+
+def test_a_trainer_that_lost_its_lease_writes_nothing_more(tiny_room, tmp_path):
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", stale_after_s=5.0)
+    jobstore.add_scene(settings, SCENE, "room", {"frames": 1}, 10)
+    job = jobstore.create_job(settings, SCENE, {"max_iters": 3})
+    first = jobstore.claim_job(settings, job.id, "old:1")
+    run_dir = tmp_path / "run"
+
+    def taken_over_at_training(event: ProgressEvent) -> None:
+        if event.stage == "first_hit_cache":  # set-up done: the lease expires and another worker claims the job
+            with session_scope(settings) as session:
+                session.get(JobRow, job.id).heartbeat_at = time.time() - 60
+            assert jobstore.claim_job(settings, job.id, "new:2").attempt == 2
+
+    with pytest.raises(LeaseLost, match="another attempt owns this run"):
+        train(tiny_room, run_dir, _config(), on_progress=taken_over_at_training, progress_bar=False,
+              may_write=lambda: jobstore.still_owned(settings, job.id, first.attempt))
+    written = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.rglob("*"))
+    assert written == ["prior_tsdf.ply"] or written == []  # only what it wrote while it owned the job
+    report = train(tiny_room, run_dir, _config(), progress_bar=False,
+                   may_write=lambda: jobstore.still_owned(settings, job.id, 2))  # the new owner writes
+    assert report.status == "succeeded" and (run_dir / CHECKPOINT).is_file() and (run_dir / "eval").is_dir()

@@ -1,0 +1,115 @@
+"""The job and scene pages in a real headless browser (playwright driving Debian's /usr/bin/chromium, as
+tests/test_dashboard.py does): from the dashboard's job row to the job page of a 60 s job, whose error plot has
+more than one PSNR point per split while the job still runs (the front-loaded progress evaluations from 10 s of
+training on; the default eval_every_s of 60 s alone would give none before the final evaluation) and a
+training-loss curve; once it succeeded, the stages with their reasons, the final metrics, the per-view table
+with each render beside its ground truth, the resolved config and the report download; then the scene page.
+Screenshots are saved under the test's temporary directory."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from browser_fixtures import browser_page, csp_reports
+from service_fixtures import start_service, zip_scene
+
+pytestmark = pytest.mark.slow
+
+TOKEN = "job-page-token"
+JOB_SECONDS = 60
+SET_UP_STAGES = ("load_scene", "prior", "octree", "pseudo_depth", "first_hit_cache")
+
+RUNNING_WITH_TWO_POINTS_PER_SPLIT = """() => {
+  const lines = [...document.querySelectorAll('#psnr-plot polyline')];
+  return document.body.dataset.state === 'running' && lines.length >= 2
+    && lines.every((line) => Number(line.dataset.points) >= 2);
+}"""
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    svc = start_service(tmp_path_factory.mktemp("job_page"), token=TOKEN)
+    try:
+        yield svc
+    finally:
+        svc.stop()
+
+
+@pytest.fixture
+def page():
+    with browser_page(1300, 900, accept_downloads=True) as opened:
+        yield opened
+
+
+def test_the_job_page_shows_the_run_live_then_its_results(service, page, small_room, tmp_path):
+    with service.client() as client:
+        scene = client.post(
+            "/scenes", files={"file": ("room.zip", zip_scene(small_room), "application/zip")}
+        ).json()
+        job = client.post(f"/scenes/{scene['id']}/jobs", json={"max_seconds": JOB_SECONDS, "compile": False}).json()
+
+    csp = csp_reports(page)
+    page.goto(service.base_url + "/")
+    page.fill("#token", TOKEN)
+    page.click("#token-form button")
+    page.click(f'tr[data-job-id="{job["id"]}"] a.job-page', timeout=30_000)
+    page.wait_for_url(f"**/static/job.html?id={job['id']}")
+
+    # while it runs: more than one PSNR point per split, and a loss curve filled in every second
+    page.wait_for_function(RUNNING_WITH_TWO_POINTS_PER_SPLIT, timeout=180_000)
+    splits = page.eval_on_selector_all("#psnr-plot polyline", "ls => ls.map(l => l.dataset.series)")
+    assert set(splits) == {"interpolation", "extrapolation"}, splits
+    assert int(page.get_attribute("#loss-plot polyline", "data-points")) >= 5
+    assert page.is_visible("#summary [role=progressbar]") and page.inner_text('#summary dd[data-fact="ETA"]') != "–"
+    page.screenshot(path=str(tmp_path / "job-running.png"), full_page=True)
+
+    page.wait_for_selector('body[data-state="succeeded"]', timeout=300_000)
+
+    # the stages that ran and why
+    stages = page.eval_on_selector_all(
+        "#stages tbody tr",
+        "rows => rows.map(r => [r.dataset.stage, r.dataset.ran, r.querySelector('.why').textContent])",
+    )
+    names = [name for name, _, _ in stages]
+    assert set(SET_UP_STAGES) <= set(names) and {"progress_evals", "train", "final_eval"} <= set(names), names
+    assert all(why.strip() for _, _, why in stages), stages
+    progress_why = next(why for name, _, why in stages if name == "progress_evals")
+    assert "progress evaluations of up to 4 views per split at 10, " in progress_why, progress_why
+
+    # final metrics per split, and every view's render beside its ground truth
+    assert set(page.eval_on_selector_all("#metrics tbody tr", "rows => rows.map(r => r.dataset.split)")) == set(splits)
+    views = page.eval_on_selector_all("#views tbody tr", "rows => rows.length")
+    with service.client() as client:
+        metrics = client.get(f"/jobs/{job['id']}").json()["metrics"]
+    assert views == sum(len(m["views"]) for m in metrics.values()) and views >= 2
+    page.wait_for_function(
+        "n => ['render', 'truth'].every(kind => [...document.querySelectorAll(`#views img[data-kind=${kind}]`)]"
+        ".filter(img => img.naturalWidth === 64).length === n)",
+        arg=views, timeout=60_000,
+    )
+
+    # the config: the job's options, and report.json's resolved config with those options marked
+    assert page.get_attribute('#options tr[data-key="max_seconds"]', "data-key") == "max_seconds"
+    page.wait_for_selector('#config tr.set[data-key="max_seconds"]', timeout=30_000)
+    assert page.eval_on_selector_all("#config tbody tr", "rows => rows.length") > 20
+    with page.expect_download() as download:
+        page.click('#files a[data-path$="/report"]')
+    report = json.loads(Path(download.value.path()).read_text())
+    assert report["status"] == "succeeded" and report["loss_series"] and report["config"]["max_seconds"] == JOB_SECONDS
+    assert page.is_visible('#files a[data-path$="/checkpoint"]')
+    page.screenshot(path=str(tmp_path / "job-succeeded.png"), full_page=True)
+
+    # the scene page: its summary and its jobs
+    page.click("#scene-link")
+    page.wait_for_selector(f'#jobs tr[data-job-id="{job["id"]}"][data-state="succeeded"]', timeout=30_000)
+    assert page.inner_text('#summary dd[data-fact="Frames"]') == str(scene["summary"]["frames"])
+    assert "sigma" in page.inner_text('#summary dd[data-fact="Prior"]')
+    assert page.inner_text('#splits tr[data-split="train"] td') == str(scene["summary"]["splits"]["train"])
+    page.screenshot(path=str(tmp_path / "scene.png"), full_page=True)
+
+    assert csp == [], csp
+    for name in ("job-running.png", "job-succeeded.png", "scene.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    print(f"job page screenshots: {tmp_path}")
