@@ -17,7 +17,7 @@ import pytest
 from browser_fixtures import browser_page, csp_reports
 from fastapi.testclient import TestClient
 from PIL import Image
-from service_fixtures import start_service, wait_for, zip_scene
+from service_fixtures import start_redis, start_service, wait_for, zip_scene
 
 from app.core import jobstore
 from app.core.settings import Settings
@@ -188,21 +188,33 @@ def test_a_bad_nerfstudio_path_is_422_naming_the_key(api):
 # ------------------------------------------------------------------------------------------------ the page
 
 
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory, small_room):
-    """A service (token set) with a short job trained on the small room: (service, job id)."""
-    svc = start_service(tmp_path_factory.mktemp("viewer"), token=TOKEN)
+@pytest.fixture(scope="module", params=["embedded", "redis"])
+def trained(request, tmp_path_factory, small_room):
+    """A service (token set; on its embedded default, or behind a redis-server started here) with a short job
+    trained on the small room: (service, job id)."""
+    root = tmp_path_factory.mktemp(f"viewer-{request.param}")
+    redis = start_redis(root / "redis") if request.param == "redis" else None
     try:
-        with svc.client() as client:
-            scene = client.post("/scenes", files={"file": ("room.zip", zip_scene(small_room), "application/zip")})
-            assert scene.status_code == 201, scene.text
-            job = client.post(f"/scenes/{scene.json()['id']}/jobs", json={"max_seconds": 15, "compile": False}).json()
-            wait_for(lambda: client.get(f"/jobs/{job['id']}").json()["state"] in ("succeeded", "failed"), 600,
-                     "the job to finish", 1.0)
-            assert client.get(f"/jobs/{job['id']}").json()["state"] == "succeeded", svc.logs()
-        yield svc, job["id"]
+        svc = start_service(root / "service", broker_url=redis.url if redis else None, token=TOKEN)
+        try:
+            yield svc, _trained_job(svc, small_room)
+        finally:
+            svc.stop()
     finally:
-        svc.stop()
+        if redis is not None:
+            redis.stop()
+
+
+def _trained_job(svc, scene_dir) -> str:
+    """The id of a short job trained on ``scene_dir`` in ``svc`` (succeeded)."""
+    with svc.client() as client:
+        scene = client.post("/scenes", files={"file": ("room.zip", zip_scene(scene_dir), "application/zip")})
+        assert scene.status_code == 201, scene.text
+        job = client.post(f"/scenes/{scene.json()['id']}/jobs", json={"max_seconds": 15, "compile": False}).json()
+        wait_for(lambda: client.get(f"/jobs/{job['id']}").json()["state"] in ("succeeded", "failed"), 600,
+                 "the job to finish", 1.0)
+        assert client.get(f"/jobs/{job['id']}").json()["state"] == "succeeded", svc.logs()
+    return job["id"]
 
 
 @pytest.fixture
