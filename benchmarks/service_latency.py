@@ -90,7 +90,8 @@ def measure_submissions(service, scene_id: str, count: int, threads: int) -> dic
 
 def run_mode(mode: str, root: Path, data_dir: Path, scene_dir: Path, args, state: dict) -> dict:
     redis = start_redis(root / f"redis-{mode}") if mode == "redis" else None
-    settings = {"VOXNERF_DATA_DIR": str(data_dir)}
+    # The submission loops queue 2 x --jobs jobs at once: the queue's limit must not answer them 429.
+    settings = {"VOXNERF_DATA_DIR": str(data_dir), "VOXNERF_MAX_QUEUED_JOBS": str(2 * args.jobs + 10)}
     service = start_service(root / mode, broker_url=redis.url if redis else None, settings=settings)
     try:
         with service.client(timeout_s=120) as client:
