@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
+from synthetic_fixtures import make_micro_scene, micro_config
 
 from app.core import jobstore, outputs
 from app.core.db import session_scope
@@ -18,7 +19,6 @@ from app.core.settings import Settings
 from app.main import create_app
 from voxnerf.config import TrainConfig
 from voxnerf.files import CHECKPOINT
-from voxnerf.synthetic import RoomSpec, make_room_scene
 from voxnerf.training.budget import Budget
 from voxnerf.training.callbacks import ProgressEvaluation
 from voxnerf.training.loop import LoopState
@@ -149,15 +149,10 @@ def test_eval_at_evaluations_stop_once_their_time_cap_is_spent():
 
 @pytest.fixture(scope="module")
 def tiny_room(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("limits") / "tiny"
-    return make_room_scene(out, RoomSpec(width=24, height=18, n_frames=40, train_every=4, n_gaps=0, gap_len=0,
-                                         prior_max_points=20_000))
+    return make_micro_scene(tmp_path_factory, "limits")
 
 
-def _config(**overrides) -> TrainConfig:
-    values = dict(max_iters=3, compile=False, device="cpu", rays_per_batch=128, hash_levels=4, hash_log2_size=10,
-                  hidden_dim=16, n_importance=4, n_rest=2, checkpoint_every_s=1e9)
-    return TrainConfig(**{**values, **overrides})
+_config = micro_config
 
 
 def test_a_cancel_during_set_up_stops_before_the_next_stage(tiny_room, tmp_path):

@@ -19,6 +19,7 @@ import open3d as o3d
 import pytest
 import torch
 import trimesh
+from synthetic_fixtures import make_micro_scene
 
 import voxnerf.training.step as step_module
 from voxnerf.cameras import Intrinsics
@@ -178,10 +179,7 @@ def test_units_and_placement_train_to_the_same_heldout_psnr(room, metre_run, tmp
 
 @pytest.fixture(scope="module")
 def tiny_room(tmp_path_factory) -> Path:
-    """24x18 pixels, 10 training and 9 held-out frames, a 20k-point prior (sigma 2 cm)."""
-    out = tmp_path_factory.mktemp("stability") / "tiny"
-    return make_room_scene(out, RoomSpec(width=24, height=18, n_frames=40, train_every=4, n_gaps=0, gap_len=0,
-                                         prior_max_points=20_000))
+    return make_micro_scene(tmp_path_factory, "stability")
 
 
 Edit = Callable[[Path, dict], None]

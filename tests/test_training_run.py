@@ -7,10 +7,10 @@ import json
 from pathlib import Path
 
 import pytest
+from synthetic_fixtures import make_micro_scene, micro_config
 
 import voxnerf.trainer
 from voxnerf.config import TrainConfig
-from voxnerf.synthetic import RoomSpec, make_room_scene
 from voxnerf.training.records import ProgressEvent, StageRecord, TrainReport
 from voxnerf.training.run import REPORT, throughput, train
 
@@ -20,15 +20,10 @@ STAGES = ["load_scene", "prior", "hash_kernel", "octree", "pseudo_depth", "depth
 
 @pytest.fixture(scope="module")
 def tiny_room(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("training") / "tiny"
-    return make_room_scene(out, RoomSpec(width=24, height=18, n_frames=40, train_every=4, n_gaps=0, gap_len=0,
-                                         prior_max_points=20_000))
+    return make_micro_scene(tmp_path_factory, "training")
 
 
-def _config(**overrides) -> TrainConfig:
-    values = dict(max_iters=3, compile=False, device="cpu", rays_per_batch=128, hash_levels=4, hash_log2_size=10,
-                  hidden_dim=16, n_importance=4, n_rest=2, checkpoint_every_s=1e9)
-    return TrainConfig(**{**values, **overrides})
+_config = micro_config
 
 
 def test_train_returns_the_report_it_writes_and_sends_typed_events(tiny_room, tmp_path):

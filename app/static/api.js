@@ -1,7 +1,7 @@
 // VoxNeRF pages' shared REST access (a classic script: load it before the page's own script). Every request
 // carries the API token saved in localStorage (if any) as "Authorization: Bearer <token>"; the dashboard's
 // header form saves it. Files behind the token (renders, images, downloads) become blob: URLs, since an
-// <img>, <video> or link cannot send the header.
+// <img>, <video> or link cannot send the header. Also the pages' one DOM helper, `el`.
 "use strict";
 
 const TOKEN_KEY = "voxnerf.token";
@@ -54,4 +54,13 @@ async function api(path, options = {}) {
 async function apiBlobUrl(path) {
   const blob = await (await api(path)).blob();
   return URL.createObjectURL(blob);
+}
+
+// An element with properties (dataset entries under `data`) and children (strings become text).
+function el(tag, props = {}, ...children) {
+  const { data, ...rest } = props;
+  const node = Object.assign(document.createElement(tag), rest);
+  for (const [key, value] of Object.entries(data || {})) node.dataset[key] = value;
+  node.append(...children.filter((c) => c !== null && c !== undefined));
+  return node;
 }

@@ -14,15 +14,6 @@ const jobId = new URLSearchParams(location.search).get("id") || "";
 const loaded = { report: false, views: false };  // what a finished job needs fetched only once
 const downloads = new Map();  // API path -> blob URL already downloaded
 
-// An element with properties (dataset entries under `data`) and children (strings become text).
-function el(tag, props = {}, ...children) {
-  const { data, ...rest } = props;
-  const node = Object.assign(document.createElement(tag), rest);
-  for (const [key, value] of Object.entries(data || {})) node.dataset[key] = value;
-  node.append(...children.filter((c) => c !== null && c !== undefined));
-  return node;
-}
-
 function showMessage(text, kind = "error") {
   const box = $("message");
   box.textContent = text;

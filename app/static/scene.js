@@ -7,14 +7,6 @@ const POLL_MS = 2000;
 const $ = (id) => document.getElementById(id);
 const sceneId = new URLSearchParams(location.search).get("id") || "";
 
-function el(tag, props = {}, ...children) {
-  const { data, ...rest } = props;
-  const node = Object.assign(document.createElement(tag), rest);
-  for (const [key, value] of Object.entries(data || {})) node.dataset[key] = value;
-  node.append(...children.filter((c) => c !== null && c !== undefined));
-  return node;
-}
-
 function showMessage(text) {
   $("message").textContent = text;
   $("message").hidden = !text;
