@@ -31,7 +31,9 @@ from voxnerf.training.records import EvalRecord, StageRecord
 
 # `voxnerf train` options whose destination is not a TrainConfig field of the same name.
 CLI_ALIASES = {"eval_every": ("eval_every_s",), "samples": ("n_importance", "n_rest")}
-CLI_NOT_CONFIG = {"help", "scene", "out", "restart"}  # positional paths and run handling
+# Positional paths and run handling; and --set FIELD=VALUE, which reaches any field by name (the research knob):
+# the fields counted here are those with a flag of their own.
+CLI_NOT_CONFIG = {"help", "scene", "out", "restart", "set"}
 
 
 def _train_subparser() -> argparse.ArgumentParser:

@@ -6,15 +6,19 @@ import math
 from types import SimpleNamespace
 
 import pytest
+import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.training.budget import Budget
+from voxnerf.field import HashEncoding
+from voxnerf.training.budget import Budget, TrainingProgress
 from voxnerf.training.callbacks import (
     COMPILE_NO_STEP_WHY,
     COMPILE_RAN_WHY,
     DEFAULT_EVAL_SECONDS_PER_RAY,
     Checkpointing,
+    CoarseToFine,
     CompileTimer,
+    DepthWeightSchedule,
     LearningRateSchedule,
     OccupancyGridUpdate,
     ProgressBar,
@@ -42,14 +46,93 @@ def _report() -> TrainReport:
 
 
 def test_learning_rate_decays_tenfold_every_decay_iters_on_every_group():
-    optimizer = SimpleNamespace(param_groups=[{"lr": 0.0}, {"lr": 0.0}])
-    schedule = LearningRateSchedule(optimizer, lr=1e-2, decay_iters=1000)
+    optimizer = SimpleNamespace(param_groups=[{"lr": 1e-2}, {"lr": 1e-3}])
+    schedule = LearningRateSchedule(optimizer, decay_iters=1000)
     state = LoopState(iteration=0)
     schedule.before_step(state)
-    assert state.lr == pytest.approx(1e-2) and all(g["lr"] == state.lr for g in optimizer.param_groups)
+    assert state.lr == pytest.approx(1e-2) and [g["lr"] for g in optimizer.param_groups] == [1e-2, 1e-3]
     state.iteration = 2000
     schedule.before_step(state)
-    assert state.lr == pytest.approx(1e-4) and all(g["lr"] == pytest.approx(1e-4) for g in optimizer.param_groups)
+    assert state.lr == pytest.approx(1e-4)
+    assert [g["lr"] for g in optimizer.param_groups] == pytest.approx([1e-4, 1e-5])
+
+
+def _progress(max_seconds: float | None, max_iters: int | None = None, reserve: float = 0.0):
+    clock = FakeClock(0.0)
+    budget = Budget(max_seconds, clock=clock)
+    clock.now = 10.0  # set-up before the loop
+    return clock, TrainingProgress(budget, max_iters, lambda: reserve)
+
+
+def test_training_progress_counts_training_time_after_set_up_and_before_the_reserve():
+    clock, progress = _progress(110.0, reserve=20.0)  # 80 s of training: 110 - 10 set-up - 20 reserve
+    assert progress.fraction(0) == 0.0
+    clock.now = 50.0
+    assert progress.fraction(5) == pytest.approx(0.5)
+    clock.now = 95.0
+    assert progress.fraction(9) == 1.0
+
+
+def test_training_progress_takes_the_larger_of_the_iteration_and_time_fractions_or_none():
+    clock, progress = _progress(110.0, max_iters=100)
+    clock.now = 20.0
+    assert progress.fraction(50) == pytest.approx(0.5)
+    assert _progress(None, max_iters=100)[1].fraction(25) == pytest.approx(0.25)
+    assert _progress(None)[1].fraction(25) is None
+
+
+def test_budget_learning_rate_reaches_lr_final_at_the_end_of_the_budget():
+    clock, progress = _progress(110.0)
+    optimizer = SimpleNamespace(param_groups=[{"lr": 1e-2}])
+    schedule = LearningRateSchedule(optimizer, decay_iters=1000, schedule="budget", final=0.01, progress=progress)
+    state = LoopState(iteration=0)
+    schedule.before_step(state)
+    assert state.lr == pytest.approx(1e-2)
+    clock.now = 60.0
+    schedule.before_step(state)
+    assert state.lr == pytest.approx(1e-3)
+    clock.now = 110.0
+    schedule.before_step(state)
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
+
+
+def test_budget_learning_rate_falls_back_to_iterations_without_limits():
+    optimizer = SimpleNamespace(param_groups=[{"lr": 1e-2}])
+    schedule = LearningRateSchedule(optimizer, decay_iters=1000, schedule="budget", final=0.01,
+                                    progress=_progress(None)[1])
+    state = LoopState(iteration=1000)
+    schedule.before_step(state)
+    assert state.lr == pytest.approx(1e-3)
+
+
+def test_coarse_to_fine_ramps_the_levels_over_its_span_then_keeps_all():
+    encoding = HashEncoding(levels=8, features=2, log2_size=10, max_resolution=128)
+    clock, progress = _progress(110.0)
+    ramp = CoarseToFine(encoding, coarse=2, span=0.5, progress=progress, fallback_iters=1000, every=1)
+    state = LoopState(iteration=0)
+    ramp.before_step(state)
+    weights = encoding.level_weight.view(8, 2)[:, 0]
+    assert weights.tolist() == [1, 1, 0, 0, 0, 0, 0, 0]
+    clock.now = 35.0  # a quarter of the 100 s of training: half the ramp, 2 + 3 = 5 levels
+    ramp.before_step(state)
+    assert encoding.level_weight.view(8, 2)[:, 0].tolist() == [1, 1, 1, 1, 1, 0, 0, 0]
+    clock.now = 60.0
+    ramp.before_step(state)
+    assert bool((encoding.level_weight == 1).all())
+    encoding.set_active_levels(3.5)
+    ramp.finish()
+    assert bool((encoding.level_weight == 1).all())
+
+
+def test_depth_weight_schedule_writes_lambda_d_times_final_to_the_fraction():
+    clock, progress = _progress(110.0)
+    weight = torch.tensor(0.0)
+    schedule = DepthWeightSchedule(weight, lambda_depth=0.4, final=0.25, progress=progress, every=1)
+    schedule.before_step(LoopState(iteration=0))
+    assert float(weight) == pytest.approx(0.4)
+    clock.now = 60.0
+    schedule.before_step(LoopState(iteration=1))
+    assert float(weight) == pytest.approx(0.2)
 
 
 # ----------------------------------------------------------------------------------------- occupancy grid

@@ -37,7 +37,7 @@ class StubStep:
         if self.clock is not None:
             self.clock.now += self.seconds
         t = torch.tensor(next(self.totals))
-        return Losses(t, t / 2, torch.tensor(0.0), torch.tensor(0.0))
+        return Losses(t, t / 2, torch.tensor(0.0), torch.tensor(0.0), torch.tensor(0.0))
 
     def apply(self) -> None:
         self.log.append("apply")

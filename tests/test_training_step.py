@@ -29,28 +29,28 @@ class StubModel:
         return SimpleNamespace(origins=origins, dirs=dirs)
 
 
-def _inputs(rays: int, with_depth: bool, target_beta=None):
+def _inputs(rays: int, with_depth: bool, target_beta=None, depth_weight: float = 0.3):
     g = torch.Generator().manual_seed(0)
     starts = torch.rand(rays, 4, generator=g, requires_grad=True)
     target_t = torch.rand(rays, generator=g) if with_depth else None
     target_ok = torch.ones(rays, dtype=torch.bool) if with_depth else None
     return torch.zeros(rays, 3), torch.ones(rays, 3), starts, starts + 0.1, torch.rand(rays, 3, generator=g), \
-        target_t, target_ok, target_beta
+        target_t, target_ok, target_beta, torch.zeros(rays, dtype=torch.int64), torch.tensor(depth_weight)
 
 
 def test_without_depth_targets_the_loss_is_the_colour_loss():
     cfg = TrainConfig(max_iters=1)
     args = _inputs(16, with_depth=False)
-    total, lc, ld, lreg = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(*args)
-    assert total is lc and float(ld) == 0 and float(lreg) == 0
+    total, lc, ld, lreg, ldist = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(*args)
+    assert total is lc and float(ld) == 0 and float(lreg) == 0 and float(ldist) == 0
     expected = color_loss(args[2].mean(-1, keepdim=True).expand(-1, 3), args[4])
     assert float(lc.detach()) == pytest.approx(float(expected.detach()))
 
 
 def test_depth_and_smoothness_terms_add_with_their_weights():
     cfg = TrainConfig(max_iters=1, lambda_depth=0.5, lambda_smooth=0.25)
-    args = _inputs(16 + 2 * 4 * 4, with_depth=True)
-    total, lc, ld, lreg = make_loss_fn(StubModel(), cfg, PAPER_BETA, 2 * 4 * 4, 4)(*args)
+    args = _inputs(16 + 2 * 4 * 4, with_depth=True, depth_weight=0.5)
+    total, lc, ld, lreg, _ = make_loss_fn(StubModel(), cfg, PAPER_BETA, 2 * 4 * 4, 4)(*args)
     assert float(total.detach()) == pytest.approx(float((lc + 0.5 * (ld + 0.25 * lreg)).detach()))
     ld, lreg = ld.detach(), lreg.detach()
     assert float(ld) > 0 and float(lreg) > 0
@@ -79,10 +79,10 @@ def test_a_per_ray_beta_of_one_is_the_run_beta_and_a_wider_beta_lowers_the_depth
 
 def test_the_guard_returns_the_loss_and_raises_on_nan_with_the_terms():
     t = torch.tensor
-    assert divergence_guard(Losses(t(0.5), t(0.4), t(0.1), t(0.0)), 3) == 0.5
+    assert divergence_guard(Losses(t(0.5), t(0.4), t(0.1), t(0.0), t(0.0)), 3) == 0.5
     with pytest.raises(TrainingDiverged, match=r"loss became nan at iteration 7 \(colour 0.4, depth nan, "
-                                               r"smoothness 0\)"):
-        divergence_guard(Losses(t(math.nan), t(0.4), t(math.nan), t(0.0)), 7)
+                                               r"smoothness 0, distortion 0\)"):
+        divergence_guard(Losses(t(math.nan), t(0.4), t(math.nan), t(0.0), t(0.0)), 7)
 
 
 def _pixels(with_caches: bool) -> TrainingPixels:
@@ -127,6 +127,8 @@ def test_a_batch_carries_rays_samples_and_targets(with_caches):
     rays = 32 + (4 if with_caches else 0)
     assert batch.origins.shape == batch.dirs.shape == (rays, 3) and batch.target_rgb.shape == (rays, 3)
     assert float(batch.target_rgb.max()) <= 1.0
+    assert batch.image.shape == (rays,) and batch.image.dtype == torch.int64 and int(batch.image.max()) < 2
+    assert float(batch.depth_weight) == pytest.approx(cfg.lambda_depth)
     hit_t, training, grad = seen[0]
     assert training and not grad and (hit_t is not None) == with_caches
     if with_caches:
@@ -141,11 +143,11 @@ def test_losses_zero_the_gradients_then_backpropagate_and_apply_steps():
     w = torch.tensor(2.0, requires_grad=True)
 
     def loss_fn(*args):
-        return w * 3, w, w * 0, w * 0
+        return w * 3, w, w * 0, w * 0, w * 0
 
     step = TrainStep(StubModel(), StubOptimizer(log), _pixels(False), TrainConfig(max_iters=1), loss_fn, False,
                      None, torch.Generator())
-    losses = step.losses(Batch(*range(8)))
+    losses = step.losses(Batch(*range(10)))
     assert float(losses.total.detach()) == 6.0 and float(w.grad) == 3.0 and log == [("zero_grad", True)]
     step.apply()
     assert log[-1] == "step"

@@ -28,6 +28,7 @@ def _train(args: argparse.Namespace) -> int:
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
         **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
         **({"smooth_patches": args.smooth_patches} if args.smooth_patches is not None else {}),
+        **dict(args.set or []),
     )
     if config.max_seconds is None and config.max_iters is None:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
@@ -378,6 +379,17 @@ def _sample_counts(text: str) -> tuple[int, int]:
     return n_imp, n_rest
 
 
+def _config_setting(text: str) -> tuple[str, object]:
+    """``FIELD=VALUE`` -> (field, value): VALUE as JSON where it parses, else the text itself."""
+    name, sep, value = text.partition("=")
+    if not sep or not name.strip():
+        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+    try:
+        return name.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return name.strip(), value
+
+
 def _add_train_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a model on a scene directory")
     p.add_argument("scene", help="scene directory (transforms.json and its files; see docs/scene-format.md)")
@@ -406,6 +418,10 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
                    help="samples per ray near the surface and on the rest of the ray (default: the preset's)")
     p.add_argument("--smooth-patches", type=int, metavar="N",
                    help="add the paper's depth-smoothness term on N 8x8 patches per batch (default 0: off)")
+    p.add_argument("--set", type=_config_setting, action="append", metavar="FIELD=VALUE",
+                   help="any training-config field (docs/engine.md lists them), e.g. --set lr_schedule=budget "
+                   "--set sh_bands=2; VALUE is read as JSON where it parses (numbers, true, [1, 2]), else as text; "
+                   "repeatable, and it wins over the flags above")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     p.set_defaults(func=_train)
 

@@ -9,6 +9,8 @@ from pydantic import BaseModel, Field, field_validator
 Preset = Literal["cpu", "paper"]
 SamplerName = Literal["voxnerf", "occgrid", "uniform"]
 DepthSource = Literal["auto", "sensor", "prior", "none"]
+LrSchedule = Literal["iterations", "budget"]
+Appearance = Literal["none", "affine"]
 MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
@@ -85,6 +87,39 @@ class TrainConfig(BaseModel):
     eval_chunk: int | None = Field(default=None, gt=0)
 
     lr: float = Field(default=1e-2, description="Adam learning rate, in (0, 1]")
+    lr_schedule: LrSchedule = Field(
+        default="iterations",
+        description="'iterations': lr x 0.1 every lr_decay_iters steps; 'budget': lr x lr_final over the run's "
+        "limits (max_seconds less set-up and the final evaluation's share, or max_iters), whichever ends first",
+    )
+    lr_final: float = Field(default=0.1, gt=0, le=1, description="lr at the end over lr at the start ('budget')")
+    sh_bands: int = Field(
+        default=4, ge=1, le=4,
+        description="spherical-harmonic bands of the direction encoding: 4 (16 coefficients, the paper's) to 1 "
+        "(a constant: colour independent of the viewing direction)",
+    )
+    distortion_weight: float = Field(
+        default=0.0, ge=0,
+        description="weight of mip-NeRF 360's distortion loss (the O(N) form, distances as fractions of each "
+        "ray's [near, far]); 0 leaves it out",
+    )
+    coarse_to_fine: float = Field(
+        default=0.0, ge=0, le=1,
+        description="fraction of the training limits over which the hash levels are switched on from "
+        "coarse_levels to all (a smooth ramp per level); 0 trains every level from the start",
+    )
+    coarse_levels: int = Field(default=4, ge=1, description="hash levels active at the start of coarse_to_fine")
+    depth_weight_final: float = Field(
+        default=1.0, gt=0, le=1,
+        description="lambda_depth at the end of training over lambda_depth at the start (exponential over the "
+        "training limits, as lr_schedule 'budget'); 1 keeps it constant",
+    )
+    appearance: Appearance = Field(
+        default="none",
+        description="'affine': a colour gain and bias per channel and training image, learnt with the field "
+        "(exposure and white balance that vary between frames); evaluation views get none, so compare such runs "
+        "by the half-image metrics (docs/engine.md)",
+    )
     lambda_depth: float = Field(
         default=0.3, ge=0, description="lambda_d of the paper's total loss (no value in the paper; docs/performance.md)"
     )
@@ -107,6 +142,11 @@ class TrainConfig(BaseModel):
         default="coverage",
         description="sampler octree leaf: 'sigma' (the paper) or, for point-cloud priors, the smallest multiple "
         "of sigma (1-3) that the training rays do not slip through (mesh priors always use sigma)",
+    )
+    occgrid_seed: bool = Field(
+        default=True,
+        description="start the occupancy grid from the prior's cells; False starts it all occupied and lets it "
+        "learn from the field's density alone (nerfacc's grid, the paper's baseline)",
     )
     occgrid_resolution: int = Field(default=64, ge=8)
     occgrid_update_every: int = Field(default=32, ge=1)

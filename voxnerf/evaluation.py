@@ -14,7 +14,7 @@ from voxnerf.cameras import Intrinsics
 from voxnerf.config import TrainConfig
 from voxnerf.image_io import encode_png, write_atomic
 from voxnerf.inference import FAST
-from voxnerf.metrics import LPIPS, LPIPS_UNAVAILABLE, evaluate_images
+from voxnerf.metrics import LPIPS, LPIPS_UNAVAILABLE, evaluate_images, half_image_pairs
 from voxnerf.model import VoxNeRFModel
 from voxnerf.render import render_normalized
 
@@ -73,6 +73,7 @@ def evaluate_views(
     lpips: bool = True,
     path: str = "fast",
     should_stop: Callable[[], bool] | None = None,
+    half_image: bool = False,
 ) -> dict[str, dict]:
     """Render every view of every split (on the render ``path``, see :func:`voxnerf.render.render_normalized`)
     and score it.
@@ -80,6 +81,8 @@ def evaluate_views(
     Returns ``{split: {"psnr", "ssim", "lpips" (None if unavailable or not asked), "lpips_note"?, "renderer",
     "views": [{"name", "psnr", "ssim", "lpips"}]}}`` (means at the top; ``renderer`` says which path rendered
     them); LPIPS is also left out, with a note saying why, when a view is smaller than its network accepts.
+    ``half_image`` adds ``"half": {"psnr", "ssim", "lpips"}``, the means of the half-image protocol
+    (:func:`voxnerf.metrics.half_image_pairs`: colour affine fitted on each view's left half, scored on its right).
     Writes ``out_dir/<split>/<name>.png`` when ``out_dir`` is given. Raises EvaluationStopped when
     ``should_stop()`` (asked before each view) returns True.
     """
@@ -110,6 +113,9 @@ def evaluate_views(
              "lpips": None if scores["lpips"] is None else scores["lpips"][i]}
             for i, v in enumerate(split_views)
         ]}
+        if half_image:
+            halves = [half_image_pairs(p, g) for p, g in zip(preds, gts, strict=True)]
+            entry["half"] = evaluate_images([p for p, _ in halves], [g for _, g in halves], lp)["mean"]
         if note is not None:
             entry["lpips_note"] = note
         results[split] = entry

@@ -67,6 +67,9 @@ class HashEncoding(nn.Module):
         self.register_buffer("level_offset", offsets.view(1, -1, 1, 1, 1), persistent=False)
         self.register_buffer("upper", torch.tensor([0, 1], dtype=torch.int32), persistent=False)
         self.table = nn.Parameter(torch.empty(levels * self.table_size, features).uniform_(-1e-4, 1e-4))
+        # [levels * features] weight of each level's features (coarse-to-fine training ramps it up; all ones
+        # otherwise, and always in a saved model: it is not part of the state dict).
+        self.register_buffer("level_weight", torch.ones(levels * features), persistent=False)
         # Set by voxnerf.model.field_for where voxnerf.hash_kernel is available: CPU float32 positions that need
         # no gradient then go through its C kernel (the same features; a cheaper backward into the table).
         self.use_kernel = False
@@ -87,7 +90,18 @@ class HashEncoding(nn.Module):
         indices are their sums (dense levels) or XORs (hashed levels), and the trilinear blend is three lerps.
         """
         if self.use_kernel and x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad:
-            return hash_encode(x, self.table, self.resolution, self.dense_levels)
+            return hash_encode(x, self.table, self.resolution, self.dense_levels) * self.level_weight
+        return self.encode(x) * self.level_weight
+
+    def set_active_levels(self, active: float) -> None:
+        """Coarse-to-fine: weight 1 for levels below ``floor(active)``, a smooth ramp (1 - cos) / 2 of the fraction
+        for the next, 0 above; ``active >= levels`` restores every level."""
+        ramp = (torch.arange(self.levels, dtype=torch.float32) - active).neg().clamp(0.0, 1.0)
+        weight = 0.5 * (1.0 - torch.cos(math.pi * ramp))
+        self.level_weight.copy_(weight.repeat_interleave(self.features).to(self.level_weight.device))
+
+    def encode(self, x: Tensor) -> Tensor:
+        """The unweighted encoding in PyTorch (the reference of the C kernel)."""
         n = x.shape[0]
         pos = x.clamp(0.0, 1.0)[:, None, :] * self.resolution[None, :, None]  # [N, L, 3]
         cell = torch.minimum(pos.floor(), self.max_cell[None, :, None].to(pos.dtype))
@@ -107,6 +121,11 @@ class HashEncoding(nn.Module):
         f = f[:, :, :, 0] + (f[:, :, :, 1] - f[:, :, :, 0]) * fy[:, :, None, None]
         f = f[:, :, 0] + (f[:, :, 1] - f[:, :, 0]) * fx[:, :, None]
         return f.reshape(n, -1)
+
+
+def spherical_harmonics(d: Tensor, bands: int) -> Tensor:
+    """The first ``bands`` bands (``bands^2`` coefficients) of :func:`spherical_harmonics_deg4` [N, bands^2]."""
+    return spherical_harmonics_deg4(d)[:, : bands * bands]
 
 
 def spherical_harmonics_deg4(d: Tensor) -> Tensor:
@@ -147,7 +166,8 @@ def _mlp(in_dim: int, hidden: int, out_dim: int, layers: int) -> nn.Sequential:
 
 
 class RadianceField(nn.Module):
-    """sigma, h = MLP_pos(hash(x)); c = MLP_view(h, SH(d)) -- the paper's field.
+    """sigma, h = MLP_pos(hash(x)); c = MLP_view(h, SH(d)) -- the paper's field (SH of ``sh_bands`` bands: 4, the
+    paper's 16 coefficients; 1, a constant, leaves the colour independent of the direction).
 
     ``forward(positions [N, 3] normalised, dirs [N, 3] unit) -> (density [N] per normalised unit, rgb [N, 3])``.
     """
@@ -161,11 +181,15 @@ class RadianceField(nn.Module):
         log2_size: int = 17,
         max_resolution: int = 1024,
         hidden_dim: int = 64,
+        sh_bands: int = 4,
     ) -> None:
         super().__init__()
+        if not 1 <= sh_bands <= 4:
+            raise ValueError(f"sh_bands must be 1-4, got {sh_bands}")
+        self.sh_bands = sh_bands
         self.encoding = HashEncoding(levels, features, log2_size, 16, max_resolution)
         self.density_mlp = _mlp(self.encoding.out_dim, hidden_dim, 1 + self.GEO_FEATURES, 2)
-        self.color_mlp = _mlp(16 + self.GEO_FEATURES, hidden_dim, 3, 3)
+        self.color_mlp = _mlp(sh_bands * sh_bands + self.GEO_FEATURES, hidden_dim, 3, 3)
 
     def density(self, positions: Tensor) -> Tensor:
         """[N, 3] normalised positions -> [N] densities (per normalised unit of length)."""
@@ -175,7 +199,8 @@ class RadianceField(nn.Module):
     def forward(self, positions: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         h = self.density_mlp(self.encoding((positions + 1.0) * 0.5))
         density = trunc_exp(h[:, 0])
-        rgb = torch.sigmoid(self.color_mlp(torch.cat([spherical_harmonics_deg4(dirs), h[:, 1:]], dim=-1)))
+        sh = spherical_harmonics(dirs, self.sh_bands)
+        rgb = torch.sigmoid(self.color_mlp(torch.cat([sh, h[:, 1:]], dim=-1)))
         return density, rgb
 
     # The same field split for inference (voxnerf.inference): the colour MLP's first layer is linear in
@@ -191,7 +216,7 @@ class RadianceField(nn.Module):
         included."""
         first = self.color_mlp[0]
         n_sh = first.in_features - self.GEO_FEATURES
-        return nn.functional.linear(spherical_harmonics_deg4(dirs), first.weight[:, :n_sh], first.bias)
+        return nn.functional.linear(spherical_harmonics(dirs, self.sh_bands), first.weight[:, :n_sh], first.bias)
 
     def color(self, geo: Tensor, direction_features: Tensor) -> Tensor:
         """Colour [N, 3] in [0, 1] from geometry features [N, GEO_FEATURES] and the direction features [N, hidden]

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from voxnerf.field import spherical_harmonics_deg4, trunc_exp
+from voxnerf.field import spherical_harmonics, trunc_exp
 from voxnerf.rendering import MAX_OPTICAL_DEPTH
 from voxnerf.samplers import RayBundle
 
@@ -97,7 +97,7 @@ class FieldRunner:
         """[R, 3] unit directions -> [R, hidden] in ``dtype``: the direction part of the colour MLP's first
         layer, bias included."""
         weight, bias = self.color_dir
-        return nn.functional.linear(spherical_harmonics_deg4(dirs).to(self.dtype), weight, bias)
+        return nn.functional.linear(spherical_harmonics(dirs, self.field.sh_bands).to(self.dtype), weight, bias)
 
     def color(self, geo: Tensor, direction_features: Tensor) -> Tensor:
         """[N, 3] float32 colour in [0, 1] of samples with geometry features ``geo`` [N, 15] whose rays have

@@ -279,3 +279,30 @@ def evaluate_images(
             "lpips": None if lpipses is None else float(np.mean(lpipses)),
         },
     }
+
+
+def fit_colour_affine(pred: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares gain and bias per channel mapping ``pred`` to ``gt`` ([..., 3] in [0, 1]) -> ([3], [3]).
+
+    A channel with no spread in ``pred`` gets gain 1 and the mean difference as its bias.
+    """
+    p, g = pred.reshape(-1, 3).double(), gt.reshape(-1, 3).double()
+    p_mean, g_mean = p.mean(0), g.mean(0)
+    var = ((p - p_mean) ** 2).mean(0)
+    cov = ((p - p_mean) * (g - g_mean)).mean(0)
+    gain = torch.where(var > 1e-12, cov / var.clamp_min(1e-12), torch.ones_like(var))
+    return gain.float(), (g_mean - gain * p_mean).float()
+
+
+def half_image_pairs(pred: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The right halves of ``pred`` and ``gt`` [H, W, 3], ``pred``'s corrected by the colour affine fitted on the
+    left halves (:func:`fit_colour_affine`), clamped to [0, 1].
+
+    The evaluation protocol for models whose training images had their own exposure (nerfstudio's for
+    appearance embeddings): a held-out view's exposure is unknown to the model, so it is fitted on one half of
+    the image and the model is scored on the other.
+    """
+    pred, gt = _check_pair(pred, gt)
+    half = pred.shape[1] // 2
+    gain, bias = fit_colour_affine(pred[:, :half], gt[:, :half])
+    return (pred[:, half:] * gain + bias).clamp(0.0, 1.0), gt[:, half:]

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from voxnerf import hash_kernel
+from voxnerf.appearance import ImageAppearance
 from voxnerf.config import TrainConfig
 from voxnerf.field import RadianceField
 from voxnerf.octree import SparseVoxelOctree
@@ -43,7 +44,7 @@ def field_for(config: TrainConfig) -> RadianceField:
     """The radiance field (on the CPU, freshly initialised) that ``config``'s resolved preset describes."""
     cfg = config.resolved()
     field = RadianceField(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size, cfg.hash_max_resolution,
-                          cfg.hidden_dim)
+                          cfg.hidden_dim, cfg.sh_bands)
     field.encoding.use_kernel = cfg.hash_kernel and hash_kernel.available()
     return field
 
@@ -53,7 +54,8 @@ class VoxNeRFModel:
     """Everything needed to render: the field, the occupancy grid, the octree (voxnerf sampler) and the box.
 
     ``aabb`` [2, 3]: the scene box in normalised units, inside [-1, 1]^3. ``octree`` is None when the scene
-    has no prior or the sampler does not use it.
+    has no prior or the sampler does not use it. ``appearance`` (config ``appearance='affine'``) corrects the
+    training images' colours during training only; rendering never applies it.
     """
 
     config: TrainConfig
@@ -62,6 +64,7 @@ class VoxNeRFModel:
     field: RadianceField
     grid: OccupancyGrid
     octree: SparseVoxelOctree | None
+    appearance: ImageAppearance | None = None
     _compiled: dict = field(default_factory=dict, repr=False)
 
     @staticmethod
@@ -137,6 +140,7 @@ class VoxNeRFModel:
             "field": self.field.state_dict(),
             "grid": self.grid.state_dict(),
             "octree": None if self.octree is None else self.octree.state_dict(),
+            "appearance": None if self.appearance is None else self.appearance.state_dict(),
         }
 
     @staticmethod
@@ -149,4 +153,7 @@ class VoxNeRFModel:
         model = VoxNeRFModel.create(config, transform, state["aabb"], octree, device)
         model.field.load_state_dict(state["field"])
         model.grid.load_state_dict(state["grid"])
+        if state.get("appearance") is not None:
+            model.appearance = ImageAppearance(int(state["appearance"]["bias"].shape[0])).to(device)
+            model.appearance.load_state_dict(state["appearance"])
         return model

@@ -40,3 +40,26 @@ class Budget:
 
     def remaining(self) -> float:
         return math.inf if self.max_seconds is None else self.max_seconds - self.previous - self.wall + self.excluded
+
+
+class TrainingProgress:
+    """How far the training loop is through its limits, as a fraction in [0, 1]: the larger of steps over
+    ``max_iters`` and training seconds over the seconds the budget leaves for training (``max_seconds`` less the
+    set-up before the loop and ``reserve()``, the final evaluation's share). Built when the loop starts.
+
+    ``fraction(iteration)`` is None when neither limit bounds the run.
+    """
+
+    def __init__(self, budget: Budget, max_iters: int | None, reserve: Callable[[], float]) -> None:
+        self.budget, self.max_iters, self.reserve = budget, max_iters, reserve
+        self.set_up = budget.train_seconds - budget.previous  # this command's seconds before the loop
+
+    def fraction(self, iteration: int) -> float | None:
+        fractions = []
+        if self.max_iters:
+            fractions.append(iteration / self.max_iters)
+        if self.budget.max_seconds is not None:
+            done = self.budget.train_seconds - self.set_up
+            left = max(self.budget.remaining() - self.reserve(), 0.0)
+            fractions.append(done / (done + left) if done + left > 0 else 1.0)
+        return min(max(fractions), 1.0) if fractions else None

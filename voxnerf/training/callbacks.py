@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from voxnerf.config import TrainConfig
 from voxnerf.model import VoxNeRFModel
-from voxnerf.training.budget import Budget, Clock
+from voxnerf.training.budget import Budget, Clock, TrainingProgress
 from voxnerf.training.loop import Callback, LoopState
 from voxnerf.training.records import LossSeries, ProgressEvent, StageRecord, TrainReport
 
@@ -34,16 +34,68 @@ Evaluate = Callable[[int, float, bool], tuple[float, float]]  # (iteration, loss
 
 
 class LearningRateSchedule(Callback):
-    """lr = lr0 * 0.1 ** (iteration / decay_iters), set on every parameter group before each step."""
+    """The learning rate of each parameter group (its initial lr times a factor), set before each step.
 
-    def __init__(self, optimizer: torch.optim.Optimizer, lr: float, decay_iters: float) -> None:
-        self.groups, self.lr, self.decay_iters = optimizer.param_groups, lr, decay_iters
+    ``schedule='iterations'``: factor ``0.1 ** (iteration / decay_iters)``. ``schedule='budget'``: factor
+    ``final ** fraction`` of the run's :class:`TrainingProgress` (the iterations rule where no limit bounds it).
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer, decay_iters: float, schedule: str = "iterations",
+                 final: float = 0.1, progress: TrainingProgress | None = None) -> None:
+        self.groups = optimizer.param_groups
+        self.base = [group.setdefault("initial_lr", group["lr"]) for group in self.groups]
+        self.decay_iters, self.schedule, self.final, self.progress = decay_iters, schedule, final, progress
+
+    def factor(self, iteration: int) -> float:
+        fraction = self.progress.fraction(iteration) if self.schedule == "budget" and self.progress else None
+        return 0.1 ** (iteration / self.decay_iters) if fraction is None else self.final**fraction
 
     def before_step(self, state: LoopState) -> None:
-        lr = self.lr * 0.1 ** (state.iteration / self.decay_iters)
-        for group in self.groups:
-            group["lr"] = lr
-        state.lr = lr
+        factor = self.factor(state.iteration)
+        for group, base in zip(self.groups, self.base, strict=True):
+            group["lr"] = base * factor
+        state.lr = self.base[0] * factor
+
+
+class CoarseToFine(Callback):
+    """Switch the hash levels on from ``coarse`` to all over the first ``span`` of the run's progress (over
+    ``span * fallback_iters`` steps where no limit bounds it); every level is on once it is done."""
+
+    def __init__(self, encoding, coarse: int, span: float, progress: TrainingProgress, fallback_iters: int,
+                 every: int = 8) -> None:
+        self.encoding, self.coarse, self.span, self.progress = encoding, min(coarse, encoding.levels), span, progress
+        self.fallback_iters, self.every, self.active = fallback_iters, every, -1.0
+
+    def active_levels(self, iteration: int) -> float:
+        fraction = self.progress.fraction(iteration)
+        if fraction is None:
+            fraction = iteration / self.fallback_iters
+        ramp = min(fraction / self.span, 1.0)
+        return self.coarse + ramp * (self.encoding.levels - self.coarse)
+
+    def before_step(self, state: LoopState) -> None:
+        if self.active >= self.encoding.levels or state.iteration % self.every and self.active >= 0:
+            return
+        self.active = self.active_levels(state.iteration)
+        self.encoding.set_active_levels(self.active)
+
+    def finish(self) -> None:
+        """Every level on (the saved model renders with all of them)."""
+        self.encoding.set_active_levels(float(self.encoding.levels))
+
+
+class DepthWeightSchedule(Callback):
+    """lambda_d now = ``lambda_d * final ** fraction`` of the run's progress, written into ``weight`` (the 0-d
+    tensor the training step passes to its loss) every ``every`` steps."""
+
+    def __init__(self, weight: torch.Tensor, lambda_depth: float, final: float, progress: TrainingProgress,
+                 every: int = 8) -> None:
+        self.weight, self.lam, self.final, self.progress, self.every = weight, lambda_depth, final, progress, every
+
+    def before_step(self, state: LoopState) -> None:
+        if state.iteration % self.every == 0:
+            fraction = self.progress.fraction(state.iteration) or 0.0
+            self.weight.fill_(self.lam * self.final**fraction)
 
 
 class OccupancyGridUpdate(Callback):

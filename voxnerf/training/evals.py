@@ -64,7 +64,7 @@ def progress_eval(
     t0 = time.perf_counter()
     elapsed, wall = budget.train_seconds, budget.wall
     subset = {name: (v if full else spread(v, cfg.eval_views)) for name, v in views.items()}
-    metrics = evaluate_views(model, subset, cfg, out_dir=None, lpips=full)
+    metrics = evaluate_views(model, subset, cfg, out_dir=None, lpips=full, half_image=full)
     spent = time.perf_counter() - t0
     entry = EvalRecord(
         elapsed_s=round(elapsed, 3), wall_s=round(wall, 3), iteration=iteration,
@@ -73,6 +73,8 @@ def progress_eval(
     if full:
         entry.full = True
         entry.ssim = {k: m["ssim"] for k, m in metrics.items()}
+        entry.lpips = {k: m["lpips"] for k, m in metrics.items()}
+        entry.half = {k: m["half"] for k, m in metrics.items()}
         entry.progress_psnr = progress_views_psnr(metrics, views, cfg.eval_views)
     history.append(entry)
     return spent, spent / max(view_rays(subset), 1)
@@ -85,7 +87,7 @@ def final_eval(model: VoxNeRFModel, views: EvalViews, cfg: TrainConfig, out_dir:
     at ``train_seconds``, the training time when the loop ended); None when ``should_stop()`` (asked before
     each view) interrupted it."""
     try:
-        metrics = evaluate_views(model, views, cfg, out_dir=out_dir, should_stop=should_stop)
+        metrics = evaluate_views(model, views, cfg, out_dir=out_dir, should_stop=should_stop, half_image=True)
     except EvaluationStopped:
         return None
     record = EvalRecord(

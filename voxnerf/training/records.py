@@ -37,9 +37,10 @@ class StageRecord(BaseModel):
 class EvalRecord(BaseModel):
     """One evaluation during or after training: PSNR (dB) per split against training seconds.
 
-    ``full`` marks an ``--eval-at`` evaluation of every view (with ``ssim`` and ``progress_psnr``), ``final``
-    the final evaluation. ``progress_psnr`` is the mean PSNR over the views a progress evaluation uses, so one
-    curve runs through progress and full evaluations alike. Keys that were never set stay out of the JSON.
+    ``full`` marks an ``--eval-at`` evaluation of every view (with ``ssim``, ``lpips``, ``half`` (the half-image
+    protocol's means per split) and ``progress_psnr``), ``final`` the final evaluation. ``progress_psnr`` is the
+    mean PSNR over the views a progress evaluation uses, so one curve runs through progress and full evaluations
+    alike. Keys that were never set stay out of the JSON.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -52,6 +53,8 @@ class EvalRecord(BaseModel):
     full: bool = False
     final: bool = False
     ssim: dict[str, float | None] | None = None
+    lpips: dict[str, float | None] | None = None
+    half: dict[str, dict[str, float | None]] | None = None
     progress_psnr: dict[str, float | None] | None = None
 
     def to_json_dict(self) -> dict[str, Any]:

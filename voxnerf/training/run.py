@@ -32,10 +32,12 @@ from voxnerf.octree import SparseVoxelOctree
 from voxnerf.prior import GeometryPrior
 from voxnerf.scene import Scene
 from voxnerf.training import stages
-from voxnerf.training.budget import Budget
+from voxnerf.training.budget import Budget, TrainingProgress
 from voxnerf.training.callbacks import (
     Checkpointing,
+    CoarseToFine,
     CompileTimer,
+    DepthWeightSchedule,
     LearningRateSchedule,
     OccupancyGridUpdate,
     ProgressBar,
@@ -46,7 +48,7 @@ from voxnerf.training.callbacks import (
 )
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
 from voxnerf.training.evals import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
-from voxnerf.training.loop import Limits, LoopState, run_loop
+from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.pixels import TrainingPixels, training_pixels
 from voxnerf.training.records import StageRecord, TrainReport
 from voxnerf.training.step import PAPER_BETA, TrainStep, make_loss_fn
@@ -245,7 +247,9 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     saving = Checkpointing(save, cfg.checkpoint_every_s)
     timer = CompileTimer(compiled.started, run.events.stage) if compiled.record is None else None
     bar = ProgressBar.create(cfg.max_iters, built.iteration, progress_bar)
-    callbacks = present([evaluation, LearningRateSchedule(built.optimizer, cfg.lr, cfg.lr_decay_iters), timer, bar,
+    progress = TrainingProgress(budget, cfg.max_iters, evaluation.final_eval_reserve)
+    schedules = _schedules(cfg, built, step, progress)
+    callbacks = present([evaluation, *schedules, timer, bar,
                          OccupancyGridUpdate.for_config(built.model, cfg, setup.octree is not None), saving,
                          run.events])
     state = LoopState(built.iteration)
@@ -255,10 +259,24 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     except TrainingDiverged as exc:
         bar.close()
         raise _diverged(run, exc, state.iteration) from None
+    finally:
+        built.model.field.encoding.set_active_levels(float(cfg.hash_levels))  # every level on, whatever happened
     bar.close()
     if timer is not None:
         timer.finish(state.iteration)
     return _finish(run, setup, views, save, status, state)
+
+
+def _schedules(cfg: TrainConfig, built: stages.ModelStage, step: TrainStep,
+               progress: TrainingProgress) -> list[Callback | None]:
+    """What changes with the run's progress: the learning rate, the hash levels switched on (coarse_to_fine),
+    lambda_d (depth_weight_final)."""
+    levels = CoarseToFine(built.model.field.encoding, cfg.coarse_levels, cfg.coarse_to_fine, progress,
+                          cfg.lr_decay_iters) if cfg.coarse_to_fine > 0 else None
+    depth = DepthWeightSchedule(step.depth_weight, cfg.lambda_depth, cfg.depth_weight_final,
+                                progress) if cfg.depth_weight_final < 1 else None
+    return [LearningRateSchedule(built.optimizer, cfg.lr_decay_iters, cfg.lr_schedule, cfg.lr_final, progress),
+            levels, depth]
 
 
 def _fenced(run: Run, save: Callable[[int], None]) -> Callable[[int], None]:

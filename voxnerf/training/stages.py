@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from voxnerf import hash_kernel, lens
+from voxnerf.appearance import ImageAppearance
 from voxnerf.camera_rules import Intrinsics
 from voxnerf.config import TrainConfig
 from voxnerf.depth_fusion import DepthNoise, DepthView, FusedPrior, FusionError, fit_noise, fuse_depth_prior
@@ -183,20 +184,29 @@ class ModelStage:
     resumed: bool = False
 
 
+APPEARANCE_LR_SCALE = 0.1  # the per-image corrections learn at a tenth of the field's rate
+
+
 def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, device: torch.device,
                 previous: dict | None) -> ModelStage:
     transform, aabb = scene_box(scene, prior)
     prior_n = prior.transformed(np.asarray(transform.center), transform.scale) if prior is not None else None
     model = VoxNeRFModel.create(cfg, transform, torch.from_numpy(aabb).float(), None, device)
-    if prior_n is not None and cfg.sampler != "uniform":
+    if prior_n is not None and cfg.sampler != "uniform" and cfg.occgrid_seed:
         model.grid.seed_from_points(torch.from_numpy(prior_n.points).float().to(device))
     # fused: one pass over each parameter per step instead of one per Adam operation (benchmarks/optimizer_step.py;
     # see docs/performance.md).
-    optimizer = torch.optim.Adam(model.field.parameters(), lr=cfg.lr, eps=1e-15, fused=True)
+    groups = [{"params": list(model.field.parameters()), "lr": cfg.lr}]
+    if cfg.appearance == "affine":
+        model.appearance = ImageAppearance(len(scene.train_indices)).to(device)
+        groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})
+    optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)
     stage = ModelStage(transform, prior_n, model, optimizer)
     if previous is not None:
         model.field.load_state_dict(previous["model"]["field"])
         model.grid.load_state_dict(previous["model"]["grid"])
+        if model.appearance is not None and previous["model"].get("appearance") is not None:
+            model.appearance.load_state_dict(previous["model"]["appearance"])
         optimizer.load_state_dict(previous["optimizer"])
         stage.iteration, stage.resumed = int(previous["iteration"]), True
         stage.history = [EvalRecord.model_validate(h) for h in previous["history"]]

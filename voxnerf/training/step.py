@@ -11,7 +11,7 @@ import torch
 
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
-from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss
+from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss
 from voxnerf.model import VoxNeRFModel
 from voxnerf.training.pixels import TrainingPixels, sample_batch
 
@@ -20,7 +20,8 @@ DEPTH_BETA_PER_SIGMA = 5.0  # default beta = 5 sigma: the paper's 0.1 m for its 
 
 
 class Batch(NamedTuple):
-    """The loss function's arguments, in its order: rays [R, 3] each, sample intervals, targets."""
+    """The loss function's arguments, in its order: rays [R, 3] each, sample intervals, targets, each ray's
+    training image [R] int64, and lambda_d now (a 0-d tensor: a schedule changes it without recompiling)."""
 
     origins: torch.Tensor
     dirs: torch.Tensor
@@ -30,18 +31,21 @@ class Batch(NamedTuple):
     target_t: torch.Tensor | None
     target_ok: torch.Tensor | None
     target_beta: torch.Tensor | None  # [R] each ray's beta over the run's (None: the run's beta everywhere)
+    image: torch.Tensor
+    depth_weight: torch.Tensor
 
 
 class Losses(NamedTuple):
-    """Scalar tensors of one step: the total and its colour, depth and smoothness terms."""
+    """Scalar tensors of one step: the total and its colour, depth, smoothness and distortion terms."""
 
     total: torch.Tensor
     colour: torch.Tensor
     depth: torch.Tensor
     smoothness: torch.Tensor
+    distortion: torch.Tensor
 
 
-LossFn = Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
+LossFn = Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
 
 
 def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_rays: int, patch: int) -> LossFn:
@@ -50,15 +54,21 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
     ``beta`` is in scene units. The depth terms compare depths in units of ``beta / 0.1``: for the paper's
     beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
     so lambda_d keeps its meaning whatever the scene's units and normalisation. A ray's ``target_beta`` scales
-    its beta (sensor depth is trusted less far away).
+    its beta (sensor depth is trusted less far away). The model's ``appearance`` (when it has one) corrects the
+    rendered colour of each ray's training image before the colour loss.
     """
-    lam, to_units = cfg.lambda_depth, PAPER_BETA / (beta * model.transform.scale)
+    to_units, lam_dist = PAPER_BETA / (beta * model.transform.scale), cfg.distortion_weight
+    appearance = getattr(model, "appearance", None)
 
-    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta):
+    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight):
         out = model.render_samples(origins, dirs, starts, ends)
-        lc = color_loss(out["rgb"], target_rgb)
+        rgb = out["rgb"] if appearance is None else appearance(out["rgb"], image)
+        lc = color_loss(rgb, target_rgb)
         total = lc
-        ld = lreg = torch.zeros((), device=origins.device)
+        ld = lreg = ldist = torch.zeros((), device=origins.device)
+        if lam_dist > 0:
+            ldist = distortion_loss(out["weights"], starts, ends)
+            total = total + lam_dist * ldist
         if target_t is not None:
             depth = out["depth"] * to_units
             ray_beta = PAPER_BETA if target_beta is None else PAPER_BETA * target_beta
@@ -67,8 +77,8 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
                 d = depth[-n_patch_rays:].view(-1, patch, patch)
                 m = target_ok[-n_patch_rays:].view(-1, patch, patch)
                 lreg = depth_smoothness_loss(d, m, cfg.smooth_scales)
-            total = lc + lam * (ld + cfg.lambda_smooth * lreg)
-        return total, lc, ld, lreg
+            total = total + depth_weight * (ld + cfg.lambda_smooth * lreg)
+        return total, lc, ld, lreg, ldist
 
     return loss_fn
 
@@ -79,7 +89,8 @@ def divergence_guard(losses: Losses, iteration: int) -> float:
     if not math.isfinite(loss):
         raise TrainingDiverged(
             f"loss became {loss} at iteration {iteration} (colour {float(losses.colour.detach()):.4g}, "
-            f"depth {float(losses.depth.detach()):.4g}, smoothness {float(losses.smoothness.detach()):.4g})"
+            f"depth {float(losses.depth.detach()):.4g}, smoothness {float(losses.smoothness.detach()):.4g}, "
+            f"distortion {float(losses.distortion.detach()):.4g})"
         )
     return loss
 
@@ -92,6 +103,7 @@ class TrainStep:
                  cfg: TrainConfig, loss_fn: LossFn, use_patches: bool, sampler, gen: torch.Generator) -> None:
         self.model, self.optimizer, self.pixels, self.cfg = model, optimizer, pixels, cfg
         self.loss_fn, self.use_patches, self.sampler, self.gen = loss_fn, use_patches, sampler, gen
+        self.depth_weight = torch.tensor(float(cfg.lambda_depth), device=pixels.images.device)  # the schedule sets it
 
     def batch(self) -> Batch:
         pixels = self.pixels
@@ -108,7 +120,8 @@ class TrainStep:
             target_ok = torch.isfinite(target_t)
         if pixels.depth_beta_scale is not None:
             target_beta = pixels.depth_beta_scale[img, py, px]
-        return Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta)
+        return Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, img,
+                     self.depth_weight)
 
     def losses(self, batch: Batch) -> Losses:
         losses = Losses(*self.loss_fn(*batch))

@@ -1,0 +1,232 @@
+"""The tuning suite: configurations of the trainer on every scene of the suite, side by side, one run at a time.
+
+The suite is the synthetic rooms of :mod:`voxnerf.synthetic.suite` (varied layouts, sizes, fields of view,
+lighting and priors, some rendered like captures) plus, with ``--redkitchen``, the real 7-Scenes kitchen at
+``--downscale 2``. Every (scene, configuration) pair is one ``voxnerf train`` command with ``--max-seconds
+BUDGET`` (set-up, compilation and the final evaluation included), run alone, one after the other; a run whose
+report already holds the same command is reused, so rows can be added over several invocations and the table
+always covers every run under ``--out``.
+
+Each run's report gives, for every evaluation split: PSNR / SSIM / LPIPS over all views, and the same by the
+half-image protocol (a colour gain and bias per channel fitted on each view's left half, scored on its right:
+the honest score for runs that learn per-image exposure). ``--eval-at`` adds full evaluations inside the run
+(their time is not charged to the budget); note that a schedule over the budget (``lr_schedule=budget``) is
+mid-way at such a point, so only the final evaluation is what a run of that length gives.
+
+Writes under ``--out``: ``runs/<scene>/<config>/`` (the runs), ``results.json`` and ``table.md`` (per
+configuration: the suite's mean and its worst scene against ``defaults``, then every scene), and with
+``--write-docs`` the table into docs/benchmarks.md.
+
+    .venv/bin/python benchmarks/suite.py --out OUT --budget 120 --redkitchen ../shared/data/redkitchen \\
+        --configs defaults,lr-budget,distortion
+    .venv/bin/python benchmarks/suite.py --quick --out /tmp/suite-quick    # CI-sized smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from docs_section import publish
+from error_vs_runtime import QUICK_TRAIN_ARGS, train_command
+
+DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
+DOCS_SECTION = "suite"
+REDKITCHEN = "redkitchen"
+REDKITCHEN_DOWNSCALE = 2
+NOISE_DB = 0.3
+"""A per-scene change smaller than this is read as noise (the issue's bar for "loses")."""
+
+CONFIGS: dict[str, dict] = {
+    "defaults": {},
+    "lr-budget": {"lr_schedule": "budget", "lr_final": 0.1},
+    "distortion": {"distortion_weight": 0.01},
+    "coarse-to-fine": {"coarse_to_fine": 0.3},
+    "sh-2": {"sh_bands": 2},
+    "sh-1": {"sh_bands": 1},
+    "depth-decay": {"depth_weight_final": 0.1},
+    "appearance": {"appearance": "affine"},
+    "samples-4-2": {"n_importance": 4, "n_rest": 2},
+    "rays-4096": {"rays_per_batch": 4096},
+    "table-2^18": {"hash_log2_size": 18},
+    "no-depth-loss": {"depth_loss": False},
+    "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
+    "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
+}
+"""Configuration name -> TrainConfig fields (``voxnerf train --set``) over the defaults."""
+BASELINE = "defaults"
+QUICK_CONFIGS = ("defaults", "distortion")
+
+
+def config_flags(overrides: dict) -> list[str]:
+    """``--set FIELD=VALUE`` flags (values as JSON) for ``overrides``."""
+    return [arg for name, value in overrides.items() for arg in ("--set", f"{name}={json.dumps(value)}")]
+
+
+def scene_flags(scene: str) -> list[str]:
+    return ["--downscale", str(REDKITCHEN_DOWNSCALE)] if scene == REDKITCHEN else []
+
+
+def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, eval_at: list[float],
+            extra: list[str]) -> dict:
+    """Train (or reuse a finished run of the same command) -> ``{"scene", "config", "command", "report"}``."""
+    flags = [*scene_flags(scene), "--eval-every", "100000", *extra, *config_flags(CONFIGS[config])]
+    cmd = train_command(scene_dir, run, budget, eval_at, flags)
+    command = "voxnerf " + shlex.join(cmd[3:])
+    done = run / "suite-run.json"
+    if done.is_file() and json.loads(done.read_text()).get("command") == command:
+        return json.loads(done.read_text())
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{command} failed: {proc.stderr.strip().splitlines()[-1:]}")
+    report = json.loads((run / "report.json").read_text())
+    keep = {k: report.get(k) for k in ("history", "metrics", "throughput", "iteration", "stages", "train_seconds",
+                                        "wall_seconds")}
+    result = {"scene": scene, "config": config, "command": command, "wall_s": time.perf_counter() - t0,
+              "report": keep}
+    done.write_text(json.dumps(result))
+    return result
+
+
+def split_scores(metrics: dict) -> dict[str, dict[str, float | None]]:
+    """``{split: {"psnr", "ssim", "lpips", "half_psnr", "half_ssim", "half_lpips"}}`` of a final evaluation."""
+    out = {}
+    for split, m in metrics.items():
+        half = m.get("half") or {}
+        out[split] = {"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m.get("lpips"),
+                      "half_psnr": half.get("psnr"), "half_ssim": half.get("ssim"), "half_lpips": half.get("lpips")}
+    return out
+
+
+def at_time(result: dict, seconds: float) -> dict[str, dict[str, float | None]] | None:
+    """Scores of the run's full evaluation at ``seconds`` of training (an ``--eval-at`` one), if it ran."""
+    for h in result["report"]["history"] or []:
+        if h.get("full") and not h.get("final") and abs(h["elapsed_s"] - seconds) < 0.05 * seconds + 1:
+            return {split: {"psnr": p, "ssim": (h.get("ssim") or {}).get(split),
+                            "lpips": (h.get("lpips") or {}).get(split),
+                            **{f"half_{k}": v for k, v in ((h.get("half") or {}).get(split) or {}).items()}}
+                    for split, p in h["psnr"].items()}
+    return None
+
+
+def _mean(values: list[float | None]) -> float | None:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    return sum(values) / len(values) if values else None
+
+
+def _fmt(value: float | None, digits: int = 2) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _signed(value: float | None) -> str:
+    return "-" if value is None else f"{value:+.2f}"
+
+
+SPLITS = ("interpolation", "extrapolation")
+
+
+def summary_rows(results: list[dict], scenes: list[str], metric: str) -> list[str]:
+    """Per configuration: the mean over ``scenes`` of ``metric`` per split, its change against the baseline,
+    the worst scene's change and how many scenes lose more than NOISE_DB."""
+    by = {(r["scene"], r["config"]): split_scores(r["report"]["metrics"] or {}) for r in results}
+    configs = [c for c in CONFIGS if any((s, c) in by for s in scenes)]
+    rows = []
+    for config in configs:
+        cells = []
+        for split in SPLITS:
+            values = [by.get((s, config), {}).get(split, {}).get(metric) for s in scenes]
+            base = [by.get((s, BASELINE), {}).get(split, {}).get(metric) for s in scenes]
+            deltas = [v - b for v, b in zip(values, base, strict=True) if v is not None and b is not None]
+            cells += [_fmt(_mean(values)), _signed(_mean(deltas) if deltas else None),
+                      _signed(min(deltas) if deltas else None),
+                      str(sum(d < -NOISE_DB for d in deltas)) if deltas else "-"]
+        n = sum((s, config) in by for s in scenes)
+        rows.append(f"| {config} | {n} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
+    """Per configuration and scene: PSNR / SSIM / LPIPS per split, half-image PSNR, steps."""
+    rows = []
+    for r in sorted(results, key=lambda r: (list(CONFIGS).index(r["config"]), scenes.index(r["scene"])
+                                            if r["scene"] in scenes else 99)):
+        scores = split_scores(r["report"]["metrics"] or {})
+        cells = []
+        for split in SPLITS:
+            s = scores.get(split, {})
+            cells.append(f"{_fmt(s.get('psnr'))} / {_fmt(s.get('ssim'), 3)} / {_fmt(s.get('lpips'), 3)} "
+                         f"({_fmt(s.get('half_psnr'))})")
+        rows.append(f"| {r['config']} | {r['scene']} | " + " | ".join(cells) + f" | {r['report']['iteration']} |")
+    return rows
+
+
+def table(results: list[dict], scenes: list[str], synthetic: list[str], budget: float, command: str) -> str:
+    head = ("| config | scenes | interp. mean | vs defaults | worst scene | scenes losing > 0.3 | extrap. mean | "
+            "vs defaults | worst scene | scenes losing > 0.3 |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- "
+            "| --- |")
+    parts = [f"Budget {budget:g} s of `voxnerf train` per run (everything included), one run at a time. Command:\n\n"
+             f"    {command}\n"]
+    for label, group in (("the synthetic rooms", synthetic), ("every scene, redkitchen included", scenes)):
+        for metric, name in (("psnr", "PSNR (dB), all views"), ("half_psnr", "half-image PSNR (dB)")):
+            rows = summary_rows(results, group, metric)
+            if rows and group:
+                parts.append(f"**{name}, mean over {label}** ({len(group)}):\n\n{head}\n" + "\n".join(rows) + "\n")
+    parts.append("**Every run** (PSNR / SSIM / LPIPS, half-image PSNR in brackets; steps):\n\n"
+                 "| config | scene | interpolation | extrapolation | steps |\n| --- | --- | --- | --- | --- |\n"
+                 + "\n".join(scene_rows(results, scenes)) + "\n")
+    return "\n".join(parts)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--suite-dir", type=Path, help="where the suite's scenes are made (default OUT/scenes)")
+    p.add_argument("--scenes", help="comma-separated suite scene names (default: all)")
+    p.add_argument("--redkitchen", type=Path, help="the 7-Scenes redkitchen scene directory, added to the suite")
+    p.add_argument("--configs", default=",".join(CONFIGS), help=f"comma-separated, from {', '.join(CONFIGS)}")
+    p.add_argument("--budget", type=float, default=300.0, help="--max-seconds of every run")
+    p.add_argument("--eval-at", default="", help="full evaluations inside each run, e.g. 120")
+    p.add_argument("--quick", action="store_true", help="the quick suite, 5 eager steps per run (for tests)")
+    p.add_argument("--write-docs", action="store_true", help="write the table into docs/benchmarks.md")
+    args = p.parse_args(argv)
+    unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
+    if unknown:
+        p.error(f"unknown configs {unknown}; known: {', '.join(CONFIGS)}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    from voxnerf.synthetic.suite import QUICK_SUITE, SUITE, make_suite
+
+    args = parse_args(argv)
+    specs = QUICK_SUITE if args.quick else SUITE
+    names = args.scenes.split(",") if args.scenes else list(specs)
+    configs = list(QUICK_CONFIGS) if args.quick and args.configs == ",".join(CONFIGS) else args.configs.split(",")
+    scene_dirs = make_suite(args.suite_dir or args.out / "scenes", names=names, quick=args.quick)
+    if args.redkitchen is not None:
+        scene_dirs[REDKITCHEN] = args.redkitchen
+    eval_at = [float(t) for t in args.eval_at.split(",") if t]
+    extra = list(QUICK_TRAIN_ARGS) if args.quick else []
+    for config in configs:
+        for scene, scene_dir in scene_dirs.items():
+            print(f"{config} on {scene} ...", flush=True)
+            run_one(scene, Path(scene_dir), config, args.out / "runs" / scene / config, args.budget, eval_at, extra)
+    results = [json.loads(p.read_text()) for p in sorted((args.out / "runs").glob("*/*/suite-run.json"))]
+    results = [r for r in results if r["config"] in CONFIGS]
+    scenes = list(dict.fromkeys([*scene_dirs, *(r["scene"] for r in results)]))
+    synthetic = [s for s in scenes if s != REDKITCHEN]
+    command = ".venv/bin/python benchmarks/suite.py " + shlex.join(sys.argv[1:] if argv is None else argv)
+    text = table(results, scenes, synthetic, args.budget, command)
+    publish(args.out, {"results": results, "command": command}, text, DOCS_PAGE, DOCS_SECTION, args.write_docs)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
