@@ -75,17 +75,22 @@ def scene_flags(scene: str) -> list[str]:
 
 def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, eval_at: list[float],
             extra: list[str]) -> dict:
-    """Train (or reuse a finished run of the same command) -> ``{"scene", "config", "command", "report"}``."""
+    """Train (or reuse a finished run of the same command) -> ``{"scene", "config", "command", "report"}``.
+
+    A one-step run of the same scene and flags comes first (not timed): it fills the inductor cache, so the
+    timed run loads its compiled step as a user's second run does, instead of every new configuration paying
+    a cold compilation inside its budget."""
     flags = [*scene_flags(scene), "--eval-every", "100000", *extra, *config_flags(CONFIGS[config])]
     cmd = train_command(scene_dir, run, budget, eval_at, flags)
     command = "voxnerf " + shlex.join(cmd[3:])
     done = run / "suite-run.json"
     if done.is_file() and json.loads(done.read_text()).get("command") == command:
         return json.loads(done.read_text())
+    if "--no-compile" not in extra:
+        _run(train_command(scene_dir, run.parent / f".warm-{config}", budget, [],
+                           [*flags, "--max-iters", "1", "--set", "final_eval=false"]))
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{command} failed: {proc.stderr.strip().splitlines()[-1:]}")
+    _run(cmd)
     report = json.loads((run / "report.json").read_text())
     keep = {k: report.get(k) for k in ("history", "metrics", "throughput", "iteration", "stages", "train_seconds",
                                         "wall_seconds")}
@@ -93,6 +98,12 @@ def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, 
               "report": keep}
     done.write_text(json.dumps(result))
     return result
+
+
+def _run(cmd: list[str]) -> None:
+    proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{shlex.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1:]}")
 
 
 def split_scores(metrics: dict) -> dict[str, dict[str, float | None]]:

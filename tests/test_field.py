@@ -1,7 +1,9 @@
 """Hash encoding and field: shapes, interpolation, dense/hash levels, bounded density."""
 
+import pytest
 import torch
 
+from voxnerf import hash_kernel
 from voxnerf.field import HashEncoding, RadianceField, spherical_harmonics_deg4, trunc_exp
 
 
@@ -49,3 +51,42 @@ def test_field_outputs():
     density, rgb = field(torch.rand(10, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(10, 3), dim=-1))
     assert density.shape == (10,) and rgb.shape == (10, 3)
     assert torch.all(density >= 0) and torch.all((rgb >= 0) & (rgb <= 1))
+
+
+def test_level_weights_scale_each_levels_features_on_both_paths():
+    enc = HashEncoding(levels=6, features=2, log2_size=10, base_resolution=4, max_resolution=128)
+    with torch.no_grad():
+        enc.table.uniform_(-1, 1)
+    x = torch.rand(64, 3)
+    full = enc.encode(x)
+    enc.set_active_levels(2.5)
+    expected = full.view(64, 6, 2) * torch.tensor([1.0, 1.0, 0.5, 0.0, 0.0, 0.0])[None, :, None]
+    for use_kernel in (False, True):
+        enc.use_kernel = use_kernel and hash_kernel.available()
+        torch.testing.assert_close(enc(x), expected.reshape(64, 12))
+    enc.use_kernel = False
+    xg = x.clone().requires_grad_(True)  # the PyTorch path: no gradient reaches a switched-off level
+    enc(xg).sum().backward()
+    grad = enc.table.grad.view(6, -1, 2)
+    assert grad[3:].abs().sum() == 0 and grad[:2].abs().sum() > 0
+    enc.set_active_levels(6.0)
+    torch.testing.assert_close(enc(x), full)
+
+
+@pytest.mark.parametrize("bands", [1, 2, 3, 4])
+def test_fewer_sh_bands_shrink_the_colour_input_and_bands_1_ignores_the_direction(bands):
+    field = RadianceField(levels=4, log2_size=12, max_resolution=64, hidden_dim=16, sh_bands=bands)
+    assert field.color_mlp[0].in_features == bands * bands + field.GEO_FEATURES
+    positions = torch.rand(8, 3) * 2 - 1
+    d1 = torch.nn.functional.normalize(torch.randn(8, 3), dim=-1)
+    _, rgb1 = field(positions, d1)
+    _, rgb2 = field(positions, -d1)
+    assert torch.equal(rgb1, rgb2) == (bands == 1)
+    # the inference split (direction part once per ray) gives forward's colour
+    _, geo = field.geometry(positions)
+    torch.testing.assert_close(field.color(geo, field.direction_features(d1)), rgb1)
+
+
+def test_sh_bands_outside_one_to_four_are_refused():
+    with pytest.raises(ValueError, match="sh_bands must be 1-4"):
+        RadianceField(levels=4, log2_size=12, max_resolution=64, hidden_dim=16, sh_bands=5)

@@ -2,7 +2,7 @@
 
 import torch
 
-from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, log_huber
+from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss, log_huber
 
 
 def test_log_huber_values_and_continuity_at_beta():
@@ -60,3 +60,38 @@ def test_smoothness_zero_on_constant_and_positive_on_ramp():
 def test_color_loss_is_mse():
     a, b = torch.zeros(4, 3), torch.full((4, 3), 0.5)
     assert float(color_loss(a, b)) == 0.25
+
+
+def _brute_distortion(w: torch.Tensor, s0: torch.Tensor, s1: torch.Tensor) -> torch.Tensor:
+    near, far = s0[:, :1], s1[:, -1:]
+    mid = ((0.5 * (s0 + s1)) - near) / (far - near)
+    length = (s1 - s0) / (far - near)
+    pair = (w[:, :, None] * w[:, None, :] * (mid[:, :, None] - mid[:, None, :]).abs()).sum((1, 2))
+    return (pair + (w * w * length).sum(-1) / 3).mean()
+
+
+def test_distortion_loss_equals_the_quadratic_pairwise_sum():
+    g = torch.Generator().manual_seed(0)
+    edges = torch.sort(torch.rand(5, 13, generator=g, dtype=torch.float64) * 4 + 1, dim=1).values
+    s0, s1 = edges[:, :-1], edges[:, 1:]
+    w = torch.rand(5, 12, generator=g, dtype=torch.float64)
+    w = w / w.sum(-1, keepdim=True) * 0.9
+    torch.testing.assert_close(distortion_loss(w, s0, s1), _brute_distortion(w, s0, s1))
+
+
+def test_distortion_loss_prefers_one_thin_surface_and_ignores_the_scene_scale():
+    s = torch.linspace(0, 1, 9, dtype=torch.float64)[None]
+    s0, s1 = s[:, :-1], s[:, 1:]
+    peaked = torch.zeros(1, 8, dtype=torch.float64)
+    peaked[0, 3] = 1.0
+    spread = torch.full((1, 8), 1 / 8, dtype=torch.float64)
+    assert float(distortion_loss(peaked, s0, s1)) < float(distortion_loss(spread, s0, s1))
+    torch.testing.assert_close(distortion_loss(spread, 1000 * s0 + 5, 1000 * s1 + 5), distortion_loss(spread, s0, s1))
+
+
+def test_distortion_loss_is_finite_with_zero_length_rays_and_weights():
+    s0 = torch.zeros(2, 4)
+    w = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.5, 0.5, 0.0, 0.0]], requires_grad=True)
+    value = distortion_loss(w, s0, s0)
+    (grad,) = torch.autograd.grad(value, w)
+    assert torch.isfinite(value) and torch.isfinite(grad).all()

@@ -272,16 +272,40 @@ def test_eval_at_times_already_passed_by_a_resumed_run_are_skipped():
     assert evaluation.pending_full == [35.0] and evaluation.next_at == 40.0
 
 
-def test_the_first_compiled_evaluation_does_not_set_the_cost_per_ray():
+def test_every_evaluation_sets_the_cost_per_ray_and_so_the_reserve():
     evaluation, _, _, clock = _evaluation(compile_=True, eval_at=())
     assert evaluation.final_eval_reserve() == pytest.approx(1.5 * DEFAULT_EVAL_SECONDS_PER_RAY * 1000 + 2.0)
     clock.now = 10.0
     evaluation.before_step(LoopState(1))
-    assert evaluation.seconds_per_ray == DEFAULT_EVAL_SECONDS_PER_RAY
-    clock.now = 30.0
-    evaluation.before_step(LoopState(2))
     assert evaluation.seconds_per_ray == 1e-3
     assert evaluation.final_eval_reserve() == pytest.approx(1.5 * 1e-3 * 1000 + 2.0)
+
+
+def test_a_tight_budget_measures_the_cost_right_after_the_first_step():
+    """The assumed reserve (1.5 x 1e-2 x 1000 + 2 = 17 s) would end a 20 s run before the first due evaluation
+    (10 s): the second step evaluates first, so the reserve is measured."""
+    clock = FakeClock(0.0)
+    budget = Budget(20.0, clock=clock)
+    cfg = TrainConfig(max_iters=10, eval_every_s=60.0)
+    evaluate = StubEvaluate(spent=0.5, per_ray=1e-4)
+    evaluation = ProgressEvaluation(evaluate, budget, cfg, 1000, None)
+    evaluation.seconds_per_ray = 1e-2
+    evaluation.before_step(LoopState(0))
+    assert evaluate.calls == []
+    clock.now = 2.0
+    evaluation.before_step(LoopState(1))
+    assert len(evaluate.calls) == 1 and evaluation.final_eval_reserve() == pytest.approx(2.15)
+    clock.now = 3.0
+    evaluation.before_step(LoopState(2))
+    assert len(evaluate.calls) == 1  # measured: the schedule goes on as before
+
+
+def test_a_roomy_budget_keeps_to_the_schedule():
+    evaluation, evaluate, _, clock = _evaluation(eval_at=())
+    evaluation.before_step(LoopState(0))
+    clock.now = 1.0
+    evaluation.before_step(LoopState(1))
+    assert evaluate.calls == []
 
 
 def test_an_eager_run_uses_the_first_measurement_and_no_final_eval_reserves_nothing():

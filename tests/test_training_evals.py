@@ -23,10 +23,12 @@ VIEWS = {"test": [_view(i) for i in range(5)], "extra": [_view(i) for i in range
 def evaluated(monkeypatch):
     calls = []
 
-    def evaluate_views(model, views, cfg, out_dir=None, lpips=False, should_stop=None):
+    def evaluate_views(model, views, cfg, out_dir=None, lpips=False, should_stop=None, half_image=False):
         calls.append({"views": {k: [v.name for v in vs] for k, vs in views.items()}, "out_dir": out_dir,
                       "lpips": lpips})
-        return {k: {"psnr": 20.0 + len(vs), "ssim": 0.5, "views": [{"psnr": 10.0 + i} for i in range(len(vs))]}
+        half = {"half": {"psnr": 30.0, "ssim": 0.9, "lpips": None}} if half_image else {}
+        return {k: {"psnr": 20.0 + len(vs), "ssim": 0.5, "lpips": None, **half,
+                    "views": [{"psnr": 10.0 + i} for i in range(len(vs))]}
                 for k, vs in views.items()}
 
     monkeypatch.setattr(evals, "evaluate_views", evaluate_views)
@@ -61,6 +63,7 @@ def test_a_full_evaluation_scores_every_view_with_ssim_and_progress_psnr(evaluat
     entry = history[0].to_json_dict()
     assert entry["full"] and entry["loss"] == 0.5 and entry["ssim"] == {"test": 0.5, "extra": 0.5}
     assert entry["progress_psnr"] == {"test": 12.0, "extra": 10.5}
+    assert entry["lpips"] == {"test": None, "extra": None} and entry["half"]["test"]["psnr"] == 30.0
 
 
 def test_the_final_evaluation_writes_renders_and_records_at_the_given_training_time(evaluated, tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import random
 from types import SimpleNamespace
 
@@ -100,3 +101,14 @@ def test_a_prior_from_ply_file_path_says_so(tmp_path):
     found = stages.prior_stage(scene, TrainConfig(max_iters=1))
     assert found.record.ran and found.prior is not None and found.prior.sigma_estimated
     assert "(estimated)" in found.record.why and "from nerfstudio's ply_file_path (pc.ply)" in found.record.why
+
+
+def test_the_compile_stage_keeps_inductors_cache_beside_the_kernels_unless_told(monkeypatch, tmp_path):
+    monkeypatch.setenv("VOXNERF_CACHE", str(tmp_path))
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    stages.compile_stage(TrainConfig(max_iters=1), lambda x: x)
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "inductor")
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
+    stages.compile_stage(TrainConfig(max_iters=1), lambda x: x)
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine")
+    assert stages.compile_stage(TrainConfig(max_iters=1, compile=False), lambda x: x).record.why.startswith("disabled")

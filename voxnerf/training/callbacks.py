@@ -20,7 +20,7 @@ from voxnerf.training.budget import Budget, Clock, TrainingProgress
 from voxnerf.training.loop import Callback, LoopState
 from voxnerf.training.records import LossSeries, ProgressEvent, StageRecord, TrainReport
 
-DEFAULT_EVAL_SECONDS_PER_RAY = 1.5e-5  # the final-evaluation cost per ray assumed until one is measured
+DEFAULT_EVAL_SECONDS_PER_RAY = 6e-6  # the final-evaluation cost per ray (fast path and metrics) until one is measured
 # Progress evaluations before the first ``eval_every_s`` (those below it), so that a short run's error curve has
 # points in its first minute; each runs only while the progress evaluations, it included (costed as the last
 # one), take at most EARLY_EVAL_MAX_SHARE of the training seconds so far. The first always runs.
@@ -189,7 +189,9 @@ class ProgressEvaluation(Callback):
     before a step. Their time is paused (not training time); a full one's is also not charged to the budget.
 
     They also measure the evaluation cost per ray, which sizes the final evaluation's reserve of the budget
-    (:meth:`final_eval_reserve`): the first one compiles when training is compiled, so it does not count.
+    (:meth:`final_eval_reserve`). So that the reserve is measured before it can end a short run, a progress
+    evaluation runs right after the first step (the step that compiles, when training is compiled) when the
+    budget could otherwise run out on the assumed cost before the first due one.
 
     An early progress evaluation (:data:`EARLY_EVAL_S`) after the first is skipped when the progress
     evaluations, it included (costed as the last one), would take more than :data:`EARLY_EVAL_MAX_SHARE` of the
@@ -216,6 +218,7 @@ class ProgressEvaluation(Callback):
         self.progress_spent, self.last_progress_cost = 0.0, 0.0
         self.skipped_early: list[float] = []
         self.record: StageRecord | None = None
+        self.first_step_done = False
 
     def _full_due(self) -> bool:
         """Whether an ``eval_at`` time has come; drops the pending ones once their time cap is spent."""
@@ -229,6 +232,13 @@ class ProgressEvaluation(Callback):
             return False
         return True
 
+    def _measure_first(self) -> bool:
+        """Whether to evaluate now although none is due: after the first step, with no cost per ray measured
+        yet, when the budget could run out on the assumed reserve before the next due evaluation."""
+        if self.done or not self.first_step_done or not self.final_eval:
+            return False
+        return self.budget.remaining() - self.final_eval_reserve() < self.next_at - self.budget.train_seconds
+
     def _too_dear(self) -> bool:
         """Whether the due progress evaluation is an early one that would take the progress evaluations over
         their share of the training seconds so far (never the first one)."""
@@ -240,7 +250,9 @@ class ProgressEvaluation(Callback):
     def before_step(self, state: LoopState) -> None:
         budget, pending = self.budget, self.pending_full
         full = self._full_due()
-        if not (full or budget.train_seconds >= self.next_at):
+        measure_now = self._measure_first()
+        self.first_step_done = True
+        if not (full or measure_now or budget.train_seconds >= self.next_at):
             return
         if not full and self._too_dear():
             self.skipped_early.append(self.next_at)
@@ -252,8 +264,7 @@ class ProgressEvaluation(Callback):
         at = budget.train_seconds
         spent, per_ray = self.evaluate(state.iteration, state.last_loss, full)
         self.done += 1
-        if self.done > 1 or not self.compiled:
-            self.seconds_per_ray = per_ray
+        self.seconds_per_ray = per_ray
         budget.paused += spent
         if full:
             budget.excluded += spent

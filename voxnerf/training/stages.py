@@ -6,6 +6,7 @@ with what it produced. The model stage (scene box, model, optimiser, resume) has
 
 from __future__ import annotations
 
+import os
 import random
 import time
 from dataclasses import dataclass, field, replace
@@ -14,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from voxnerf import hash_kernel, lens
+from voxnerf import hash_kernel, lens, native
 from voxnerf.appearance import ImageAppearance
 from voxnerf.camera_rules import Intrinsics
 from voxnerf.config import TrainConfig
@@ -416,6 +417,12 @@ def first_hit_stage(octree: SparseVoxelOctree | None, pixels: TrainingPixels, mo
     return FirstHitStage(_record("first_hit_cache", True, why, t0), hit_t, hit)
 
 
+def inductor_cache_dir() -> Path:
+    """``$VOXNERF_CACHE/inductor`` (beside the C kernels, :func:`voxnerf.native.cache_dir`): unlike inductor's
+    default under the temporary directory, it outlives a reboot."""
+    return native.cache_dir() / "inductor"
+
+
 @dataclass
 class CompileStage:
     """The step's loss function, compiled or not. A compiled one's record comes after the first step (its
@@ -431,7 +438,11 @@ COMPILE_NO_STEP_WHY = "no training step ran"
 
 
 def compile_stage(cfg: TrainConfig, loss_fn: LossFn) -> CompileStage:
+    """The step's loss function through ``torch.compile`` (unless disabled). Inductor's cache goes to
+    :func:`inductor_cache_dir` unless ``TORCHINDUCTOR_CACHE_DIR`` says otherwise, so a later run of the same
+    configuration loads the compiled step instead of compiling it again."""
     t0 = time.perf_counter()
     if cfg.compile:
+        os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(inductor_cache_dir()))
         return CompileStage(torch.compile(loss_fn, dynamic=False), t0)
     return CompileStage(loss_fn, t0, _record("compile", False, "disabled (--no-compile)", t0))

@@ -1,0 +1,97 @@
+"""Per-image appearance (voxnerf/appearance.py), the half-image evaluation protocol (voxnerf/metrics.py) and the
+training-config knobs that reach the trainer only through ``voxnerf train --set``."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from voxnerf.appearance import ImageAppearance
+from voxnerf.cli import main
+from voxnerf.config import TrainConfig
+from voxnerf.metrics import fit_colour_affine, half_image_pairs, psnr
+from voxnerf.model import VoxNeRFModel
+from voxnerf.scene import SceneTransform
+
+
+def test_appearance_starts_as_the_identity_and_applies_each_rays_image():
+    appearance = ImageAppearance(3)
+    rgb = torch.rand(6, 3)
+    image = torch.tensor([0, 1, 2, 0, 1, 2])
+    torch.testing.assert_close(appearance(rgb, image), rgb)
+    with torch.no_grad():
+        appearance.log_gain[1] = torch.log(torch.tensor(2.0))
+        appearance.bias[2] = 0.1
+    out = appearance(rgb, image)
+    torch.testing.assert_close(out[[0, 3]], rgb[[0, 3]])
+    torch.testing.assert_close(out[[1, 4]], 2 * rgb[[1, 4]])
+    torch.testing.assert_close(out[[2, 5]], rgb[[2, 5]] + 0.1)
+    assert appearance.summary() == {"images": 3, "gain": [1.0, pytest.approx(2.0)], "bias": [0.0, pytest.approx(0.1)]}
+
+
+def test_appearance_needs_an_image():
+    with pytest.raises(ValueError, match="at least one image"):
+        ImageAppearance(0)
+
+
+def test_a_model_with_appearance_round_trips_and_one_without_loads_as_before():
+    cfg = TrainConfig(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32, hidden_dim=16,
+                      appearance="affine")
+    aabb = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
+    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
+    model.appearance = ImageAppearance(4)
+    with torch.no_grad():
+        model.appearance.bias.fill_(0.25)
+    loaded = VoxNeRFModel.from_state_dict(model.state_dict(), torch.device("cpu"))
+    torch.testing.assert_close(loaded.appearance.bias, model.appearance.bias)
+    state = model.state_dict()
+    del state["appearance"]  # a checkpoint written before appearance existed
+    assert VoxNeRFModel.from_state_dict(state, torch.device("cpu")).appearance is None
+
+
+def test_the_colour_affine_is_recovered_and_a_flat_channel_gets_gain_one():
+    pred = torch.rand(20, 30, 3, generator=torch.Generator().manual_seed(0))
+    gt = pred * torch.tensor([0.8, 1.1, 1.0]) + torch.tensor([0.05, -0.02, 0.0])
+    gain, bias = fit_colour_affine(pred, gt)
+    torch.testing.assert_close(gain, torch.tensor([0.8, 1.1, 1.0]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(bias, torch.tensor([0.05, -0.02, 0.0]), atol=1e-5, rtol=0)
+    flat = torch.full((4, 4, 3), 0.5)
+    gain, bias = fit_colour_affine(flat, flat + 0.1)
+    torch.testing.assert_close(gain, torch.ones(3))
+    torch.testing.assert_close(bias, torch.full((3,), 0.1), atol=1e-6, rtol=0)
+
+
+def test_half_image_scores_the_right_half_after_the_left_halfs_fit():
+    g = torch.Generator().manual_seed(1)
+    gt = torch.rand(16, 20, 3, generator=g) * 0.6 + 0.2
+    darker = (gt - 0.05) / 1.25  # the same image at another exposure
+    pred, target = half_image_pairs(darker, gt)
+    assert pred.shape == target.shape == (16, 10, 3)
+    torch.testing.assert_close(target, gt[:, 10:])
+    assert psnr(pred, target) > 60 > psnr(darker[:, 10:], gt[:, 10:])
+    odd, _ = half_image_pairs(torch.rand(5, 7, 3), torch.rand(5, 7, 3))
+    assert odd.shape == (5, 4, 3) and bool(((odd >= 0) & (odd <= 1)).all())
+
+
+def test_half_image_pairs_refuse_nan():
+    bad = torch.full((4, 4, 3), float("nan"))
+    with pytest.raises(ValueError):
+        half_image_pairs(bad, torch.zeros(4, 4, 3))
+
+
+@pytest.mark.parametrize(("setting", "message"), [
+    ("sh_bands=9", "sh_bands: Input should be less than or equal to 4"),
+    ("no_such_field=1", "no_such_field: Extra inputs are not permitted"),
+    ("lr_schedule=weekly", "lr_schedule: Input should be 'iterations' or 'budget'"),
+])
+def test_voxnerf_train_set_refuses_bad_fields_in_one_line_before_training(tmp_path, capsys, setting, message):
+    code = main(["train", str(tmp_path / "scene"), "--out", str(tmp_path / "run"), "--max-iters", "1",
+                 "--set", setting])
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip() == f"voxnerf: error: {message}" and not (tmp_path / "run").exists()
+
+
+def test_voxnerf_train_set_needs_field_equals_value(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["train", str(tmp_path), "--out", str(tmp_path / "run"), "--set", "sh_bands"])
+    assert exc.value.code == 2 and "expected FIELD=VALUE" in capsys.readouterr().err
