@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     specs = QUICK_SUITE if args.quick else SUITE
     names = args.scenes.split(",") if args.scenes else list(specs)
     configs = list(QUICK_CONFIGS) if args.quick and args.configs == ",".join(CONFIGS) else args.configs.split(",")
-    scene_dirs = make_suite(args.suite_dir or args.out / "scenes", names=names, quick=args.quick)
+    scene_dirs = make_suite(args.suite_dir or args.out / "scenes", names=names, suite=specs)
     if args.redkitchen is not None:
         scene_dirs[REDKITCHEN] = args.redkitchen
     eval_at = [float(t) for t in args.eval_at.split(",") if t]
