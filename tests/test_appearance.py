@@ -95,3 +95,10 @@ def test_voxnerf_train_set_needs_field_equals_value(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["train", str(tmp_path), "--out", str(tmp_path / "run"), "--set", "sh_bands"])
     assert exc.value.code == 2 and "expected FIELD=VALUE" in capsys.readouterr().err
+
+
+def test_voxnerf_train_set_wins_over_a_flag_of_the_same_field(tmp_path, capsys):
+    """--set sampler=... beside the --sampler flag's default: the --set value is the one checked (and refused)."""
+    code = main(["train", str(tmp_path / "scene"), "--out", str(tmp_path / "run"), "--max-iters", "1",
+                 "--sampler", "voxnerf", "--set", "sampler=\"warp\"", "--set", "depth_loss=false"])
+    assert code == 2 and "sampler: Input should be 'voxnerf', 'occgrid' or 'uniform'" in capsys.readouterr().err

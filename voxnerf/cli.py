@@ -20,7 +20,7 @@ def _train(args: argparse.Namespace) -> int:
     from voxnerf.config import TrainConfig
     from voxnerf.training.run import train
 
-    config = TrainConfig(
+    values = dict(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
         depth_loss=not args.no_depth_loss, depth_source=args.depth_source, downscale=args.downscale,
         device=args.device, seed=args.seed,
@@ -28,8 +28,8 @@ def _train(args: argparse.Namespace) -> int:
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
         **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
         **({"smooth_patches": args.smooth_patches} if args.smooth_patches is not None else {}),
-        **dict(args.set or []),
     )
+    config = TrainConfig(**(values | dict(args.set or [])))  # --set wins over the flags
     if config.max_seconds is None and config.max_iters is None:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
     report = train(args.scene, args.out, config, resume=not args.restart)
