@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from voxnerf.camera_path import look_at
+from voxnerf.synthetic.geometry import ROOM_SIZE
 
 
 def look_at_c2w(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
@@ -23,18 +24,21 @@ def look_at_c2w(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
     return look_at(position, position + np.asarray(forward, dtype=np.float64), np.array([0.0, 0.0, 1.0]))
 
 
-def camera_path(n_frames: int) -> np.ndarray:
+def camera_path(n_frames: int, room_size: tuple[float, float, float] = ROOM_SIZE) -> np.ndarray:
     """Camera-to-world poses [n_frames, 4, 4] along one smooth loop through the middle of the room.
 
-    The camera walks an ellipse (semi-axes 1.1 m x 0.55 m) at 1.27-1.63 m height, looking 20-60 degrees off
-    the outward radial direction toward walls and furniture, slightly downward, with slowly varying yaw and
-    pitch; consecutive frames overlap.
+    The camera walks an ellipse (semi-axes 1.1 m x 0.55 m in the default room, scaled in x and y with the
+    room's width and depth for another ``room_size``) at 1.27-1.63 m height, looking 20-60 degrees off the
+    outward radial direction toward walls and furniture, slightly downward, with slowly varying yaw and pitch;
+    consecutive frames overlap.
     """
     theta = 2 * np.pi * np.arange(n_frames) / n_frames
+    scale_x, scale_y = room_size[0] / ROOM_SIZE[0], room_size[1] / ROOM_SIZE[1]
     poses = np.empty((n_frames, 4, 4))
     for i, th in enumerate(theta):
         position = np.array(
-            [0.1 + 1.1 * np.cos(th), -0.15 + 0.55 * np.sin(th), 1.45 + 0.18 * np.sin(2 * th + 0.3)]
+            [(0.1 + 1.1 * np.cos(th)) * scale_x, (-0.15 + 0.55 * np.sin(th)) * scale_y,
+             1.45 + 0.18 * np.sin(2 * th + 0.3)]
         )
         yaw = th + 0.7 + 0.35 * np.sin(3 * th + 1.0)
         pitch = -0.22 + 0.12 * np.sin(2 * th + 2.0)

@@ -88,13 +88,16 @@ Piece = Box | Cylinder | Quad | BookRows
 @dataclass(frozen=True)
 class Group:
     """Pieces placed together: ``jitter`` maps new anchors to ``(centre, half range)``, ``anchors`` maps
-    derived anchors to coordinates, ``materials`` names materials the pieces share (see the module doc)."""
+    derived anchors to coordinates, ``materials`` names materials the pieces share (see the module doc);
+    ``follow`` keeps a jitter centre at its distance from a wall in a resized room."""
 
     name: str
     pieces: tuple[Piece, ...]
     jitter: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     anchors: Mapping[str, Coord] = field(default_factory=dict)
     materials: Mapping[str, Material] = field(default_factory=dict)
+    follow: Mapping[str, str] = field(default_factory=dict)
+    """Jitter anchors whose centre moves with a wall (``x0 x1 y0 y1``) when the room is resized."""
 
 
 def _plain(base: RGB, accent: RGB, scale: float = 0.1) -> Material:
@@ -144,6 +147,7 @@ DOOR = Group(
                  Material("plain", (0.8, 0.7, 0.3), (0.5, 0.4, 0.1), 0.05)),
     ),
     jitter={"door_x": (-1.15, 0.1)},
+    follow={"door_x": "x0"},
     materials={
         "door_wood": Material("wood", (0.55, 0.35, 0.2), (0.3, 0.16, 0.08), 0.25),
         "trim": Material("plain", (0.9, 0.9, 0.88), (0.7, 0.7, 0.7), 0.3),
@@ -181,6 +185,7 @@ TABLE = Group(
                  Material("marble", (0.2, 0.35, 0.6), (0.9, 0.9, 0.95), 0.1)),
     ),
     jitter={"tx": (1.6, 0.08), "ty": (-1.2, 0.08)},
+    follow={"tx": "x1", "ty": "y0"},
     anchors={"top_z": 0.75},
     materials={"table_wood": Material("wood", (0.6, 0.42, 0.25), (0.35, 0.2, 0.1), 0.2)},
 )

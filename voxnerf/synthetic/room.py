@@ -1,15 +1,18 @@
-"""Building the furnished room from :data:`voxnerf.synthetic.furniture.FURNITURE` for a seed."""
+"""Building the furnished room from :data:`voxnerf.synthetic.furniture.FURNITURE` for a seed and a style."""
 
 from __future__ import annotations
 
+import colorsys
 import itertools
+import math
 import re
 from collections.abc import Mapping
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from voxnerf.synthetic.furniture import FURNITURE, LIGHTS, BookRows, Box, Coord, Cylinder, Group, Piece, Quad
-from voxnerf.synthetic.geometry import ROOM_SIZE, PointLight, RoomBuilder, RoomGeometry
+from voxnerf.synthetic.geometry import ROOM_SIZE, PointLight, RoomBuilder, RoomGeometry, RoomObject
 from voxnerf.synthetic.textures import Material
 
 _TERM = re.compile(r"([+-]?)([^+-]+)")
@@ -30,10 +33,54 @@ def coord(expr: Coord, anchors: Mapping[str, float]) -> float:
     return value
 
 
-def room_anchors() -> dict[str, float]:
+def room_anchors(room_size: tuple[float, float, float] = ROOM_SIZE) -> dict[str, float]:
     """The anchors of the room frame: the walls ``x0, x1, y0, y1`` and the ceiling height ``H`` (m)."""
-    W, D, H = ROOM_SIZE
+    W, D, H = room_size
     return {"x0": -W / 2, "x1": W / 2, "y0": -D / 2, "y1": D / 2, "H": H}
+
+
+ROOM_SIZE_RANGE: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] = (
+    (4.4, 7.0), (4.0, 6.0), (2.4, 3.5)
+)
+"""Metres: the widths, depths and heights the furniture fits in with the camera path clear (inclusive)."""
+LIGHT_TEMPERATURE_RANGE_K = (2000.0, 10000.0)
+LIGHT_CLEARANCE_M = 0.3
+"""Metres: a jittered light stays this far inside the walls and floor, and below the ceiling lamp's light."""
+
+
+@dataclass(frozen=True)
+class RoomStyle:
+    """How a room differs from the default one (the defaults change nothing).
+
+    ``room_size`` (W, D, H) metres within :data:`ROOM_SIZE_RANGE`: the shell, with furniture anchored to the
+    walls; ``light_scale`` multiplies every light's intensity; ``light_temperature_k`` tints the lights like a
+    black body of that temperature (None: their own colours; 6500 K is neutral); ``light_jitter_m`` moves each
+    light by ``uniform(-j, j)`` per axis (never up, never within :data:`LIGHT_CLEARANCE_M` of the shell);
+    ``texture_scale`` multiplies every pattern's period; ``palette_shift`` in [0, 1] turns each distinct
+    material's hue by up to ``palette_shift / 2`` of the colour circle and scales its saturation by up to
+    ``2 ** +-palette_shift``. The random values come from the seed, apart from the furniture's draws.
+    """
+
+    room_size: tuple[float, float, float] = ROOM_SIZE
+    light_scale: float = 1.0
+    light_temperature_k: float | None = None
+    light_jitter_m: float = 0.0
+    texture_scale: float = 1.0
+    palette_shift: float = 0.0
+
+
+def temperature_rgb(kelvin: float) -> tuple[float, float, float]:
+    """Linear RGB tint of a black body at ``kelvin`` (an sRGB-space fit, Tanner Helland's), 6500 K == (1, 1, 1)."""
+
+    def srgb(k: float) -> np.ndarray:
+        t = k / 100.0
+        r = 255.0 if t <= 66 else 329.698727446 * (t - 60) ** -0.1332047592
+        g = 99.4708025861 * math.log(t) - 161.1195681661 if t <= 66 else 288.1221695283 * (t - 60) ** -0.0755148492
+        b = 255.0 if t >= 66 else (0.0 if t <= 19 else 138.5177312231 * math.log(t - 10) - 305.0447927307)
+        return (np.clip([r, g, b], 0.0, 255.0) / 255.0) ** 2.2
+
+    tint = srgb(kelvin) / srgb(6500.0)
+    return tuple(float(c) for c in tint / tint.max())
 
 
 def _jitter_colour(rng: np.random.Generator, colour: tuple[float, float, float], amount: float = 0.08):
@@ -48,10 +95,11 @@ def _jitter_material(rng: np.random.Generator, m: Material) -> Material:
 class _Placer:
     """Reads furniture groups into a :class:`RoomBuilder`, drawing every random value from one generator."""
 
-    def __init__(self, rng: np.random.Generator) -> None:
+    def __init__(self, rng: np.random.Generator, room_size: tuple[float, float, float] = ROOM_SIZE) -> None:
         self.rng = rng
         self.builder = RoomBuilder()
-        self.anchors: dict[str, float] = room_anchors()
+        self.anchors: dict[str, float] = room_anchors(room_size)
+        self.wall_shift = {k: v - room_anchors()[k] for k, v in self.anchors.items()}
         self.materials: dict[str, Material] = {}
 
     def point(self, exprs: tuple[Coord, ...]) -> tuple[float, ...]:
@@ -62,6 +110,8 @@ class _Placer:
 
     def group(self, group: Group) -> None:
         for name, (centre, half) in group.jitter.items():
+            if name in group.follow:
+                centre = centre + self.wall_shift[group.follow[name]]
             self.anchors[name] = centre + self.rng.uniform(-half, half)
         for name, expr in group.anchors.items():
             self.anchors[name] = coord(expr, self.anchors)
@@ -105,14 +155,62 @@ class _Placer:
                 y += width + (rng.uniform(*rows.gap) if rng.random() < rows.gap_chance else rows.spacing)
 
 
-def build_room(seed: int = 0) -> RoomGeometry:
+def _restyled_materials(objects: list[RoomObject], style: RoomStyle, rng: np.random.Generator) -> list[RoomObject]:
+    """``objects`` with ``style``'s texture scale and palette shift: one random shift per distinct material."""
+    if style.texture_scale == 1.0 and style.palette_shift == 0.0:
+        return objects
+    shifted: dict[Material, Material] = {}
+    for obj in objects:
+        m = obj.material
+        if m not in shifted:
+            hue = style.palette_shift * rng.uniform(-0.5, 0.5)
+            saturation = 2.0 ** (style.palette_shift * rng.uniform(-1.0, 1.0))
+            keep_colour = m.pattern == "sky" or style.palette_shift == 0.0
+            base, accent = (m.base, m.accent) if keep_colour else (
+                _shift_colour(m.base, hue, saturation), _shift_colour(m.accent, hue, saturation))
+            shifted[m] = replace(m, base=base, accent=accent, scale=m.scale * style.texture_scale)
+    return [replace(obj, material=shifted[obj.material]) for obj in objects]
+
+
+def _shift_colour(colour: tuple[float, float, float], hue: float, saturation: float) -> tuple[float, float, float]:
+    """``colour`` with its hue turned by ``hue`` (fraction of the circle) and its saturation times ``saturation``."""
+    h, s, v = colorsys.rgb_to_hsv(*colour)
+    shifted = colorsys.hsv_to_rgb((h + hue) % 1.0, min(s * saturation, 1.0), v)
+    return tuple(float(np.clip(c, 0.02, 0.95)) for c in shifted)
+
+
+def _styled_lights(lights: list[PointLight], style: RoomStyle, rng: np.random.Generator) -> list[PointLight]:
+    """``lights`` scaled, tinted and jittered as ``style`` says (unchanged by the default style)."""
+    if style.light_scale == 1.0 and style.light_temperature_k is None and style.light_jitter_m == 0.0:
+        return lights
+    tint = (1.0, 1.0, 1.0) if style.light_temperature_k is None else temperature_rgb(style.light_temperature_k)
+    W, D, _ = style.room_size
+    lo = np.array([-W / 2, -D / 2, 0.0]) + LIGHT_CLEARANCE_M
+    styled = []
+    for light in lights:
+        position = np.asarray(light.position) + rng.uniform(-1.0, 1.0, 3) * style.light_jitter_m
+        hi = np.array([W / 2 - LIGHT_CLEARANCE_M, D / 2 - LIGHT_CLEARANCE_M, light.position[2]])
+        position = np.clip(position, lo, hi)
+        intensity = tuple(float(i * style.light_scale * t) for i, t in zip(light.intensity, tint, strict=True))
+        styled.append(PointLight(tuple(float(p) for p in position), intensity))
+    return styled
+
+
+def build_room(seed: int = 0, style: RoomStyle | None = None) -> RoomGeometry:
     """The furnished room: shell (floor, ceiling, 4 walls), door, window, table, shelf, sofa, boxes, lamps.
 
     Furniture positions, sizes and colours are jittered deterministically from ``seed``; the middle of the
-    room (the camera path of :func:`voxnerf.synthetic.cameras.camera_path`) stays free.
+    room (the camera path of :func:`voxnerf.synthetic.cameras.camera_path`) stays free. ``style`` (default:
+    none) resizes the shell (the door, table, shelf and sofa keep their distances to their walls), restyles
+    lights and materials (see :class:`RoomStyle`); its random values come from their own generators, so a
+    seed's furniture draws the same values whatever the style.
     """
-    placer = _Placer(np.random.default_rng(seed))
+    style = style or RoomStyle()
+    placer = _Placer(np.random.default_rng(seed), style.room_size)
     for group in FURNITURE:
         placer.group(group)
     lights = [PointLight(placer.point(position), intensity) for position, intensity in LIGHTS]
-    return placer.builder.build(lights, seed)
+    geom = placer.builder.build(_styled_lights(lights, style, np.random.default_rng([seed, 8])), seed)
+    geom.objects = _restyled_materials(geom.objects, style, np.random.default_rng([seed, 7]))
+    geom.room_size = tuple(style.room_size)
+    return geom

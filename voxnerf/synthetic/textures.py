@@ -1,7 +1,8 @@
 """Procedural solid textures: a material names a pattern, a function of the 3D hit point (no UVs).
 
-Patterns are built from value noise on a fixed periodic random lattice; a seed picks the lattice offset, so every
-object of the room (seeded by the room's seed and its object id) gets its own variation of its pattern.
+A pattern is ``pattern(points [N, 3] m, normals [N, 3], material, seed, room_height=ROOM_SIZE[2]) -> albedo
+[N, 3]``. Patterns are built from value noise on a fixed periodic random lattice; a seed picks the lattice offset,
+so every object of the room (seeded by the room's seed and its object id) gets its own variation of its pattern.
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ def _plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, second
 
 
-def _planks(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _planks(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """Floor boards along x, ``scale`` wide, with grain, per-board tint and dark seams."""
     row = np.floor(p[:, 1] / m.scale)
     plank_len = 6.0 * m.scale
@@ -113,7 +114,7 @@ def _planks(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
     return colour
 
 
-def _wood(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _wood(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """Wood grain: warped stripes across x with fine fibre noise."""
     warp = _fbm(p / m.scale * np.array([0.3, 2.0, 2.0]), seed)
     rings = 0.5 + 0.5 * np.sin(2 * np.pi * ((p[:, 1] + 0.5 * p[:, 2]) / m.scale + 3.0 * warp))
@@ -121,7 +122,7 @@ def _wood(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
     return _mix(m.base, m.accent, rings**3 * 0.8 + 0.2 * fibre)
 
 
-def _tiles(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _tiles(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """Square tiles of side ``scale`` in a two-colour checker with per-tile tint and light grout."""
     a, b = _plane_axes(n)
     idx = np.arange(len(p))
@@ -135,14 +136,14 @@ def _tiles(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
     return colour
 
 
-def _plaster(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
-    """Painted plaster: a vertical gradient toward ``accent`` with blotchy low-frequency noise."""
+def _plaster(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
+    """Painted plaster: a vertical gradient toward ``accent`` (floor to ceiling) with blotchy low-frequency noise."""
     blotch = _fbm(p / m.scale, seed)
-    colour = _mix(m.base, m.accent, p[:, 2] / ROOM_SIZE[2])
+    colour = _mix(m.base, m.accent, p[:, 2] / room_height)
     return colour * (0.75 + 0.45 * blotch)[:, None]
 
 
-def _fabric(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _fabric(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """Plaid upholstery: broad crossing stripes of period ``scale`` over a fine weave."""
     a, b = _plane_axes(n)
     idx = np.arange(len(p))
@@ -152,14 +153,14 @@ def _fabric(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
     return _mix(m.base, m.accent, 0.6 * stripes) * weave[:, None]
 
 
-def _marble(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _marble(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """Marble: dark veins along a turbulent sine of the summed coordinates."""
     turbulence = _fbm(p / m.scale * 2.0, seed, octaves=5)
     veins = np.abs(np.sin(np.pi * (p.sum(axis=1) / m.scale + 6.0 * turbulence)))
     return _mix(m.accent, m.base, veins**0.35)
 
 
-def _painting(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _painting(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """A colourful abstract picture: interfering waves per colour channel, quantised into bands."""
     a, b = _plane_axes(n)
     idx = np.arange(len(p))
@@ -174,19 +175,19 @@ def _painting(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarra
     return 0.1 + 0.85 * bands * np.asarray(m.base)[None]
 
 
-def _plain(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _plain(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """Nearly uniform colour with faint mottling toward ``accent``."""
     return _mix(m.base, m.accent, 0.35 * _fbm(p / m.scale, seed, octaves=3))
 
 
-def _sky(p: np.ndarray, n: np.ndarray, m: Material, seed: int) -> np.ndarray:
+def _sky(p: np.ndarray, n: np.ndarray, m: Material, seed: int, room_height: float = ROOM_SIZE[2]) -> np.ndarray:
     """The view through the window: a vertical gradient with soft clouds."""
     height = np.clip((p[:, 2] - 0.9) / 1.1, 0.0, 1.0)
     clouds = np.clip(2.0 * _fbm(p / m.scale, seed) - 0.9, 0.0, 1.0)
     return _mix(m.accent, m.base, height) * (1 - clouds[:, None]) + 0.95 * clouds[:, None]
 
 
-PATTERNS: dict[str, Callable[[np.ndarray, np.ndarray, Material, int], np.ndarray]] = {
+PATTERNS: dict[str, Callable[..., np.ndarray]] = {
     "planks": _planks,
     "wood": _wood,
     "tiles": _tiles,

@@ -6,7 +6,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -16,10 +16,11 @@ import trimesh
 from voxnerf.camera_rules import COEFFICIENT_KEYS, MODEL_COEFFICIENTS, CameraError, Lens, lens_of
 from voxnerf.image_io import build_dir_atomic
 from voxnerf.synthetic.cameras import FrameSplits, camera_path, split_frames
-from voxnerf.synthetic.geometry import RoomGeometry
+from voxnerf.synthetic.geometry import ROOM_SIZE, RoomGeometry
 from voxnerf.synthetic.priors import PRIOR_KINDS, noisy_mesh_prior, sample_point_prior
-from voxnerf.synthetic.raycast import render_view
-from voxnerf.synthetic.room import build_room
+from voxnerf.synthetic.raycast import AMBIENT, Shading, linear_to_srgb, render_radiance
+from voxnerf.synthetic.room import LIGHT_TEMPERATURE_RANGE_K, ROOM_SIZE_RANGE, RoomStyle, build_room
+from voxnerf.synthetic.sensor import CameraResponse, capture_linear, drift_walk, sensor_depth, vignette_gain
 
 HORIZONTAL_FOV_DEG = 65.0
 DEPTH_UNIT_SCALE = 0.001
@@ -46,6 +47,29 @@ class RoomSpec:
     lens: dict | None = None
     """A lens to render through, as transforms.json gives it: ``{"camera_model": "OPENCV", "k1": ...}``
     (``OPENCV`` or ``OPENCV_FISHEYE`` with nerfstudio's coefficient names); None: a pinhole."""
+    # Variety (room.RoomStyle and raycast.Shading say what each does); defaults: the room as it always was.
+    room_size: tuple[float, float, float] | None = None
+    """(W, D, H) metres within ``room.ROOM_SIZE_RANGE``; None: ``ROOM_SIZE``."""
+    ambient: float = AMBIENT
+    light_scale: float = 1.0
+    light_temperature_k: float | None = None
+    light_jitter_m: float = 0.0
+    texture_scale: float = 1.0
+    palette_shift: float = 0.0
+    # Capture-like rendering (raycast.Shading, sensor.CameraResponse); defaults: off.
+    light_radius_m: float = 0.0
+    shadow_rays: int = 1
+    gi_bounces: int = 0
+    gi_rays: int = 4
+    noise_photons: float = 0.0
+    noise_read_std: float = 0.0
+    exposure_drift_ev: float = 0.0
+    """Peak |EV| of the smooth random walk of exposure along the path (0: fixed exposure)."""
+    white_balance_drift_ev: float = 0.0
+    """Peak |EV| of the red and blue gains' own walks against green (0: fixed white balance)."""
+    vignetting: float = 0.0
+    sensor_depth: bool = False
+    """Depth PNGs like a Kinect's (``sensor.sensor_depth``) instead of the true z-depth."""
 
     def camera_lens(self) -> Lens | None:
         """:attr:`lens` as a :class:`Lens`; ValueError naming the bad key."""
@@ -72,6 +96,77 @@ class RoomSpec:
         if not 10.0 <= self.hfov_deg <= 120.0:
             raise ValueError(f"RoomSpec.hfov_deg must be in [10, 120], got {self.hfov_deg!r}")
         self.camera_lens()
+        self._validate_style()
+
+    def _validate_style(self) -> None:
+        """ValueError naming the first bad style or capture field."""
+        self._validate_room_size()
+        for name, (lo, hi) in _RANGES.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
+                raise ValueError(f"RoomSpec.{name} must be a number in [{lo}, {hi}], got {value!r}")
+        kelvin = self.light_temperature_k
+        if kelvin is not None and not (
+            isinstance(kelvin, int | float) and LIGHT_TEMPERATURE_RANGE_K[0] <= kelvin <= LIGHT_TEMPERATURE_RANGE_K[1]
+        ):
+            raise ValueError(
+                f"RoomSpec.light_temperature_k must be None or kelvin in {list(LIGHT_TEMPERATURE_RANGE_K)}, "
+                f"got {kelvin!r}"
+            )
+        for name, lo, hi in (("shadow_rays", 1, 64), ("gi_rays", 1, 64), ("gi_bounces", 0, 2)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                raise ValueError(f"RoomSpec.{name} must be an integer in [{lo}, {hi}], got {value!r}")
+        if not isinstance(self.sensor_depth, bool):
+            raise ValueError(f"RoomSpec.sensor_depth must be true or false, got {self.sensor_depth!r}")
+
+    def _validate_room_size(self) -> None:
+        if self.room_size is None:
+            return
+        size = self.room_size
+        if not (isinstance(size, list | tuple) and len(size) == 3 and all(
+            isinstance(v, int | float) and not isinstance(v, bool) and lo <= v <= hi
+            for v, (lo, hi) in zip(size, ROOM_SIZE_RANGE, strict=True)
+        )):
+            raise ValueError(
+                f"RoomSpec.room_size must be None or (W, D, H) metres within {[list(r) for r in ROOM_SIZE_RANGE]}, "
+                f"got {size!r}"
+            )
+
+    def room_style(self) -> RoomStyle:
+        """The room's :class:`RoomStyle` (size, lights, textures)."""
+        return RoomStyle(
+            tuple(float(v) for v in self.room_size) if self.room_size is not None else ROOM_SIZE,
+            self.light_scale, self.light_temperature_k, self.light_jitter_m, self.texture_scale, self.palette_shift,
+        )
+
+    def shading(self) -> Shading:
+        """How the room is lit (:class:`Shading`)."""
+        return Shading(self.ambient, self.light_radius_m, self.shadow_rays, self.gi_bounces, self.gi_rays)
+
+    def camera_response(self) -> CameraResponse:
+        """What the camera does to the radiance (:class:`CameraResponse`)."""
+        return CameraResponse(self.noise_photons, self.noise_read_std, self.vignetting)
+
+
+_RANGES: dict[str, tuple[float, float]] = {
+    "ambient": (0.0, 2.0),
+    "light_scale": (0.05, 20.0),
+    "light_jitter_m": (0.0, 0.5),
+    "texture_scale": (0.25, 4.0),
+    "palette_shift": (0.0, 1.0),
+    "light_radius_m": (0.0, 0.15),
+    "noise_photons": (0.0, 1e6),
+    "noise_read_std": (0.0, 0.1),
+    "exposure_drift_ev": (0.0, 2.0),
+    "white_balance_drift_ev": (0.0, 1.0),
+    "vignetting": (0.0, 1.0),
+}
+"""Inclusive ranges of RoomSpec's numeric style and capture fields (every bound is finite, so NaN fails)."""
+_OPTIONAL_FIELDS = ("lens", *(f.name for f in fields(RoomSpec) if f.name not in {
+    "width", "height", "n_frames", "train_every", "n_gaps", "gap_len", "prior_kind", "prior_sigma",
+    "prior_max_points", "write_depth", "supersample", "seed", "hfov_deg", "lens"}))
+"""Fields written to transforms.json only when they differ from their defaults (older scenes stay as they were)."""
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
@@ -90,7 +185,8 @@ def make_room_scene(out_dir: Path, spec: RoomSpec | None = None) -> Path:
     Writes ``transforms.json``, ``images/frame-NNNNNN.png`` (sRGB), ``depth/frame-NNNNNN.png`` (16-bit mm) for
     the frames some split uses, ``prior.ply`` (unless ``prior_kind == "none"``) and ``gt_mesh.ply``. The whole
     directory is built beside ``out_dir`` and renamed into place, so a partial scene is never visible.
-    Same spec -> byte-identical files.
+    Same spec -> byte-identical files. With exposure or white-balance drift, ``voxnerf_synthetic.capture_ev``
+    records each written frame's exposure and red / blue gains (EV, in ``frames`` order).
     """
     spec = spec or RoomSpec()
     spec.validate()
@@ -103,7 +199,7 @@ def make_room_scene(out_dir: Path, spec: RoomSpec | None = None) -> Path:
 
 
 def _write_scene(root: Path, spec: RoomSpec, splits: FrameSplits) -> None:
-    geom = build_room(spec.seed)
+    geom = build_room(spec.seed, spec.room_style())
     w, h = spec.width, spec.height
     fl = (w / 2) / math.tan(math.radians(spec.hfov_deg) / 2)
     meta: dict = {"camera_model": "PINHOLE", "fl_x": fl, "fl_y": fl, "cx": w / 2, "cy": h / 2, "w": w, "h": h}
@@ -113,7 +209,8 @@ def _write_scene(root: Path, spec: RoomSpec, splits: FrameSplits) -> None:
         meta.update({key: getattr(lens, key) for key in MODEL_COEFFICIENTS[lens.model]})
     if spec.write_depth:
         meta["depth_unit_scale_factor"] = DEPTH_UNIT_SCALE
-    meta["frames"] = _write_frames(root, spec, geom, splits.used, fl)
+    drift = _drift(spec)
+    meta["frames"] = _write_frames(root, spec, geom, splits.used, fl, drift)
     meta.update(_split_lists(splits))
     prior_info = _write_prior(root, spec, geom)
     if prior_info is not None:
@@ -121,21 +218,48 @@ def _write_scene(root: Path, spec: RoomSpec, splits: FrameSplits) -> None:
         meta["prior_sigma"] = spec.prior_sigma
     geom.to_trimesh().export(root / "gt_mesh.ply")
     meta["voxnerf_synthetic"] = _generator_record(spec, splits, geom, prior_info)
+    if drift.any():
+        meta["voxnerf_synthetic"]["capture_ev"] = {
+            "exposure": [round(float(drift[i, 1]), 6) for i in splits.used],
+            "red": [round(float(drift[i, 0] - drift[i, 1]), 6) for i in splits.used],
+            "blue": [round(float(drift[i, 2] - drift[i, 1]), 6) for i in splits.used],
+        }
     (root / "transforms.json").write_text(json.dumps(meta, indent=2) + "\n")
 
 
-def _write_frames(root: Path, spec: RoomSpec, geom: RoomGeometry, indices: list[int], fl: float) -> list[dict]:
-    """Render and write the frames ``indices`` of the camera path; their transforms.json ``frames`` entries."""
-    poses = camera_path(spec.n_frames)
+def _drift(spec: RoomSpec) -> np.ndarray:
+    """Per path frame log2 gains [n_frames, 3] (R, G, B): the exposure walk, plus the red and blue walks."""
+    exposure = drift_walk(spec.n_frames, spec.exposure_drift_ev, np.random.default_rng([spec.seed, 4]))
+    wb_rng = np.random.default_rng([spec.seed, 5])
+    red, blue = (drift_walk(spec.n_frames, spec.white_balance_drift_ev, wb_rng) for _ in range(2))
+    return np.stack([exposure + red, exposure, exposure + blue], axis=1)
+
+
+def _write_frames(
+    root: Path, spec: RoomSpec, geom: RoomGeometry, indices: list[int], fl: float, drift: np.ndarray
+) -> list[dict]:
+    """Render and write the frames ``indices`` of the camera path; their transforms.json ``frames`` entries.
+
+    A frame's random values (soft shadows, indirect light, noise, depth) come from ``[seed, 3, index]``.
+    """
+    poses = camera_path(spec.n_frames, geom.room_size)
     w, h = spec.width, spec.height
+    shading, response = spec.shading(), spec.camera_response()
+    vignette = vignette_gain(w, h, fl, w / 2, h / 2, spec.vignetting) if spec.vignetting > 0 else None
+    captured = not response.is_identity or drift.any()
     frames = []
     for i in indices:
         name = f"frame-{i:06d}.png"
-        rgb, depth = render_view(geom, poses[i], fl, w / 2, h / 2, w, h, spec.supersample, spec.camera_lens())
+        rng = np.random.default_rng([spec.seed, 3, i])
+        view = render_radiance(geom, poses[i], fl, w / 2, h / 2, w, h, spec.supersample, spec.camera_lens(),
+                               shading, rng)
+        linear = capture_linear(view.radiance, 2.0 ** drift[i], vignette, response, rng) if captured else view.radiance
+        rgb = linear_to_srgb(linear).astype(np.float32)
         _write_png(root / "images" / name, np.round(rgb * 255).astype(np.uint8))
         frame = {"file_path": f"images/{name}", "transform_matrix": np.round(poses[i], 8).tolist()}
         if spec.write_depth:
-            depth_units = np.clip(np.round(depth / DEPTH_UNIT_SCALE), 0, 65535).astype(np.uint16)
+            depth = sensor_depth(view.depth, view.cos_incidence, rng) if spec.sensor_depth else view.depth
+            depth_units = np.clip(np.round(depth.astype(np.float32) / DEPTH_UNIT_SCALE), 0, 65535).astype(np.uint16)
             _write_png(root / "depth" / name, depth_units)
             frame["depth_file_path"] = f"depth/{name}"
         frames.append(frame)
@@ -173,10 +297,13 @@ def _write_prior(root: Path, spec: RoomSpec, geom: RoomGeometry) -> dict | None:
 
 
 def _spec_record(spec: RoomSpec) -> dict:
-    """``asdict(spec)``, without ``lens`` when there is none (so a pinhole scene's files stay as they were)."""
+    """``asdict(spec)`` without the optional fields left at their defaults (so older scenes' files stay as they
+    were: a pinhole default room is written as before these fields existed)."""
+    defaults = asdict(RoomSpec())
     record = asdict(spec)
-    if record["lens"] is None:
-        del record["lens"]
+    for name in _OPTIONAL_FIELDS:
+        if record[name] == defaults[name]:
+            del record[name]
     return record
 
 
