@@ -160,6 +160,7 @@ INTERNAL_TRAIN_FIELDS = frozenset(
         "coarse_levels",
         "depth_weight_final",
         "appearance",
+        "prior_rays",
         "background",
         "eval_views",
         "final_eval",

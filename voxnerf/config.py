@@ -114,6 +114,11 @@ class TrainConfig(BaseModel):
         description="lambda_depth at the end of training over lambda_depth at the start (exponential over the "
         "training limits, as lr_schedule 'budget'); 1 keeps it constant",
     )
+    prior_rays: int = Field(
+        default=0, ge=0,
+        description="rays per step from the training cameras' centres in random directions, supervised by the "
+        "prior's depth alone (voxnerf/training/prior_rays.py: space no training view sees); 0 leaves them out",
+    )
     appearance: Appearance = Field(
         default="none",
         description="'affine': a colour gain and bias per channel and training image, learnt with the field "

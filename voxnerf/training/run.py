@@ -50,6 +50,7 @@ from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_r
 from voxnerf.training.evals import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
 from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.pixels import TrainingPixels, training_pixels
+from voxnerf.training.prior_rays import PriorRayBank
 from voxnerf.training.records import StageRecord, TrainReport
 from voxnerf.training.step import PAPER_BETA, TrainStep, make_loss_fn
 
@@ -106,6 +107,7 @@ class Setup:
     octree: SparseVoxelOctree | None
     use_depth: bool
     depth_beta: float | None = None  # scene units, when the depth loss is used
+    prior_rays: PriorRayBank | None = None
 
 
 def train(
@@ -210,7 +212,11 @@ def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: st
     pixels.hit_t, pixels.hit = hits.hit_t, hits.hit
     events.stage(hits.record, iteration)
     run.stop_point()
-    return Setup(scene, found.prior, built, pixels, tree.octree, target.target_t is not None, target.beta)
+    use_depth = target.target_t is not None
+    extra = stages.prior_rays_stage(cfg, built.prior_n, use_depth, tree.octree, pixels, built.model, run.device)
+    events.stage(extra.record, iteration)
+    run.stop_point()
+    return Setup(scene, found.prior, built, pixels, tree.octree, use_depth, target.beta, extra.bank)
 
 
 def _patches(cfg: TrainConfig, setup: Setup) -> tuple[bool, int, int]:
@@ -226,13 +232,15 @@ def _make_step(run: Run, setup: Setup) -> tuple[TrainStep, stages.CompileStage]:
     use_patches, patch, n_patch_rays = _patches(cfg, setup)
     beta = setup.depth_beta or PAPER_BETA
     run.report.depth_beta = beta if setup.use_depth else None
-    compiled = stages.compile_stage(cfg, make_loss_fn(model, cfg, beta, n_patch_rays, patch))
+    n_prior = cfg.prior_rays if setup.prior_rays is not None else 0
+    compiled = stages.compile_stage(cfg, make_loss_fn(model, cfg, beta, n_patch_rays, patch, n_prior))
     if compiled.record is not None:
         run.events.stage(compiled.record, iteration)
     sampler = model.sampler()
     gen = torch.Generator(device=run.device)
     gen.manual_seed(cfg.seed + iteration)
-    step = TrainStep(model, setup.built.optimizer, setup.pixels, cfg, compiled.loss_fn, use_patches, sampler, gen)
+    step = TrainStep(model, setup.built.optimizer, setup.pixels, cfg, compiled.loss_fn, use_patches, sampler, gen,
+                     setup.prior_rays)
     return step, compiled
 
 

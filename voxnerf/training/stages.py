@@ -29,6 +29,7 @@ from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
 from voxnerf.scene import Scene, SceneTransform, load_scene, read_depth_map
 from voxnerf.training.pixels import TrainingPixels, per_pixel, sensor_ray_distance
+from voxnerf.training.prior_rays import PriorRayBank, bank_size, prior_ray_bank
 from voxnerf.training.records import EvalRecord, StageRecord
 from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, PAPER_BETA, LossFn
 
@@ -269,11 +270,7 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
         why = ("depth loss disabled" if not cfg.depth_loss else "depth_source 'none'" if cfg.depth_source == "none"
                else "no prior to render depth from")
         return PseudoDepthStage(_record("pseudo_depth", False, why, t0), None)
-    # Leaves of the prior's sigma (the paper's) give the most accurate point-cloud depths, whatever leaf
-    # the sampler's octree settled on.
-    depth_svo = octree if octree is not None and octree.leaf_size == prior_n.sigma else (
-        SparseVoxelOctree.from_points(torch.from_numpy(prior_n.points).float().to(device), prior_n.sigma))
-    renderer = PriorDepthRenderer(prior_n, depth_svo)
+    renderer = prior_depth_renderer(prior_n, octree, device)
     pseudo_t, _ = per_pixel(
         pixels, model, lambda rays, _: renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
     )
@@ -284,6 +281,40 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
                    "placement and prior_sigma")
     why = f"depth loss: prior ray-cast for every training pixel ({valid:.1%} valid)"
     return PseudoDepthStage(_record("pseudo_depth", True, why, t0), pseudo_t, warning)
+
+
+def prior_depth_renderer(prior_n: GeometryPrior, octree: SparseVoxelOctree | None,
+                         device: torch.device) -> PriorDepthRenderer:
+    """The prior's depth along rays (normalised frame). Leaves of the prior's sigma (the paper's) give the most
+    accurate point-cloud depths, whatever leaf the sampler's octree settled on."""
+    depth_svo = octree if octree is not None and octree.leaf_size == prior_n.sigma else (
+        SparseVoxelOctree.from_points(torch.from_numpy(prior_n.points).float().to(device), prior_n.sigma))
+    return PriorDepthRenderer(prior_n, depth_svo)
+
+
+@dataclass
+class PriorRaysStage:
+    record: StageRecord
+    bank: PriorRayBank | None = None
+
+
+def prior_rays_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, use_depth: bool,
+                     octree: SparseVoxelOctree | None, pixels: TrainingPixels, model: VoxNeRFModel,
+                     device: torch.device) -> PriorRaysStage:
+    """The bank of prior rays (:mod:`voxnerf.training.prior_rays`) when ``cfg.prior_rays`` asks for them and the
+    run has a prior and a depth loss."""
+    t0 = time.perf_counter()
+    if not (cfg.prior_rays and prior_n is not None and use_depth):
+        why = ("prior_rays 0" if not cfg.prior_rays else "no prior" if prior_n is None else "no depth loss")
+        return PriorRaysStage(_record("prior_rays", False, why, t0))
+    wanted = bank_size(cfg.prior_rays)
+    bank = prior_ray_bank(pixels.c2w[:, :3, 3], model, prior_depth_renderer(prior_n, octree, device), octree, wanted,
+                          cfg.seed)
+    if not len(bank):
+        return PriorRaysStage(_record("prior_rays", False, "no ray from the training cameras hits the prior", t0))
+    why = (f"{cfg.prior_rays} rays per step from the training cameras' centres, supervised by the prior's depth: "
+           f"{len(bank)} of {wanted} random rays hit the prior")
+    return PriorRaysStage(_record("prior_rays", True, why, t0), bank)
 
 
 def check_sensor_depth(cfg: TrainConfig, scene: Scene) -> None:

@@ -14,6 +14,7 @@ from voxnerf.errors import TrainingDiverged
 from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss
 from voxnerf.model import VoxNeRFModel
 from voxnerf.training.pixels import TrainingPixels, sample_batch
+from voxnerf.training.prior_rays import PriorRayBank
 
 PAPER_BETA = 0.1  # the paper's log-Huber beta, metres
 DEPTH_BETA_PER_SIGMA = 5.0  # default beta = 5 sigma: the paper's 0.1 m for its 2 cm priors, in any unit
@@ -48,22 +49,26 @@ class Losses(NamedTuple):
 LossFn = Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
 
 
-def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_rays: int, patch: int) -> LossFn:
+def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_rays: int, patch: int,
+                 n_prior_rays: int = 0) -> LossFn:
     """The differentiable part of a step (field, rendering, losses) as one function of fixed-shape tensors.
 
     ``beta`` is in scene units. The depth terms compare depths in units of ``beta / 0.1``: for the paper's
     beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
     so lambda_d keeps its meaning whatever the scene's units and normalisation. A ray's ``target_beta`` scales
     its beta (sensor depth is trusted less far away). The model's ``appearance`` (when it has one) corrects the
-    rendered colour of each ray's training image before the colour loss.
+    rendered colour of each ray's training image before the colour loss. The batch's last ``n_prior_rays`` rays
+    are prior rays (:mod:`voxnerf.training.prior_rays`): depth targets only, left out of the colour loss; the
+    smoothness patches come just before them.
     """
     to_units, lam_dist = PAPER_BETA / (beta * model.transform.scale), cfg.distortion_weight
     appearance = getattr(model, "appearance", None)
 
     def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight):
         out = model.render_samples(origins, dirs, starts, ends)
-        rgb = out["rgb"] if appearance is None else appearance(out["rgb"], image)
-        lc = color_loss(rgb, target_rgb)
+        n_image = origins.shape[0] - n_prior_rays
+        rgb = out["rgb"][:n_image] if appearance is None else appearance(out["rgb"][:n_image], image[:n_image])
+        lc = color_loss(rgb, target_rgb[:n_image])
         total = lc
         ld = lreg = ldist = torch.zeros((), device=origins.device)
         if lam_dist > 0:
@@ -74,8 +79,8 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
             ray_beta = PAPER_BETA if target_beta is None else PAPER_BETA * target_beta
             ld = depth_loss(depth, target_t * to_units, target_ok, ray_beta)
             if n_patch_rays:
-                d = depth[-n_patch_rays:].view(-1, patch, patch)
-                m = target_ok[-n_patch_rays:].view(-1, patch, patch)
+                d = depth[n_image - n_patch_rays : n_image].view(-1, patch, patch)
+                m = target_ok[n_image - n_patch_rays : n_image].view(-1, patch, patch)
                 lreg = depth_smoothness_loss(d, m, cfg.smooth_scales)
             total = total + depth_weight * (ld + cfg.lambda_smooth * lreg)
         return total, lc, ld, lreg, ldist
@@ -100,8 +105,10 @@ class TrainStep:
     backward) and ``apply()`` (the optimiser update, only after the guard passed)."""
 
     def __init__(self, model: VoxNeRFModel, optimizer: torch.optim.Optimizer, pixels: TrainingPixels,
-                 cfg: TrainConfig, loss_fn: LossFn, use_patches: bool, sampler, gen: torch.Generator) -> None:
+                 cfg: TrainConfig, loss_fn: LossFn, use_patches: bool, sampler, gen: torch.Generator,
+                 prior_rays: PriorRayBank | None = None) -> None:
         self.model, self.optimizer, self.pixels, self.cfg = model, optimizer, pixels, cfg
+        self.prior_rays = prior_rays
         self.loss_fn, self.use_patches, self.sampler, self.gen = loss_fn, use_patches, sampler, gen
         self.depth_weight = torch.tensor(float(cfg.lambda_depth), device=pixels.images.device)  # the schedule sets it
 
@@ -120,8 +127,24 @@ class TrainStep:
             target_ok = torch.isfinite(target_t)
         if pixels.depth_beta_scale is not None:
             target_beta = pixels.depth_beta_scale[img, py, px]
-        return Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, img,
-                     self.depth_weight)
+        batch = Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, img,
+                      self.depth_weight)
+        return batch if self.prior_rays is None or target_t is None else self._with_prior_rays(batch)
+
+    def _with_prior_rays(self, batch: Batch) -> Batch:
+        """``batch`` with ``cfg.prior_rays`` prior rays appended (colour target 0 and image 0: the loss ignores
+        both for them; beta scale 1)."""
+        rays, target_t = self.prior_rays.draw(int(self.cfg.prior_rays), self.gen)
+        with torch.no_grad():
+            starts, ends = self.sampler(rays, True)
+        n = len(rays)
+        beta = None if batch.target_beta is None else torch.cat([batch.target_beta, torch.ones_like(target_t)])
+        return Batch(torch.cat([batch.origins, rays.origins]), torch.cat([batch.dirs, rays.dirs]),
+                     torch.cat([batch.starts, starts]), torch.cat([batch.ends, ends]),
+                     torch.cat([batch.target_rgb, batch.target_rgb.new_zeros(n, 3)]),
+                     torch.cat([batch.target_t, target_t]),
+                     torch.cat([batch.target_ok, torch.ones_like(target_t, dtype=torch.bool)]), beta,
+                     torch.cat([batch.image, batch.image.new_zeros(n)]), batch.depth_weight)
 
     def losses(self, batch: Batch) -> Losses:
         losses = Losses(*self.loss_fn(*batch))

@@ -1,0 +1,78 @@
+"""Prior rays: rays that no training image covers, supervised by the prior's depth alone.
+
+The depth loss of the paper reaches only the training pixels, so space that no training view sees stays as the
+field was initialised: nearly transparent. A novel view looking there (the extrapolation views of an
+inside-out scan) renders the background through it. The prior covers those surfaces too; a prior ray starts
+at a training camera's centre in a direction drawn uniformly on the sphere, and its target is the prior's
+depth along it (the pseudo depth of paper III-D, cast the same way). Each step adds ``TrainConfig.prior_rays``
+of them to the batch, after the image rays: they enter the depth loss (and the distortion loss), never the
+colour loss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from voxnerf.model import VoxNeRFModel
+from voxnerf.octree import SparseVoxelOctree
+from voxnerf.pseudo_depth import PriorDepthRenderer
+from voxnerf.samplers import RayBundle
+
+BANK_PER_STEP_RAY = 128  # rays cast at set-up per prior ray of a step (the bank they are drawn from)
+MAX_BANK = 524_288
+
+
+@dataclass
+class PriorRayBank:
+    """Rays cast once at set-up, all normalised units: origins, dirs (unit) [M, 3]; near, far [M]; target_t [M]
+    the prior's ray distance; hit_t [M] / hit [M] the sampler octree's first hits (None without an octree)."""
+
+    origins: Tensor
+    dirs: Tensor
+    near: Tensor
+    far: Tensor
+    target_t: Tensor
+    hit_t: Tensor | None = None
+    hit: Tensor | None = None
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def draw(self, n: int, gen: torch.Generator) -> tuple[RayBundle, Tensor]:
+        """``n`` rays drawn uniformly (with replacement): the bundle (first hits attached) and their targets."""
+        idx = torch.randint(0, len(self), (n,), generator=gen, device=self.origins.device)
+        hits = (None, None) if self.hit_t is None or self.hit is None else (self.hit_t[idx], self.hit[idx])
+        return RayBundle(self.origins[idx], self.dirs[idx], self.near[idx], self.far[idx], *hits), self.target_t[idx]
+
+
+def camera_centre_rays(centres: Tensor, n: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """``n`` rays [n, 3]: origins at the camera ``centres`` [C, 3] (drawn uniformly), unit directions uniform on
+    the sphere."""
+    device = centres.device
+    pick = torch.randint(0, centres.shape[0], (n,), generator=gen, device=device)
+    dirs = torch.randn(n, 3, generator=gen, device=device)
+    dirs = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True).clamp_min(1e-12)
+    return centres[pick].contiguous(), dirs
+
+
+def prior_ray_bank(centres: Tensor, model: VoxNeRFModel, renderer: PriorDepthRenderer,
+                   octree: SparseVoxelOctree | None, n: int, seed: int = 0) -> PriorRayBank:
+    """``n`` rays from the camera ``centres`` [C, 3] (normalised) kept where the prior is hit inside the scene
+    box; their targets and (with ``octree``) first hits. May hold fewer than ``n`` rays (none when the prior is
+    never hit)."""
+    gen = torch.Generator(device=centres.device).manual_seed(seed)
+    rays = model.ray_bundle(*camera_centre_rays(centres, n, gen))
+    t, ok = renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
+    ok = ok & torch.isfinite(t)
+    kept = RayBundle(rays.origins[ok], rays.dirs[ok], rays.near[ok], rays.far[ok])
+    bank = PriorRayBank(kept.origins, kept.dirs, kept.near, kept.far, t[ok])
+    if octree is not None and len(bank):
+        bank.hit_t, bank.hit = octree.first_hit(kept.origins, kept.dirs, kept.near, kept.far, t_hint=bank.target_t)
+    return bank
+
+
+def bank_size(prior_rays: int) -> int:
+    return min(prior_rays * BANK_PER_STEP_RAY, MAX_BANK)
