@@ -69,4 +69,9 @@ print(math.ceil(int(row['rays_seen']) / int(sys.argv[2])))" "$OUT/nerfacto/timel
     "$PY" -m voxnerf train "$SCENE" --out "$OUT/equal_rays" --max-iters "$ITERS" --restart \
         $([ ${#QUICK[@]} -gt 0 ] && echo --no-compile)
 fi
-log "done: tables in $OUT/evr/table.md, $OUT/samples/samples.md, $OUT/noise/prior_noise.md"
+REDKITCHEN=${REDKITCHEN:-$ROOT/../shared/data/redkitchen}
+RK=()
+[ -f "$REDKITCHEN/transforms.json" ] && [ ${#QUICK[@]} -eq 0 ] && RK=(--redkitchen "$REDKITCHEN")
+log "tuning suite, budget $SWEEP_BUDGET s per run (${RK[*]:-no redkitchen})"
+"$PY" benchmarks/suite.py --budget "$SWEEP_BUDGET" "${RK[@]}" "${QUICK[@]}" --out "$OUT/suite"
+log "done: tables in $OUT/evr/table.md, $OUT/samples/samples.md, $OUT/noise/prior_noise.md, $OUT/suite/table.md"

@@ -52,6 +52,8 @@ CONFIGS: dict[str, dict] = {
     "sh-1": {"sh_bands": 1},
     "depth-decay": {"depth_weight_final": 0.1},
     "appearance": {"appearance": "affine"},
+    "prior-rays": {"prior_rays": 512},
+    "background-gray": {"background": [0.5, 0.5, 0.5]},
     "samples-4-2": {"n_importance": 4, "n_rest": 2},
     "rays-4096": {"rays_per_batch": 4096},
     "table-2^18": {"hash_log2_size": 18},
@@ -178,6 +180,27 @@ def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
     return rows
 
 
+SET_UP_STAGES = ("load_scene", "prior", "hash_kernel", "octree", "pseudo_depth", "depth_target", "first_hit_cache")
+
+
+def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:
+    """Per scene, the baseline run's seconds: set-up stages, compilation (first step), progress evaluations,
+    training steps (less the first), final evaluation, and the whole command's wall clock."""
+    rows = []
+    for scene in scenes:
+        run = next((r for r in results if r["scene"] == scene and r["config"] == BASELINE), None)
+        if run is None or not run["report"].get("stages"):
+            continue
+        seconds = {st["name"]: st["seconds"] for st in run["report"]["stages"]}
+        set_up = sum(seconds.get(name, 0.0) for name in SET_UP_STAGES)
+        compile_s = seconds.get("compile", 0.0)
+        steps = seconds.get("train", 0.0) - compile_s - seconds.get("progress_evals", 0.0)
+        cells = [set_up, compile_s, seconds.get("progress_evals", 0.0), steps, seconds.get("final_eval", 0.0),
+                 run["report"].get("wall_seconds") or 0.0]
+        rows.append(f"| {scene} | " + " | ".join(f"{c:.1f}" for c in cells) + " |")
+    return rows
+
+
 def table(results: list[dict], scenes: list[str], synthetic: list[str], budget: float, command: str) -> str:
     head = ("| config | scenes | interp. mean | vs defaults | worst scene | scenes losing > 0.3 | extrap. mean | "
             "vs defaults | worst scene | scenes losing > 0.3 |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- "
@@ -189,6 +212,12 @@ def table(results: list[dict], scenes: list[str], synthetic: list[str], budget: 
             rows = summary_rows(results, group, metric)
             if rows and group:
                 parts.append(f"**{name}, mean over {label}** ({len(group)}):\n\n{head}\n" + "\n".join(rows) + "\n")
+    spent = budget_rows(results, scenes)
+    if spent:
+        parts.append(f"**Where the budget went** (seconds, the `{BASELINE}` run of each scene):\n\n"
+                     "| scene | set-up | compile (first step) | progress evaluations | training steps | "
+                     "final evaluation | wall |\n| --- | --- | --- | --- | --- | --- | --- |\n"
+                     + "\n".join(spent) + "\n")
     parts.append("**Every run** (PSNR / SSIM / LPIPS, half-image PSNR in brackets; steps):\n\n"
                  "| config | scene | interpolation | extrapolation | steps |\n| --- | --- | --- | --- | --- |\n"
                  + "\n".join(scene_rows(results, scenes)) + "\n")

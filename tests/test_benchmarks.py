@@ -26,6 +26,9 @@ docs_section = importlib.import_module("docs_section")
 optimizer_step = importlib.import_module("optimizer_step")
 depth_sources = importlib.import_module("depth_sources")
 render_speed = importlib.import_module("render_speed")
+suite = importlib.import_module("suite")
+sample_placement = importlib.import_module("sample_placement")
+suite_rooms = importlib.import_module("voxnerf.synthetic.suite")
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -321,3 +324,45 @@ def test_publish_writes_results_and_table_and_the_docs_section_only_when_asked(t
     assert (tmp_path / "out" / "table.md").read_text() == "| t |\n" and "old" in page.read_text()
     docs_section.publish(tmp_path / "out", {"a": 1}, "| t |", page, "s", write_docs=True)
     assert "| t |" in page.read_text() and "old" not in page.read_text()
+
+
+def test_suite_quick_runs_every_config_on_every_room_and_reuses_finished_runs(tmp_path: Path) -> None:
+    out = tmp_path / "suite"
+    assert suite.main(["--quick", "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())["results"]
+    pairs = {(r["scene"], r["config"]) for r in results}
+    assert pairs == {(s, c) for s in suite_rooms.QUICK_SUITE for c in suite.QUICK_CONFIGS}
+    for r in results:
+        assert "--set" in r["command"] or r["config"] == "defaults"
+        for split in ("interpolation", "extrapolation"):
+            scores = suite.split_scores(r["report"]["metrics"])[split]
+            assert _finite_psnr(str(scores["psnr"])) and _finite_psnr(str(scores["half_psnr"]))
+    table = (out / "table.md").read_text()
+    assert "| distortion | 2 |" in table and "mean over the synthetic rooms" in table
+    placement_table = out / "placement.md"
+    assert sample_placement.main(["--runs", str(out / "runs"), "--scene", "quick_plain", "--scene-dir",
+                                  str(out / "scenes" / "quick_plain"), "--configs", "defaults,distortion",
+                                  "--max-views", "2", "--out", str(placement_table)]) == 0
+    rows = [line for line in placement_table.read_text().splitlines() if line.startswith("| d")]
+    assert [r.split(" | ")[0] for r in rows] == ["| defaults", "| distortion"] and "%" in rows[0]
+    stamp = (out / "runs" / "quick_plain" / "defaults" / "suite-run.json").stat().st_mtime_ns
+    assert suite.main(["--quick", "--out", str(out), "--configs", "defaults"]) == 0  # reused, not trained again
+    assert (out / "runs" / "quick_plain" / "defaults" / "suite-run.json").stat().st_mtime_ns == stamp
+
+
+def test_suite_summary_compares_with_defaults_and_counts_losing_scenes() -> None:
+    def run(scene, config, interp, extrap):
+        metrics = {"interpolation": {"psnr": interp, "ssim": 0.5}, "extrapolation": {"psnr": extrap, "ssim": 0.5}}
+        return {"scene": scene, "config": config, "report": {"metrics": metrics, "iteration": 1}}
+
+    results = [run("a", "defaults", 30.0, 20.0), run("b", "defaults", 25.0, 18.0),
+               run("a", "distortion", 31.0, 20.1), run("b", "distortion", 24.0, 18.5)]
+    rows = suite.summary_rows(results, ["a", "b"], "psnr")
+    assert rows[0] == "| defaults | 2 | 27.50 | +0.00 | +0.00 | 0 | 19.00 | +0.00 | +0.00 | 0 |"
+    assert rows[1] == "| distortion | 2 | 27.50 | +0.00 | -1.00 | 1 | 19.30 | +0.30 | +0.10 | 0 |"
+
+
+def test_suite_refuses_unknown_configs(capsys) -> None:
+    with pytest.raises(SystemExit):
+        suite.main(["--out", "/nonexistent", "--configs", "defaults,warp-drive"])
+    assert "unknown configs ['warp-drive']" in capsys.readouterr().err

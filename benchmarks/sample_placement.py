@@ -1,0 +1,106 @@
+"""Where each trained run's sampler puts its samples on held-out views, against the true surface.
+
+For every configuration's run of one scene (as `benchmarks/suite.py` leaves them under ``RUNS/<scene>/<config>``),
+rebuild the sampler the run trained with, as the run left it (the voxnerf sampler's octree window, or the
+occupancy grid after training: seeded from the prior or learnt from density alone), sample every ray of the
+split's views without jitter, and compare each sample's midpoint with the true surface along its ray (the
+view's depth map). Prints and writes (``--out``) a table: per configuration, the share of samples within
+2 / 5 / 10 cm of the surface (in scene units x 100, i.e. centimetres for scenes in metres), the share of rays
+with at least one sample within 5 cm, and the median distance of a ray's closest sample.
+
+    .venv/bin/python benchmarks/sample_placement.py --runs OUT/runs --scene studio --scene-dir SCENES/studio \\
+        --configs defaults,occgrid-seeded,occgrid-density --split extrapolation --out OUT/placement-studio.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from voxnerf.cameras import image_rays
+from voxnerf.render import load_model
+from voxnerf.scene import load_scene, read_depth_map
+from voxnerf.training.evals import eval_views_of
+
+BANDS_M = (0.02, 0.05, 0.10)
+
+
+def true_ray_distance(scene, index: int, height: int, width: int) -> np.ndarray:
+    """[H * W] z-depth (scene units) of frame ``index`` resampled (nearest) to H x W, NaN where invalid."""
+    depth, _ = read_depth_map(scene.frames[index], scene.depth_unit_scale, scene.depth_max)
+    rows = (np.arange(height) * depth.shape[0] / height).astype(int)
+    cols = (np.arange(width) * depth.shape[1] / width).astype(int)
+    return depth[rows][:, cols].reshape(-1)
+
+
+@torch.no_grad()
+def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views: int) -> dict[str, float]:
+    """Shares of samples / rays near the true surface for the run's own sampler on ``split``'s views."""
+    trained = load_model(run, "cpu")
+    model = trained.model
+    scene = load_scene(scene_dir, downscale=downscale)
+    views = eval_views_of(scene, model.transform, [split])[split][:max_views]
+    indices = scene.splits[split][:max_views]
+    sampler = model.sampler()
+    near_counts = {band: 0 for band in BANDS_M}
+    n_samples = rays_near = n_rays = 0
+    closest_all = []
+    for view, index in zip(views, indices, strict=True):
+        origins, dirs, z_per_t = image_rays(view.c2w, view.intrinsics)
+        z_true = torch.from_numpy(true_ray_distance(scene, index, view.intrinsics.height, view.intrinsics.width))
+        t_true = z_true.float() * model.transform.scale / z_per_t  # normalised ray distance
+        ok = torch.isfinite(t_true)
+        rays = model.ray_bundle(origins[ok], dirs[ok])
+        starts, ends = sampler(rays, False)
+        distance_m = (0.5 * (starts + ends) - t_true[ok][:, None]).abs() / model.transform.scale
+        for band in BANDS_M:
+            near_counts[band] += int((distance_m <= band).sum())
+        closest = distance_m.min(dim=1).values
+        closest_all.append(closest)
+        rays_near += int((closest <= 0.05).sum())
+        n_samples += distance_m.numel()
+        n_rays += len(closest)
+    result = {f"within {band * 100:g} cm": near_counts[band] / n_samples for band in BANDS_M}
+    result["rays with a sample within 5 cm"] = rays_near / n_rays
+    result["median closest sample (cm)"] = float(torch.cat(closest_all).median()) * 100
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--runs", type=Path, required=True)
+    p.add_argument("--scene", required=True)
+    p.add_argument("--scene-dir", type=Path, required=True)
+    p.add_argument("--configs", default="defaults,occgrid-seeded,occgrid-density")
+    p.add_argument("--split", default="extrapolation")
+    p.add_argument("--downscale", type=int, default=1)
+    p.add_argument("--max-views", type=int, default=10)
+    p.add_argument("--out", type=Path)
+    args = p.parse_args(argv)
+    rows = []
+    for config in args.configs.split(","):
+        run = args.runs / args.scene / config
+        if not (run / "checkpoint.pt").is_file():
+            print(f"{run}: no checkpoint, skipped", file=sys.stderr)
+            continue
+        result = placement(run, args.scene_dir, args.split, args.downscale, args.max_views)
+        rows.append((config, result))
+    if not rows:
+        return 1
+    keys = list(rows[0][1])
+    text = (f"**{args.scene}, {args.split} views**: samples of each run's own sampler against the true surface\n\n"
+            f"| config | {' | '.join(keys)} |\n| --- |" + " --- |" * len(keys) + "\n"
+            + "\n".join(f"| {c} | " + " | ".join(f"{r[k]:.1%}" if "cm)" not in k else f"{r[k]:.1f}" for k in keys)
+                        + " |" for c, r in rows))
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
