@@ -234,6 +234,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--budget", type=float, default=300.0, help="--max-seconds of every run")
     p.add_argument("--eval-at", default="", help="full evaluations inside each run, e.g. 120")
     p.add_argument("--quick", action="store_true", help="the quick suite, 5 eager steps per run (for tests)")
+    p.add_argument("--table-only", action="store_true",
+                   help="train nothing: the table of the runs already under --out (e.g. while a long run goes on)")
     p.add_argument("--write-docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = p.parse_args(argv)
     unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
@@ -249,17 +251,18 @@ def main(argv: list[str] | None = None) -> int:
     specs = QUICK_SUITE if args.quick else SUITE
     names = args.scenes.split(",") if args.scenes else list(specs)
     configs = list(QUICK_CONFIGS) if args.quick and args.configs == ",".join(CONFIGS) else args.configs.split(",")
-    scene_dirs = make_suite(args.suite_dir or args.out / "scenes", names=names, suite=specs)
+    scene_dirs = ({name: None for name in names} if args.table_only
+                  else make_suite(args.suite_dir or args.out / "scenes", names=names, suite=specs))
     if args.redkitchen is not None:
         scene_dirs[REDKITCHEN] = args.redkitchen
     eval_at = [float(t) for t in args.eval_at.split(",") if t]
     extra = list(QUICK_TRAIN_ARGS) if args.quick else []
-    for config in configs:
+    for config in [] if args.table_only else configs:
         for scene, scene_dir in scene_dirs.items():
             print(f"{config} on {scene} ...", flush=True)
             run_one(scene, Path(scene_dir), config, args.out / "runs" / scene / config, args.budget, eval_at, extra)
     results = [json.loads(p.read_text()) for p in sorted((args.out / "runs").glob("*/*/suite-run.json"))]
-    results = [r for r in results if r["config"] in CONFIGS]
+    results = [r for r in results if r["config"] in CONFIGS and r["config"] in configs and r["scene"] in scene_dirs]
     scenes = list(dict.fromkeys([*scene_dirs, *(r["scene"] for r in results)]))
     synthetic = [s for s in scenes if s != REDKITCHEN]
     command = ".venv/bin/python benchmarks/suite.py " + shlex.join(sys.argv[1:] if argv is None else argv)
