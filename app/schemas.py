@@ -161,6 +161,7 @@ INTERNAL_TRAIN_FIELDS = frozenset(
         "depth_weight_final",
         "appearance",
         "prior_rays",
+        "prior_ray_colour",
         "background",
         "eval_views",
         "final_eval",

@@ -53,6 +53,7 @@ CONFIGS: dict[str, dict] = {
     "depth-decay": {"depth_weight_final": 0.1},
     "appearance": {"appearance": "affine"},
     "prior-rays": {"prior_rays": 512},
+    "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "background-gray": {"background": [0.5, 0.5, 0.5]},
     "samples-4-2": {"n_importance": 4, "n_rest": 2},
     "rays-4096": {"rays_per_batch": 4096},

@@ -13,7 +13,7 @@ from voxnerf.octree import SparseVoxelOctree
 from voxnerf.prior import GeometryPrior
 from voxnerf.pseudo_depth import PriorDepthRenderer
 from voxnerf.scene import SceneTransform
-from voxnerf.training.prior_rays import PriorRayBank, bank_size, camera_centre_rays, prior_ray_bank
+from voxnerf.training.prior_rays import PriorRayBank, bank_size, camera_centre_rays, prior_ray_bank, seen_by
 from voxnerf.training.step import make_loss_fn
 
 
@@ -63,8 +63,8 @@ def test_draws_come_with_their_first_hits_and_the_bank_size_is_bounded():
     n = 10
     bank = PriorRayBank(torch.zeros(n, 3), torch.eye(3).repeat(4, 1)[:n], torch.zeros(n), torch.ones(n),
                         torch.arange(n).float(), torch.arange(n).float() - 0.5, torch.ones(n, dtype=torch.bool))
-    rays, target = bank.draw(64, torch.Generator().manual_seed(0))
-    assert len(rays) == 64 and torch.equal(rays.hit_t, target - 0.5)
+    rays, target, unseen = bank.draw(64, torch.Generator().manual_seed(0))
+    assert len(rays) == 64 and torch.equal(rays.hit_t, target - 0.5) and unseen is None
     assert bank_size(512) == 65_536 and bank_size(10**6) == 524_288
 
 
@@ -92,3 +92,29 @@ def test_prior_rays_enter_the_depth_loss_but_not_the_colour_loss(n_prior):
     expected_colour = ((starts[:8].mean(-1, keepdim=True) - target_rgb[:8]) ** 2).mean()
     torch.testing.assert_close(lc, expected_colour)
     assert float(ld) > 0 and torch.isfinite(total)
+
+
+def test_a_point_is_seen_where_a_view_projects_it_in_front_at_its_depth_target():
+    c2w = torch.eye(4)[None]  # at the origin, looking down -Z
+    intr = torch.tensor([[10.0, 10.0, 5.0, 5.0]])
+    depth = torch.ones(1, 10, 10)
+    depth[0, 0, 0] = float("nan")  # a pixel without a target sees whatever projects there
+    points = torch.tensor([[0.0, 0.0, -1.0],  # at the target: seen
+                           [0.0, 0.0, -2.0],  # behind the surface the view saw: unseen
+                           [0.0, 0.0, 1.0],  # behind the camera
+                           [5.0, 0.0, -1.0],  # outside the image
+                           [-0.45, 0.45, -1.0]])  # projects onto pixel (0, 0)
+    assert seen_by(points, c2w, intr, depth, tolerance=0.05).tolist() == [True, False, False, False, True]
+
+
+def test_prior_rays_to_unseen_surfaces_are_pulled_to_the_mean_colour_with_their_weight():
+    g = torch.Generator().manual_seed(0)
+    r = 8 + 4
+    starts = torch.rand(r, 4, generator=g)
+    target_rgb = torch.rand(r, 3, generator=g)
+    weight = torch.tensor([1.0] * 8 + [0.5, 0.0, 0.5, 0.0])
+    args = (torch.zeros(r, 3), torch.ones(r, 3), starts, starts + 0.1, target_rgb, torch.rand(r, generator=g) + 5,
+            torch.ones(r, dtype=torch.bool), None, torch.zeros(r, dtype=torch.int64), torch.tensor(0.3), weight)
+    _, lc, _, _, _ = make_loss_fn(_StubModel(), TrainConfig(max_iters=1), 0.1, 0, 8, 4)(*args)
+    err = ((starts.mean(-1, keepdim=True) - target_rgb) ** 2).mean(-1)
+    torch.testing.assert_close(lc, (err[:8].sum() + 0.5 * (err[8] + err[10])) / 8)

@@ -119,6 +119,11 @@ class TrainConfig(BaseModel):
         description="rays per step from the training cameras' centres in random directions, supervised by the "
         "prior's depth alone (voxnerf/training/prior_rays.py: space no training view sees); 0 leaves them out",
     )
+    prior_ray_colour: float = Field(
+        default=0.0, ge=0,
+        description="weight of a colour term pulling the prior rays whose surface point no training view sees "
+        "towards the training images' mean colour (a neutral guess for what no image shows); 0 leaves it out",
+    )
     appearance: Appearance = Field(
         default="none",
         description="'affine': a colour gain and bias per channel and training image, learnt with the field "

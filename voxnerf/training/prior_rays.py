@@ -37,15 +37,18 @@ class PriorRayBank:
     target_t: Tensor
     hit_t: Tensor | None = None
     hit: Tensor | None = None
+    unseen: Tensor | None = None  # [M] bool: no training view sees the ray's surface point (None: not computed)
 
     def __len__(self) -> int:
         return self.origins.shape[0]
 
-    def draw(self, n: int, gen: torch.Generator) -> tuple[RayBundle, Tensor]:
-        """``n`` rays drawn uniformly (with replacement): the bundle (first hits attached) and their targets."""
+    def draw(self, n: int, gen: torch.Generator) -> tuple[RayBundle, Tensor, Tensor | None]:
+        """``n`` rays drawn uniformly (with replacement): the bundle (first hits attached), their targets and
+        their ``unseen`` flags."""
         idx = torch.randint(0, len(self), (n,), generator=gen, device=self.origins.device)
         hits = (None, None) if self.hit_t is None or self.hit is None else (self.hit_t[idx], self.hit[idx])
-        return RayBundle(self.origins[idx], self.dirs[idx], self.near[idx], self.far[idx], *hits), self.target_t[idx]
+        rays = RayBundle(self.origins[idx], self.dirs[idx], self.near[idx], self.far[idx], *hits)
+        return rays, self.target_t[idx], None if self.unseen is None else self.unseen[idx]
 
 
 def camera_centre_rays(centres: Tensor, n: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
@@ -62,7 +65,7 @@ def prior_ray_bank(centres: Tensor, model: VoxNeRFModel, renderer: PriorDepthRen
                    octree: SparseVoxelOctree | None, n: int, seed: int = 0) -> PriorRayBank:
     """``n`` rays from the camera ``centres`` [C, 3] (normalised) kept where the prior is hit inside the scene
     box; their targets and (with ``octree``) first hits. May hold fewer than ``n`` rays (none when the prior is
-    never hit)."""
+    never hit). ``unseen`` is left for :func:`seen_by`."""
     gen = torch.Generator(device=centres.device).manual_seed(seed)
     rays = model.ray_bundle(*camera_centre_rays(centres, n, gen))
     t, ok = renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
@@ -76,3 +79,28 @@ def prior_ray_bank(centres: Tensor, model: VoxNeRFModel, renderer: PriorDepthRen
 
 def bank_size(prior_rays: int) -> int:
     return min(prior_rays * BANK_PER_STEP_RAY, MAX_BANK)
+
+
+def seen_by(points: Tensor, c2w: Tensor, intr: Tensor, depth_t: Tensor, tolerance: float,
+            chunk: int = 8) -> Tensor:
+    """[M] bool: whether some training view sees each of ``points`` [M, 3] (normalised): it projects inside
+    the view (pinhole model of ``intr`` [N, 4] fl_x fl_y cx cy, ``c2w`` [N, 4, 4] OpenGL), in front of the
+    camera, and the view's depth target there (``depth_t`` [N, H, W] ray distances, NaN where none) is within
+    ``tolerance`` of the point's distance (a pixel with no target counts as seeing it)."""
+    n, h, w = depth_t.shape
+    seen = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+    for i in range(0, n, chunk):
+        rot, origin = c2w[i : i + chunk, :3, :3], c2w[i : i + chunk, :3, 3]
+        rel = points[None] - origin[:, None]  # [C, M, 3]
+        cam = torch.einsum("cmj,cjk->cmk", rel, rot)  # R^T (p - o), camera axes
+        z = -cam[..., 2]
+        k = intr[i : i + chunk, :, None]
+        px = (cam[..., 0] / z.clamp_min(1e-9) * k[:, 0] + k[:, 2] - 0.5).round()
+        py = (-cam[..., 1] / z.clamp_min(1e-9) * k[:, 1] + k[:, 3] - 0.5).round()
+        inside = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        view = torch.arange(i, min(i + chunk, n), device=points.device)[:, None].expand_as(px)
+        target = depth_t[view, py.clamp(0, h - 1).long(), px.clamp(0, w - 1).long()]
+        distance = torch.linalg.vector_norm(rel, dim=-1)
+        agrees = ~torch.isfinite(target) | ((distance - target).abs() <= tolerance)
+        seen |= (inside & agrees).any(0)
+    return seen

@@ -29,7 +29,7 @@ from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
 from voxnerf.scene import Scene, SceneTransform, load_scene, read_depth_map
 from voxnerf.training.pixels import TrainingPixels, per_pixel, sensor_ray_distance
-from voxnerf.training.prior_rays import PriorRayBank, bank_size, prior_ray_bank
+from voxnerf.training.prior_rays import PriorRayBank, bank_size, prior_ray_bank, seen_by
 from voxnerf.training.records import EvalRecord, StageRecord
 from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, PAPER_BETA, LossFn
 
@@ -292,6 +292,9 @@ def prior_depth_renderer(prior_n: GeometryPrior, octree: SparseVoxelOctree | Non
     return PriorDepthRenderer(prior_n, depth_svo)
 
 
+UNSEEN_TOLERANCE_LEAVES = 3  # a view sees a prior ray's surface point where its depth target is this close
+
+
 @dataclass
 class PriorRaysStage:
     record: StageRecord
@@ -314,6 +317,12 @@ def prior_rays_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, use_depth:
         return PriorRaysStage(_record("prior_rays", False, "no ray from the training cameras hits the prior", t0))
     why = (f"{cfg.prior_rays} rays per step from the training cameras' centres, supervised by the prior's depth: "
            f"{len(bank)} of {wanted} random rays hit the prior")
+    if cfg.prior_ray_colour > 0:
+        depth = pixels.depth_t if pixels.depth_t is not None else pixels.pseudo_t
+        points = bank.origins + bank.target_t[:, None] * bank.dirs
+        tolerance = UNSEEN_TOLERANCE_LEAVES * (octree.leaf_size if octree is not None else prior_n.sigma)
+        bank.unseen = ~seen_by(points, pixels.c2w, pixels.intr, depth, tolerance)
+        why += f"; {float(bank.unseen.float().mean()):.1%} meet surfaces no training view sees (mean-colour term)"
     return PriorRaysStage(_record("prior_rays", True, why, t0), bank)
 
 

@@ -34,6 +34,7 @@ class Batch(NamedTuple):
     target_beta: torch.Tensor | None  # [R] each ray's beta over the run's (None: the run's beta everywhere)
     image: torch.Tensor
     depth_weight: torch.Tensor
+    colour_weight: torch.Tensor | None = None  # [R] each ray's weight in the colour loss (None: image rays 1)
 
 
 class Losses(NamedTuple):
@@ -64,11 +65,16 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
     to_units, lam_dist = PAPER_BETA / (beta * model.transform.scale), cfg.distortion_weight
     appearance = getattr(model, "appearance", None)
 
-    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight):
+    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight,
+                colour_weight=None):
         out = model.render_samples(origins, dirs, starts, ends)
         n_image = origins.shape[0] - n_prior_rays
         rgb = out["rgb"][:n_image] if appearance is None else appearance(out["rgb"][:n_image], image[:n_image])
-        lc = color_loss(rgb, target_rgb[:n_image])
+        if colour_weight is None:
+            lc = color_loss(rgb, target_rgb[:n_image])
+        else:  # prior rays weighted in (their targets: the mean colour), normalised by the image rays
+            per_ray = ((torch.cat([rgb, out["rgb"][n_image:]]) - target_rgb) ** 2).mean(-1)
+            lc = (per_ray * colour_weight).sum() / n_image
         total = lc
         ld = lreg = ldist = torch.zeros((), device=origins.device)
         if lam_dist > 0:
@@ -109,6 +115,7 @@ class TrainStep:
                  prior_rays: PriorRayBank | None = None) -> None:
         self.model, self.optimizer, self.pixels, self.cfg = model, optimizer, pixels, cfg
         self.prior_rays = prior_rays
+        self.mean_colour = pixels.images.float().mean((0, 1, 2)) / 255.0 if prior_rays is not None else None
         self.loss_fn, self.use_patches, self.sampler, self.gen = loss_fn, use_patches, sampler, gen
         self.depth_weight = torch.tensor(float(cfg.lambda_depth), device=pixels.images.device)  # the schedule sets it
 
@@ -132,19 +139,22 @@ class TrainStep:
         return batch if self.prior_rays is None or target_t is None else self._with_prior_rays(batch)
 
     def _with_prior_rays(self, batch: Batch) -> Batch:
-        """``batch`` with ``cfg.prior_rays`` prior rays appended (colour target 0 and image 0: the loss ignores
-        both for them; beta scale 1)."""
-        rays, target_t = self.prior_rays.draw(int(self.cfg.prior_rays), self.gen)
+        """``batch`` with ``cfg.prior_rays`` prior rays appended (image 0, beta scale 1, colour target the training
+        images' mean colour, which counts only where ``prior_ray_colour`` weighs in the rays to unseen surfaces)."""
+        rays, target_t, unseen = self.prior_rays.draw(int(self.cfg.prior_rays), self.gen)
         with torch.no_grad():
             starts, ends = self.sampler(rays, True)
         n = len(rays)
         beta = None if batch.target_beta is None else torch.cat([batch.target_beta, torch.ones_like(target_t)])
+        colour = self.mean_colour.expand(n, 3)
+        weight = None
+        if unseen is not None:
+            weight = torch.cat([torch.ones_like(batch.target_rgb[:, 0]), self.cfg.prior_ray_colour * unseen.float()])
         return Batch(torch.cat([batch.origins, rays.origins]), torch.cat([batch.dirs, rays.dirs]),
                      torch.cat([batch.starts, starts]), torch.cat([batch.ends, ends]),
-                     torch.cat([batch.target_rgb, batch.target_rgb.new_zeros(n, 3)]),
-                     torch.cat([batch.target_t, target_t]),
+                     torch.cat([batch.target_rgb, colour]), torch.cat([batch.target_t, target_t]),
                      torch.cat([batch.target_ok, torch.ones_like(target_t, dtype=torch.bool)]), beta,
-                     torch.cat([batch.image, batch.image.new_zeros(n)]), batch.depth_weight)
+                     torch.cat([batch.image, batch.image.new_zeros(n)]), batch.depth_weight, weight)
 
     def losses(self, batch: Batch) -> Losses:
         losses = Losses(*self.loss_fn(*batch))
