@@ -14,8 +14,9 @@ the honest score for runs that learn per-image exposure). ``--eval-at`` adds ful
 mid-way at such a point, so only the final evaluation is what a run of that length gives.
 
 Writes under ``--out``: ``runs/<scene>/<config>/`` (the runs), ``results.json`` and ``table.md`` (per
-configuration: the suite's mean and its worst scene against ``defaults``, then every scene), and with
-``--write-docs`` the table into docs/benchmarks.md.
+configuration: the suite's mean and its worst scene against ``defaults``, then every scene), ``suite.png``
+(PSNR change against ``defaults`` per scene; needs matplotlib, the ``bench`` extra), and with ``--write-docs``
+the table into docs/benchmarks.md.
 
     .venv/bin/python benchmarks/suite.py --out OUT --budget 120 --redkitchen ../shared/data/redkitchen \\
         --configs defaults,lr-budget,distortion
@@ -225,6 +226,38 @@ def table(results: list[dict], scenes: list[str], synthetic: list[str], budget: 
     return "\n".join(parts)
 
 
+def plot(results: list[dict], scenes: list[str], path: Path) -> bool:
+    """PSNR change against ``defaults`` per configuration and scene, one panel per split (``path``, a PNG);
+    False without matplotlib (the ``bench`` extra)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed (the 'bench' extra): no plot", file=sys.stderr)
+        return False
+    by = {(r["scene"], r["config"]): split_scores(r["report"]["metrics"] or {}) for r in results}
+    configs = [c for c in CONFIGS if c != BASELINE and any((s, c) in by for s in scenes)]
+    fig, axes = plt.subplots(1, len(SPLITS), figsize=(6 * len(SPLITS), 0.45 * len(configs) + 1.5), sharey=True)
+    width = 0.8 / max(len(scenes), 1)
+    for ax, split in zip(axes, SPLITS, strict=True):
+        for j, scene in enumerate(scenes):
+            base = by.get((scene, BASELINE), {}).get(split, {}).get("psnr")
+            deltas = [by.get((scene, c), {}).get(split, {}).get("psnr") for c in configs]
+            values = [d - base if d is not None and base is not None else 0.0 for d in deltas]
+            ax.barh([i + j * width for i in range(len(configs))], values, height=width, label=scene)
+        ax.axvline(0.0, color="black", linewidth=0.8)
+        ax.set_title(f"{split}: PSNR minus {BASELINE} (dB)")
+        ax.set_yticks([i + 0.4 - width / 2 for i in range(len(configs))], configs)
+        ax.invert_yaxis()
+    axes[-1].legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True)
@@ -269,6 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     command = ".venv/bin/python benchmarks/suite.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     text = table(results, scenes, synthetic, args.budget, command)
     publish(args.out, {"results": results, "command": command}, text, DOCS_PAGE, DOCS_SECTION, args.write_docs)
+    plot(results, scenes, args.out / "suite.png")
     return 0
 
 
