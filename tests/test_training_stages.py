@@ -112,3 +112,21 @@ def test_the_compile_stage_keeps_inductors_cache_beside_the_kernels_unless_told(
     stages.compile_stage(TrainConfig(max_iters=1), lambda x: x)
     assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine")
     assert stages.compile_stage(TrainConfig(max_iters=1, compile=False), lambda x: x).record.why.startswith("disabled")
+
+
+def test_the_training_mean_background_is_the_mean_colour_of_the_training_images():
+    images = [np.full((2, 2, 3), 255, np.uint8), np.zeros((2, 2, 3), np.uint8), np.full((2, 2, 3), 51, np.uint8)]
+    scene = SimpleNamespace(train_indices=[0, 2], images=images)
+    assert stages.training_mean_colour(scene) == pytest.approx((0.6, 0.6, 0.6))
+
+
+def test_an_unresolved_training_mean_background_is_refused_when_rendering():
+    from voxnerf.model import VoxNeRFModel
+    from voxnerf.scene import SceneTransform
+
+    cfg = TrainConfig(max_iters=1, hash_levels=2, hash_log2_size=10, hash_max_resolution=32, hidden_dim=8,
+                      background="training_mean")
+    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), torch.tensor([[-1.0] * 3, [1.0] * 3]),
+                                None, torch.device("cpu"))
+    with pytest.raises(ValueError, match="resolved to a colour by the trainer"):
+        _ = model.background

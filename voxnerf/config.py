@@ -160,7 +160,11 @@ class TrainConfig(BaseModel):
     )
     occgrid_resolution: int = Field(default=64, ge=8)
     occgrid_update_every: int = Field(default=32, ge=1)
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    background: tuple[float, float, float] | Literal["training_mean"] = Field(
+        default=(0.0, 0.0, 0.0),
+        description="colour behind the last sample of every ray (sRGB in [0, 1]), or 'training_mean': the mean "
+        "colour of the training images, fixed when training starts (what space no training view saw shows)",
+    )
     eval_every_s: float = Field(default=60.0, gt=0, description="training seconds between progress evaluations")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
     eval_at: list[float] = Field(

@@ -86,6 +86,9 @@ class VoxNeRFModel:
 
     @property
     def background(self) -> Tensor:
+        if isinstance(self.config.background, str):
+            raise ValueError(f"background {self.config.background!r} is resolved to a colour by the trainer "
+                             "(voxnerf.training.stages.model_stage)")
         return torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
 
     def sampler(self) -> UniformSampler | OccGridSampler | VoxNeRFSampler:

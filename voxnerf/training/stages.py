@@ -186,6 +186,15 @@ class ModelStage:
     resumed: bool = False
 
 
+def training_mean_colour(scene: Scene) -> tuple[float, float, float]:
+    """The mean sRGB colour (in [0, 1]) of the scene's training images."""
+    total = np.zeros(3)
+    for i in scene.train_indices:
+        total += scene.images[i].reshape(-1, 3).mean(0)
+    mean = total / max(len(scene.train_indices), 1) / 255.0
+    return (float(mean[0]), float(mean[1]), float(mean[2]))
+
+
 APPEARANCE_LR_SCALE = 0.1  # the per-image corrections learn at a tenth of the field's rate
 
 
@@ -193,6 +202,8 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
                 previous: dict | None) -> ModelStage:
     transform, aabb = scene_box(scene, prior)
     prior_n = prior.transformed(np.asarray(transform.center), transform.scale) if prior is not None else None
+    if cfg.background == "training_mean":
+        cfg = cfg.model_copy(update={"background": training_mean_colour(scene)})
     model = VoxNeRFModel.create(cfg, transform, torch.from_numpy(aabb).float(), None, device)
     if prior_n is not None and cfg.sampler != "uniform" and cfg.occgrid_seed:
         model.grid.seed_from_points(torch.from_numpy(prior_n.points).float().to(device))
