@@ -120,7 +120,7 @@ def test_the_training_mean_background_is_the_mean_colour_of_the_training_images(
     assert stages.training_mean_colour(scene) == pytest.approx((0.6, 0.6, 0.6))
 
 
-def test_an_unresolved_training_mean_background_is_refused_when_rendering():
+def test_an_unresolved_training_mean_background_shows_black():
     from voxnerf.model import VoxNeRFModel
     from voxnerf.scene import SceneTransform
 
@@ -128,5 +128,4 @@ def test_an_unresolved_training_mean_background_is_refused_when_rendering():
                       background="training_mean")
     model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), torch.tensor([[-1.0] * 3, [1.0] * 3]),
                                 None, torch.device("cpu"))
-    with pytest.raises(ValueError, match="resolved to a colour by the trainer"):
-        _ = model.background
+    assert model.background.tolist() == [0.0, 0.0, 0.0]

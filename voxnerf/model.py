@@ -86,10 +86,11 @@ class VoxNeRFModel:
 
     @property
     def background(self) -> Tensor:
-        if isinstance(self.config.background, str):
-            raise ValueError(f"background {self.config.background!r} is resolved to a colour by the trainer "
-                             "(voxnerf.training.stages.model_stage)")
-        return torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
+        """[3] the colour behind every ray. ``'training_mean'`` is resolved to a colour by the trainer
+        (:func:`voxnerf.training.stages.model_stage`; checkpoints hold the colour); a model built without
+        training images, where it is still the name, shows black."""
+        colour = (0.0, 0.0, 0.0) if isinstance(self.config.background, str) else self.config.background
+        return torch.tensor(colour, dtype=torch.float32, device=self.device)
 
     def sampler(self) -> UniformSampler | OccGridSampler | VoxNeRFSampler:
         n = self.config.samples_per_ray
