@@ -57,6 +57,7 @@ CONFIGS: dict[str, dict] = {
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "background-gray": {"background": [0.5, 0.5, 0.5]},
     "background-mean": {"background": "training_mean"},
+    "background-black": {"background": [0.0, 0.0, 0.0]},
     "samples-4-2": {"n_importance": 4, "n_rest": 2},
     "rays-4096": {"rays_per_batch": 4096},
     "table-2^18": {"hash_log2_size": 18},
