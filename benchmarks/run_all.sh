@@ -72,6 +72,13 @@ fi
 REDKITCHEN=${REDKITCHEN:-$ROOT/../shared/data/redkitchen}
 RK=()
 [ -f "$REDKITCHEN/transforms.json" ] && [ ${#QUICK[@]} -eq 0 ] && RK=(--redkitchen "$REDKITCHEN")
-log "tuning suite, budget $SWEEP_BUDGET s per run (${RK[*]:-no redkitchen})"
-"$PY" benchmarks/suite.py --budget "$SWEEP_BUDGET" "${RK[@]}" "${QUICK[@]}" --out "$OUT/suite"
+# The suite's baseline rows only (every configuration of benchmarks/suite.py on every scene is hours more);
+# SUITE_CONFIGS overrides the list.
+SUITE_CONFIGS=${SUITE_CONFIGS:-defaults,occgrid-seeded,occgrid-density,background-mean}
+log "tuning suite ($SUITE_CONFIGS), budget $SWEEP_BUDGET s per run (${RK[*]:-no redkitchen})"
+if [ ${#QUICK[@]} -gt 0 ]; then
+    "$PY" benchmarks/suite.py --quick --out "$OUT/suite"
+else
+    "$PY" benchmarks/suite.py --budget "$SWEEP_BUDGET" "${RK[@]}" --configs "$SUITE_CONFIGS" --out "$OUT/suite"
+fi
 log "done: tables in $OUT/evr/table.md, $OUT/samples/samples.md, $OUT/noise/prior_noise.md, $OUT/suite/table.md"

@@ -118,3 +118,14 @@ def test_prior_rays_to_unseen_surfaces_are_pulled_to_the_mean_colour_with_their_
     _, lc, _, _, _ = make_loss_fn(_StubModel(), TrainConfig(max_iters=1), 0.1, 0, 8, 4)(*args)
     err = ((starts.mean(-1, keepdim=True) - target_rgb) ** 2).mean(-1)
     torch.testing.assert_close(lc, (err[:8].sum() + 0.5 * (err[8] + err[10])) / 8)
+
+
+@pytest.mark.parametrize(("prior_rays", "has_prior", "use_depth", "why"), [
+    (0, True, True, "prior_rays 0"), (64, False, True, "no prior"), (64, True, False, "no depth loss")])
+def test_the_prior_rays_stage_says_why_it_did_not_run(prior_rays, has_prior, use_depth, why):
+    from voxnerf.training.stages import prior_rays_stage
+
+    cfg = TrainConfig(max_iters=1, prior_rays=prior_rays)
+    stage = prior_rays_stage(cfg, _box_prior() if has_prior else None, use_depth, None, None, None,
+                             torch.device("cpu"))
+    assert stage.bank is None and not stage.record.ran and stage.record.why == why
