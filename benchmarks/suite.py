@@ -37,6 +37,8 @@ from pathlib import Path
 from docs_section import publish
 from error_vs_runtime import QUICK_TRAIN_ARGS, train_command
 
+from voxnerf.image_io import write_atomic
+
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 DOCS_SECTION = "suite"
 REDKITCHEN = "redkitchen"
@@ -90,8 +92,8 @@ def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, 
     cmd = train_command(scene_dir, run, budget, eval_at, flags)
     command = "voxnerf " + shlex.join(cmd[3:])
     done = run / "suite-run.json"
-    if done.is_file() and json.loads(done.read_text()).get("command") == command:
-        return json.loads(done.read_text())
+    if (finished := _finished(done)) is not None and finished.get("command") == command:
+        return finished
     if "--no-compile" not in extra:
         _run(train_command(scene_dir, run.parent / f".warm-{config}", budget, [],
                            [*flags, "--max-iters", "1", "--set", "final_eval=false"]))
@@ -102,8 +104,16 @@ def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, 
                                         "wall_seconds")}
     result = {"scene": scene, "config": config, "command": command, "wall_s": time.perf_counter() - t0,
               "report": keep}
-    done.write_text(json.dumps(result))
+    write_atomic(done, json.dumps(result).encode())
     return result
+
+
+def _finished(path: Path) -> dict | None:
+    """A finished run's record, or None (absent or unreadable: the run is made again)."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def _run(cmd: list[str]) -> None:

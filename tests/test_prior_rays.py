@@ -12,6 +12,7 @@ from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree
 from voxnerf.prior import GeometryPrior
 from voxnerf.pseudo_depth import PriorDepthRenderer
+from voxnerf.samplers import RayBundle
 from voxnerf.scene import SceneTransform
 from voxnerf.training.prior_rays import PriorRayBank, bank_size, camera_centre_rays, prior_ray_bank, seen_by
 from voxnerf.training.step import make_loss_fn
@@ -45,10 +46,11 @@ def test_the_bank_keeps_rays_that_hit_the_prior_with_its_distance_and_first_hits
     renderer = PriorDepthRenderer(prior, octree)
     bank = prior_ray_bank(torch.zeros(1, 3), _model(), renderer, octree, 2000)
     assert 1900 <= len(bank) <= 2000  # from the centre every direction meets a face of the box
-    exit_t = 0.8 / bank.dirs.abs().amax(-1)  # where each ray leaves the box from its centre
+    exit_t = 0.8 / bank.rays.dirs.abs().amax(-1)  # where each ray leaves the box from its centre
     torch.testing.assert_close(bank.target_t, exit_t, atol=1e-3, rtol=0)
-    assert bool(bank.hit.float().mean() > 0.95)
-    assert float((bank.hit_t[bank.hit] - bank.target_t[bank.hit]).abs().median()) < 0.05  # within a leaf
+    assert bool(bank.rays.hit.float().mean() > 0.95)
+    hit = bank.rays.hit
+    assert float((bank.rays.hit_t[hit] - bank.target_t[hit]).abs().median()) < 0.05  # within a leaf
 
 
 def test_a_bank_that_never_meets_the_prior_is_empty():
@@ -61,8 +63,9 @@ def test_a_bank_that_never_meets_the_prior_is_empty():
 
 def test_draws_come_with_their_first_hits_and_the_bank_size_is_bounded():
     n = 10
-    bank = PriorRayBank(torch.zeros(n, 3), torch.eye(3).repeat(4, 1)[:n], torch.zeros(n), torch.ones(n),
-                        torch.arange(n).float(), torch.arange(n).float() - 0.5, torch.ones(n, dtype=torch.bool))
+    rays = RayBundle(torch.zeros(n, 3), torch.eye(3).repeat(4, 1)[:n], torch.zeros(n), torch.ones(n),
+                     torch.arange(n).float() - 0.5, torch.ones(n, dtype=torch.bool))
+    bank = PriorRayBank(rays, torch.arange(n).float())
     rays, target, unseen = bank.draw(64, torch.Generator().manual_seed(0))
     assert len(rays) == 64 and torch.equal(rays.hit_t, target - 0.5) and unseen is None
     assert bank_size(512) == 65_536 and bank_size(10**6) == 524_288

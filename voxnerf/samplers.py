@@ -47,7 +47,10 @@ class RayBundle:
 
     def slice(self, start: int, stop: int) -> RayBundle:
         """Rays ``start:stop`` (views of this bundle's tensors)."""
-        rows = slice(start, stop)
+        return self.take(slice(start, stop))
+
+    def take(self, rows: slice | Tensor) -> RayBundle:
+        """The rays ``rows`` selects (a slice, a bool mask or int64 indices), first hits included."""
         hits = (None, None) if self.hit_t is None or self.hit is None else (self.hit_t[rows], self.hit[rows])
         return RayBundle(self.origins[rows], self.dirs[rows], self.near[rows], self.far[rows], *hits)
 

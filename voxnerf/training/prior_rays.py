@@ -27,28 +27,22 @@ MAX_BANK = 524_288
 
 @dataclass
 class PriorRayBank:
-    """Rays cast once at set-up, all normalised units: origins, dirs (unit) [M, 3]; near, far [M]; target_t [M]
-    the prior's ray distance; hit_t [M] / hit [M] the sampler octree's first hits (None without an octree)."""
+    """Rays cast once at set-up (normalised units; the sampler octree's first hits attached when there is one),
+    ``target_t`` [M] the prior's ray distance along each, ``unseen`` [M] bool whether no training view sees the
+    ray's surface point (None: not computed)."""
 
-    origins: Tensor
-    dirs: Tensor
-    near: Tensor
-    far: Tensor
+    rays: RayBundle
     target_t: Tensor
-    hit_t: Tensor | None = None
-    hit: Tensor | None = None
-    unseen: Tensor | None = None  # [M] bool: no training view sees the ray's surface point (None: not computed)
+    unseen: Tensor | None = None
 
     def __len__(self) -> int:
-        return self.origins.shape[0]
+        return len(self.rays)
 
     def draw(self, n: int, gen: torch.Generator) -> tuple[RayBundle, Tensor, Tensor | None]:
         """``n`` rays drawn uniformly (with replacement): the bundle (first hits attached), their targets and
         their ``unseen`` flags."""
-        idx = torch.randint(0, len(self), (n,), generator=gen, device=self.origins.device)
-        hits = (None, None) if self.hit_t is None or self.hit is None else (self.hit_t[idx], self.hit[idx])
-        rays = RayBundle(self.origins[idx], self.dirs[idx], self.near[idx], self.far[idx], *hits)
-        return rays, self.target_t[idx], None if self.unseen is None else self.unseen[idx]
+        idx = torch.randint(0, len(self), (n,), generator=gen, device=self.target_t.device)
+        return self.rays.take(idx), self.target_t[idx], None if self.unseen is None else self.unseen[idx]
 
 
 def camera_centre_rays(centres: Tensor, n: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
@@ -69,12 +63,11 @@ def prior_ray_bank(centres: Tensor, model: VoxNeRFModel, renderer: PriorDepthRen
     gen = torch.Generator(device=centres.device).manual_seed(seed)
     rays = model.ray_bundle(*camera_centre_rays(centres, n, gen))
     t, ok = renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
-    ok = ok & torch.isfinite(t)
-    kept = RayBundle(rays.origins[ok], rays.dirs[ok], rays.near[ok], rays.far[ok])
-    bank = PriorRayBank(kept.origins, kept.dirs, kept.near, kept.far, t[ok])
-    if octree is not None and len(bank):
-        bank.hit_t, bank.hit = octree.first_hit(kept.origins, kept.dirs, kept.near, kept.far, t_hint=bank.target_t)
-    return bank
+    kept = rays.take(ok & torch.isfinite(t))
+    target_t = t[ok & torch.isfinite(t)]
+    if octree is not None and len(kept):
+        kept.hit_t, kept.hit = octree.first_hit(kept.origins, kept.dirs, kept.near, kept.far, t_hint=target_t)
+    return PriorRayBank(kept, target_t)
 
 
 def bank_size(prior_rays: int) -> int:

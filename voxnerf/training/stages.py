@@ -330,7 +330,7 @@ def prior_rays_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, use_depth:
            f"{len(bank)} of {wanted} random rays hit the prior")
     if cfg.prior_ray_colour > 0:
         depth = pixels.depth_t if pixels.depth_t is not None else pixels.pseudo_t
-        points = bank.origins + bank.target_t[:, None] * bank.dirs
+        points = bank.rays.origins + bank.target_t[:, None] * bank.rays.dirs
         tolerance = UNSEEN_TOLERANCE_LEAVES * (octree.leaf_size if octree is not None else prior_n.sigma)
         bank.unseen = ~seen_by(points, pixels.c2w, pixels.intr, depth, tolerance)
         why += f"; {float(bank.unseen.float().mean()):.1%} meet surfaces no training view sees (mean-colour term)"
