@@ -163,6 +163,7 @@ INTERNAL_TRAIN_FIELDS = frozenset(
         "prior_rays",
         "prior_ray_colour",
         "background",
+        "train_background",
         "eval_views",
         "final_eval",
     }

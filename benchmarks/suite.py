@@ -60,6 +60,8 @@ CONFIGS: dict[str, dict] = {
     "background-gray": {"background": [0.5, 0.5, 0.5]},
     "background-mean": {"background": "training_mean"},
     "background-black": {"background": [0.0, 0.0, 0.0]},
+    "random-bg-mean": {"train_background": "random", "background": "training_mean"},
+    "random-bg": {"train_background": "random"},
     "samples-4-2": {"n_importance": 4, "n_rest": 2},
     "rays-4096": {"rays_per_batch": 4096},
     "table-2^18": {"hash_log2_size": 18},

@@ -110,3 +110,16 @@ def test_background_follows_the_config():
     model = _model()
     assert model.background.tolist() == [0.0, 0.0, 0.0]
     assert math.isclose(model.transform.scale, 0.25)
+
+
+def test_render_samples_composites_over_a_given_background_else_the_models():
+    model = _model()
+    origins, dirs = torch.zeros(2, 3), torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    starts = torch.linspace(0.0, 0.01, 3).expand(2, 3).contiguous()  # a short stretch: mostly transparent
+    ends = starts + 0.001
+    with torch.no_grad():
+        black = model.render_samples(origins, dirs, starts, ends)
+        white = model.render_samples(origins, dirs, starts, ends, torch.ones(2, 3))
+    residual = (1.0 - black["opacity"])[:, None]
+    assert float(residual.min()) > 0.5
+    torch.testing.assert_close(white["rgb"], black["rgb"] + residual)

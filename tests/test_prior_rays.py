@@ -77,7 +77,7 @@ class _StubModel:
 
         self.transform = SimpleNamespace(scale=1.0)
 
-    def render_samples(self, origins, dirs, starts, ends):
+    def render_samples(self, origins, dirs, starts, ends, background=None):
         return {"rgb": starts.mean(-1, keepdim=True).expand(-1, 3), "depth": starts[:, 0]}
 
 

@@ -11,6 +11,7 @@ import torch
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
 from voxnerf.losses import color_loss
+from voxnerf.samplers import RayBundle
 from voxnerf.training.pixels import TrainingPixels
 from voxnerf.training.step import PAPER_BETA, Batch, Losses, TrainStep, divergence_guard, make_loss_fn
 
@@ -22,8 +23,11 @@ class StubModel:
         self.transform = SimpleNamespace(scale=scale)
         self.depth_scale = depth_scale
 
-    def render_samples(self, origins, dirs, starts, ends):
-        return {"rgb": starts.mean(-1, keepdim=True).expand(-1, 3), "depth": starts[:, 0] * self.depth_scale}
+    def render_samples(self, origins, dirs, starts, ends, background=None):
+        rgb = starts.mean(-1, keepdim=True).expand(-1, 3)
+        if background is not None:  # as if half transparent
+            rgb = 0.5 * rgb + 0.5 * background
+        return {"rgb": rgb, "depth": starts[:, 0] * self.depth_scale}
 
     def ray_bundle(self, origins, dirs):
         return SimpleNamespace(origins=origins, dirs=dirs)
@@ -136,6 +140,35 @@ def test_a_batch_carries_rays_samples_and_targets(with_caches):
         assert batch.target_beta.shape == (rays,)
     else:
         assert batch.target_t is None and batch.target_ok is None and batch.target_beta is None
+
+
+@pytest.mark.parametrize("with_prior_rays", [False, True])
+def test_a_random_training_background_is_one_colour_per_ray_and_step(with_prior_rays):
+    def sampler(rays, training):
+        return torch.zeros(len(rays.origins), 4), torch.ones(len(rays.origins), 4)
+
+    cfg = TrainConfig(max_iters=1, rays_per_batch=32, train_background="random", prior_rays=4)
+    bank = None
+    if with_prior_rays:
+        rays = RayBundle(torch.zeros(4, 3), torch.ones(4, 3), torch.zeros(4), torch.ones(4))
+        bank = SimpleNamespace(draw=lambda n, gen: (rays, torch.ones(4), None))
+    step = TrainStep(StubModel(), StubOptimizer([]), _pixels(True), cfg, None, True, sampler,
+                     torch.Generator().manual_seed(0), prior_rays=bank)
+    first, second = step.batch().background, step.batch().background
+    assert first.shape == (len(step.batch().origins), 3) and first.shape[0] == 32 + 4 * with_prior_rays
+    assert float(first.min()) >= 0.0 and float(first.max()) <= 1.0 and not torch.equal(first, second)
+    fixed = TrainStep(StubModel(), StubOptimizer([]), _pixels(True), TrainConfig(max_iters=1, rays_per_batch=32),
+                      None, True, sampler, torch.Generator().manual_seed(0))
+    assert fixed.batch().background is None
+
+
+def test_the_colour_loss_composites_over_the_batch_background():
+    cfg = TrainConfig(max_iters=1)
+    args = _inputs(16, with_depth=False)
+    background = torch.rand(16, 3)
+    _, lc, *_ = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(*args, None, background)
+    expected = color_loss(0.5 * args[2].mean(-1, keepdim=True).expand(-1, 3) + 0.5 * background, args[4])
+    assert float(lc.detach()) == pytest.approx(float(expected.detach()))
 
 
 def test_losses_zero_the_gradients_then_backpropagate_and_apply_steps():

@@ -168,6 +168,12 @@ class TrainConfig(BaseModel):
         "suite but left seen surfaces translucent (exported meshes far less complete), so black stays the "
         "default (docs/benchmarks.md, 'The tuning suite')",
     )
+    train_background: Literal["fixed", "random"] = Field(
+        default="fixed",
+        description="the colour behind each training ray: 'fixed' is ``background``; 'random' a uniform random "
+        "colour per ray and step, so a ray matches its pixel only where the field is opaque (seen surfaces "
+        "cannot stay translucent); renders still show ``background``",
+    )
     eval_every_s: float = Field(default=60.0, gt=0, description="training seconds between progress evaluations")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
     eval_at: list[float] = Field(

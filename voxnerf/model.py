@@ -109,13 +109,16 @@ class VoxNeRFModel:
         far = torch.maximum(t_out, near + 1e-6)
         return RayBundle(origins, dirs, near, far)
 
-    def render_samples(self, origins: Tensor, dirs: Tensor, starts: Tensor, ends: Tensor) -> dict[str, Tensor]:
-        """Evaluate the field on intervals [R, S] of rays origins, dirs [R, 3] and composite them."""
+    def render_samples(self, origins: Tensor, dirs: Tensor, starts: Tensor, ends: Tensor,
+                       background: Tensor | None = None) -> dict[str, Tensor]:
+        """Evaluate the field on intervals [R, S] of rays origins, dirs [R, 3] and composite them over
+        ``background`` ([3] or [R, 3]; default the model's :attr:`background`)."""
         r, s = starts.shape
         mids = 0.5 * (starts + ends)
         positions = origins[:, None, :] + mids[..., None] * dirs[:, None, :]
         density, rgb = self.field(positions.reshape(-1, 3), dirs[:, None, :].expand(r, s, 3).reshape(-1, 3))
-        return volume_render(density.view(r, s), rgb.view(r, s, 3), starts, ends, self.background)
+        bg = self.background if background is None else background
+        return volume_render(density.view(r, s), rgb.view(r, s, 3), starts, ends, bg)
 
     def compiled_render_samples(self):
         """:meth:`render_samples` through ``torch.compile`` (built once per model; callers keep shapes fixed)."""

@@ -35,6 +35,7 @@ class Batch(NamedTuple):
     image: torch.Tensor
     depth_weight: torch.Tensor
     colour_weight: torch.Tensor | None = None  # [R] each ray's weight in the colour loss (None: image rays 1)
+    background: torch.Tensor | None = None  # [R, 3] each ray's background colour (None: the model's)
 
 
 class Losses(NamedTuple):
@@ -66,8 +67,8 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
     appearance = getattr(model, "appearance", None)
 
     def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight,
-                colour_weight=None):
-        out = model.render_samples(origins, dirs, starts, ends)
+                colour_weight=None, background=None):
+        out = model.render_samples(origins, dirs, starts, ends, background)
         n_image = origins.shape[0] - n_prior_rays
         rgb = out["rgb"][:n_image] if appearance is None else appearance(out["rgb"][:n_image], image[:n_image])
         if colour_weight is None:
@@ -135,8 +136,16 @@ class TrainStep:
         if pixels.depth_beta_scale is not None:
             target_beta = pixels.depth_beta_scale[img, py, px]
         batch = Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, img,
-                      self.depth_weight)
+                      self.depth_weight, background=self._random_background(len(img)))
         return batch if self.prior_rays is None or target_t is None else self._with_prior_rays(batch)
+
+    def _random_background(self, n: int) -> torch.Tensor | None:
+        """[n, 3] a uniform random colour behind each ray when ``train_background`` is 'random' (else None: the
+        model's background). A ray can then match its pixel only by turning opaque, so the field cannot make a
+        seen surface translucent and let the background tint it."""
+        if self.cfg.train_background != "random":
+            return None
+        return torch.rand(n, 3, generator=self.gen, device=self.gen.device)
 
     def _with_prior_rays(self, batch: Batch) -> Batch:
         """``batch`` with ``cfg.prior_rays`` prior rays appended (image 0, beta scale 1, colour target the training
@@ -154,7 +163,8 @@ class TrainStep:
                      torch.cat([batch.starts, starts]), torch.cat([batch.ends, ends]),
                      torch.cat([batch.target_rgb, colour]), torch.cat([batch.target_t, target_t]),
                      torch.cat([batch.target_ok, torch.ones_like(target_t, dtype=torch.bool)]), beta,
-                     torch.cat([batch.image, batch.image.new_zeros(n)]), batch.depth_weight, weight)
+                     torch.cat([batch.image, batch.image.new_zeros(n)]), batch.depth_weight, weight,
+                     None if batch.background is None else torch.cat([batch.background, self._random_background(n)]))
 
     def losses(self, batch: Batch) -> Losses:
         losses = Losses(*self.loss_fn(*batch))
