@@ -28,6 +28,7 @@ depth_sources = importlib.import_module("depth_sources")
 render_speed = importlib.import_module("render_speed")
 suite = importlib.import_module("suite")
 sample_placement = importlib.import_module("sample_placement")
+suite_geometry = importlib.import_module("suite_geometry")
 suite_rooms = importlib.import_module("voxnerf.synthetic.suite")
 
 pytestmark = pytest.mark.timeout(300)
@@ -345,6 +346,12 @@ def test_suite_quick_runs_every_config_on_every_room_and_reuses_finished_runs(tm
                                   "--max-views", "2", "--out", str(placement_table)]) == 0
     rows = [line for line in placement_table.read_text().splitlines() if line.startswith("| d")]
     assert [r.split(" | ")[0] for r in rows] == ["| defaults", "| distortion"] and "%" in rows[0]
+    geometry_table = out / "geometry.md"
+    assert suite_geometry.main(["--runs", str(out / "runs"), "--scene", "quick_plain", "--scene-dir",
+                                str(out / "scenes" / "quick_plain"), "--configs", "defaults,no-such-config",
+                                "--max-views", "1", "--voxel-size", "0.05", "--out", str(geometry_table)]) == 0
+    cells = geometry_table.read_text().splitlines()[-1].split(" | ")
+    assert cells[0] == "| defaults" and 0.0 <= float(cells[1]) <= 1.0 and all(float(c) >= 0 for c in cells[2:-1])
     stamp = (out / "runs" / "quick_plain" / "defaults" / "suite-run.json").stat().st_mtime_ns
     assert suite.main(["--quick", "--out", str(out), "--configs", "defaults"]) == 0  # reused, not trained again
     assert (out / "runs" / "quick_plain" / "defaults" / "suite-run.json").stat().st_mtime_ns == stamp
@@ -360,6 +367,11 @@ def test_suite_summary_compares_with_defaults_and_counts_losing_scenes() -> None
     rows = suite.summary_rows(results, ["a", "b"], "psnr")
     assert rows[0] == "| defaults | 2 | 27.50 | +0.00 | +0.00 | 0 | 19.00 | +0.00 | +0.00 | 0 |"
     assert rows[1] == "| distortion | 2 | 27.50 | +0.00 | -1.00 | 1 | 19.30 | +0.30 | +0.10 | 0 |"
+
+
+def test_suite_geometry_needs_a_true_mesh(tmp_path: Path, capsys) -> None:
+    assert suite_geometry.main(["--runs", str(tmp_path), "--scene", "x", "--scene-dir", str(tmp_path)]) == 2
+    assert "gt_mesh.ply: no true mesh" in capsys.readouterr().err
 
 
 def test_suite_refuses_unknown_configs(capsys) -> None:

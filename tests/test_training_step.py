@@ -157,7 +157,8 @@ def test_a_random_training_background_is_one_colour_per_ray_and_step(with_prior_
     first, second = step.batch().background, step.batch().background
     assert first.shape == (len(step.batch().origins), 3) and first.shape[0] == 32 + 4 * with_prior_rays
     assert float(first.min()) >= 0.0 and float(first.max()) <= 1.0 and not torch.equal(first, second)
-    fixed = TrainStep(StubModel(), StubOptimizer([]), _pixels(True), TrainConfig(max_iters=1, rays_per_batch=32),
+    fixed_cfg = TrainConfig(max_iters=1, rays_per_batch=32, train_background="fixed")
+    fixed = TrainStep(StubModel(), StubOptimizer([]), _pixels(True), fixed_cfg,
                       None, True, sampler, torch.Generator().manual_seed(0))
     assert fixed.batch().background is None
 

@@ -161,18 +161,16 @@ class TrainConfig(BaseModel):
     occgrid_resolution: int = Field(default=64, ge=8)
     occgrid_update_every: int = Field(default=32, ge=1)
     background: tuple[float, float, float] | Literal["training_mean"] = Field(
-        default=(0.0, 0.0, 0.0),
-        description="colour behind the last sample of every ray (sRGB in [0, 1]), or 'training_mean': the mean "
-        "colour of the training images, fixed when training starts. It is what a view shows where it looks at "
-        "space no training view saw: 'training_mean' gained 2.8-3.0 dB of extrapolation PSNR on the tuning "
-        "suite but left seen surfaces translucent (exported meshes far less complete), so black stays the "
-        "default (docs/benchmarks.md, 'The tuning suite')",
+        default="training_mean",
+        description="colour behind the last sample of every ray in renders (sRGB in [0, 1]), or 'training_mean': "
+        "the mean colour of the training images, fixed when training starts. It is what a view shows where it "
+        "looks at space no training view saw (docs/benchmarks.md, 'The tuning suite')",
     )
     train_background: Literal["fixed", "random"] = Field(
-        default="fixed",
-        description="the colour behind each training ray: 'fixed' is ``background``; 'random' a uniform random "
-        "colour per ray and step, so a ray matches its pixel only where the field is opaque (seen surfaces "
-        "cannot stay translucent); renders still show ``background``",
+        default="random",
+        description="the colour behind each training ray: 'random' a uniform random colour per ray and step, so a "
+        "ray matches its pixel only where the field is opaque (seen surfaces cannot stay translucent and let the "
+        "background tint them); 'fixed' the ``background`` (docs/benchmarks.md, 'The tuning suite')",
     )
     eval_every_s: float = Field(default=60.0, gt=0, description="training seconds between progress evaluations")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
