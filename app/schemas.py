@@ -164,6 +164,7 @@ INTERNAL_TRAIN_FIELDS = frozenset(
         "prior_ray_colour",
         "background",
         "train_background",
+        "setup_cache",
         "eval_views",
         "final_eval",
     }

@@ -172,6 +172,11 @@ class TrainConfig(BaseModel):
         "ray matches its pixel only where the field is opaque (seen surfaces cannot stay translucent and let the "
         "background tint them); 'fixed' the ``background`` (docs/benchmarks.md, 'The tuning suite')",
     )
+    setup_cache: bool = Field(
+        default=True,
+        description="load the set-up's per-pixel ray casts (the prior's depth, the octree's first hits) from "
+        "$VOXNERF_CACHE/setup when an earlier run cast the same rays against the same geometry with the same code",
+    )
     eval_every_s: float = Field(default=60.0, gt=0, description="training seconds between progress evaluations")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
     eval_at: list[float] = Field(

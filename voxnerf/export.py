@@ -5,7 +5,8 @@ the scene box along :data:`OFFSET_DIRECTIONS` (its own right/left/up/down, same 
 pinhole (lenses left out) at the trained resolution, scaled down so that its longer side is at most
 :data:`MAX_RENDER_SIDE` pixels, rendered with :func:`voxnerf.render.render` (rgb, z-depth in scene units,
 opacity). Pixels with opacity below ``min_opacity``, or any non-finite output, carry no surface. Colours are the
-rendered rgb as trained (composited over the model's background, which is what was fitted to the images).
+rendered rgb (composited over the model's background; a surface a training view saw is opaque, so it shows
+little of it).
 (An orbit looking inward at the cameras' centre was left out: inside a room it crosses the unobserved middle,
 whose floaters put its depth decimetres off; docs/engine.md, Geometry export.)
 
@@ -197,8 +198,7 @@ def export_views(scene: Scene, extent: float, max_views: int | None = None) -> l
 
 def render_view(trained: TrainedModel, camera: ExportView, min_opacity: float) -> DepthView:
     """Render ``camera``: depth float32 [H, W] scene units, NaN where no surface (opacity below ``min_opacity``
-    or any non-finite output); rgb uint8 [H, W, 3] as rendered (composited over the model's background, as it
-    was trained to match the images)."""
+    or any non-finite output); rgb uint8 [H, W, 3] as rendered (composited over the model's background)."""
     images = render(trained, camera.c2w, camera.intrinsics, OUTPUTS)
     depth, opacity, rgb = images["depth"], images["opacity"], images["rgb"]
     surface = (np.isfinite(depth) & (depth > 0) & np.isfinite(opacity) & (opacity >= min_opacity)

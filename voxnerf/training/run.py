@@ -208,7 +208,7 @@ def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: st
         report.depth = target.summary
     events.stage(target.record, iteration)
     run.stop_point()
-    hits = stages.first_hit_stage(tree.octree, pixels, built.model)
+    hits = stages.first_hit_stage(tree.octree, pixels, built.model, cfg.setup_cache)
     pixels.hit_t, pixels.hit = hits.hit_t, hits.hit
     events.stage(hits.record, iteration)
     run.stop_point()

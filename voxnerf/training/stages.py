@@ -28,6 +28,7 @@ from voxnerf.octree import SparseVoxelOctree, coverage_octree
 from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
 from voxnerf.scene import Scene, SceneTransform, load_scene, read_depth_map
+from voxnerf.training import setup_cache
 from voxnerf.training.pixels import TrainingPixels, per_pixel, sensor_ray_distance
 from voxnerf.training.prior_rays import PriorRayBank, bank_size, prior_ray_bank, seen_by
 from voxnerf.training.records import EvalRecord, StageRecord
@@ -281,26 +282,57 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
         why = ("depth loss disabled" if not cfg.depth_loss else "depth_source 'none'" if cfg.depth_source == "none"
                else "no prior to render depth from")
         return PseudoDepthStage(_record("pseudo_depth", False, why, t0), None)
-    renderer = prior_depth_renderer(prior_n, octree, device)
-    pseudo_t, _ = per_pixel(
-        pixels, model, lambda rays, _: renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
-    )
+    depth_svo = prior_depth_octree(prior_n, octree, device)
+    inputs = [*pixel_rays_key(pixels, model), *prior_key(prior_n), octree_key(depth_svo)]
+
+    def cast() -> tuple[torch.Tensor, torch.Tensor]:
+        renderer = PriorDepthRenderer(prior_n, depth_svo)
+        return per_pixel(pixels, model, lambda rays, _: renderer.ray_distance(rays.origins, rays.dirs, rays.near,
+                                                                              rays.far))
+
+    (pseudo_t, _), loaded = setup_cache.cached_per_pixel("pseudo_depth", inputs, pixels.shape, device, cast,
+                                                         cfg.setup_cache)
     valid = float(torch.isfinite(pseudo_t).float().mean())
     warning = None
     if valid < MIN_PRIOR_COVERAGE:
         warning = (f"{scene.prior_path.name}: only {valid:.1%} of training pixels see the prior; check its units, "
                    "placement and prior_sigma")
-    why = f"depth loss: prior ray-cast for every training pixel ({valid:.1%} valid)"
+    why = f"depth loss: prior ray-cast for every training pixel ({valid:.1%} valid){FROM_CACHE if loaded else ''}"
     return PseudoDepthStage(_record("pseudo_depth", True, why, t0), pseudo_t, warning)
+
+
+FROM_CACHE = "; loaded from the set-up cache"
+
+
+def pixel_rays_key(pixels: TrainingPixels, model: VoxNeRFModel) -> list:
+    """What fixes the rays of every training pixel (:func:`per_pixel`), for :mod:`setup_cache` keys."""
+    lens = None if pixels.lens is None else (pixels.lens.coeffs, pixels.lens.codes)
+    table = None if pixels.directions is None else (pixels.directions.dirs, pixels.directions.camera)
+    return [pixels.shape, pixels.c2w, pixels.intr, lens, table, model.aabb]
+
+
+def prior_key(prior_n: GeometryPrior) -> list:
+    mesh = None if prior_n.mesh is None else (np.asarray(prior_n.mesh.vertices), np.asarray(prior_n.mesh.faces))
+    return [prior_n.kind, prior_n.points, mesh, float(prior_n.sigma)]
+
+
+def octree_key(octree: SparseVoxelOctree | None) -> dict | None:
+    return None if octree is None else octree.state_dict()
+
+
+def prior_depth_octree(prior_n: GeometryPrior, octree: SparseVoxelOctree | None,
+                       device: torch.device) -> SparseVoxelOctree:
+    """The octree the prior's depth is cast through: leaves of the prior's sigma (the paper's) give the most
+    accurate point-cloud depths, whatever leaf the sampler's octree settled on."""
+    if octree is not None and octree.leaf_size == prior_n.sigma:
+        return octree
+    return SparseVoxelOctree.from_points(torch.from_numpy(prior_n.points).float().to(device), prior_n.sigma)
 
 
 def prior_depth_renderer(prior_n: GeometryPrior, octree: SparseVoxelOctree | None,
                          device: torch.device) -> PriorDepthRenderer:
-    """The prior's depth along rays (normalised frame). Leaves of the prior's sigma (the paper's) give the most
-    accurate point-cloud depths, whatever leaf the sampler's octree settled on."""
-    depth_svo = octree if octree is not None and octree.leaf_size == prior_n.sigma else (
-        SparseVoxelOctree.from_points(torch.from_numpy(prior_n.points).float().to(device), prior_n.sigma))
-    return PriorDepthRenderer(prior_n, depth_svo)
+    """The prior's depth along rays (normalised frame), through :func:`prior_depth_octree`."""
+    return PriorDepthRenderer(prior_n, prior_depth_octree(prior_n, octree, device))
 
 
 UNSEEN_TOLERANCE_LEAVES = 3  # a view sees a prior ray's surface point where its depth target is this close
@@ -453,18 +485,23 @@ class FirstHitStage:
     hit: torch.Tensor | None = None  # [N, H, W] bool
 
 
-def first_hit_stage(octree: SparseVoxelOctree | None, pixels: TrainingPixels, model: VoxNeRFModel) -> FirstHitStage:
+def first_hit_stage(octree: SparseVoxelOctree | None, pixels: TrainingPixels, model: VoxNeRFModel,
+                    use_cache: bool = True) -> FirstHitStage:
     t0 = time.perf_counter()
     if octree is None:
         return FirstHitStage(_record("first_hit_cache", False, "no octree", t0))
     # The pseudo depth, where there is one, tells the search where to stop first (same result, less work).
     hint = pixels.pseudo_t.view(-1) if pixels.pseudo_t is not None else None
-    hit_t, hit = per_pixel(
-        pixels, model, lambda rays, index: octree.first_hit(
-            rays.origins, rays.dirs, rays.near, rays.far, t_hint=None if hint is None else hint[index]
-        )
-    )
-    why = f"octree first hit of every training pixel ({float(hit.float().mean()):.1%} hit)"
+
+    def cast() -> tuple[torch.Tensor, torch.Tensor]:
+        return per_pixel(pixels, model, lambda rays, index: octree.first_hit(
+            rays.origins, rays.dirs, rays.near, rays.far, t_hint=None if hint is None else hint[index]))
+
+    inputs = [*pixel_rays_key(pixels, model), octree_key(octree), hint]
+    (hit_t, hit), loaded = setup_cache.cached_per_pixel("first_hit", inputs, pixels.shape, pixels.images.device,
+                                                        cast, use_cache)
+    why = (f"octree first hit of every training pixel ({float(hit.float().mean()):.1%} hit)"
+           f"{FROM_CACHE if loaded else ''}")
     return FirstHitStage(_record("first_hit_cache", True, why, t0), hit_t, hit)
 
 
