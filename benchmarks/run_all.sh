@@ -74,7 +74,7 @@ RK=()
 [ -f "$REDKITCHEN/transforms.json" ] && [ ${#QUICK[@]} -eq 0 ] && RK=(--redkitchen "$REDKITCHEN")
 # The suite's baseline rows only (every configuration of benchmarks/suite.py on every scene is hours more);
 # SUITE_CONFIGS overrides the list.
-SUITE_CONFIGS=${SUITE_CONFIGS:-defaults,occgrid-seeded,occgrid-density,background-mean}
+SUITE_CONFIGS=${SUITE_CONFIGS:-defaults,previous-defaults,occgrid-seeded,occgrid-density}
 log "tuning suite ($SUITE_CONFIGS), budget $SWEEP_BUDGET s per run (${RK[*]:-no redkitchen})"
 if [ ${#QUICK[@]} -gt 0 ]; then
     "$PY" benchmarks/suite.py --quick --out "$OUT/suite"
