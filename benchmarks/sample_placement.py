@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from suite import measure_runs, print_table
 
 from voxnerf.cameras import image_rays
 from voxnerf.render import load_model
@@ -81,14 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-views", type=int, default=10)
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
-    rows = []
-    for config in args.configs.split(","):
-        run = args.runs / args.scene / config
-        if not (run / "checkpoint.pt").is_file():
-            print(f"{run}: no checkpoint, skipped", file=sys.stderr)
-            continue
-        result = placement(run, args.scene_dir, args.split, args.downscale, args.max_views)
-        rows.append((config, result))
+    rows = measure_runs(args.runs, args.scene, args.configs,
+                        lambda run: placement(run, args.scene_dir, args.split, args.downscale, args.max_views))
     if not rows:
         return 1
     keys = list(rows[0][1])
@@ -96,10 +91,7 @@ def main(argv: list[str] | None = None) -> int:
             f"| config | {' | '.join(keys)} |\n| --- |" + " --- |" * len(keys) + "\n"
             + "\n".join(f"| {c} | " + " | ".join(f"{r[k]:.1%}" if "cm)" not in k else f"{r[k]:.1f}" for k in keys)
                         + " |" for c, r in rows))
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text + "\n")
-    return 0
+    return print_table(text, args.out)
 
 
 if __name__ == "__main__":

@@ -109,6 +109,27 @@ def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, 
     return result
 
 
+def measure_runs(runs: Path, scene: str, configs: str, measure) -> list[tuple[str, dict]]:
+    """``[(config, measure(run))]`` over the comma-separated ``configs``' runs of ``scene`` (``RUNS/<scene>/<config>``,
+    as :func:`run_one` leaves them); a run without a checkpoint is skipped, said on stderr."""
+    rows = []
+    for config in configs.split(","):
+        run = runs / scene / config
+        if not (run / "checkpoint.pt").is_file():
+            print(f"{run}: no checkpoint, skipped", file=sys.stderr)
+            continue
+        rows.append((config, measure(run)))
+    return rows
+
+
+def print_table(text: str, out: Path | None) -> int:
+    """Print ``text`` and write it to ``out`` (when given); 0 for the caller's exit status."""
+    print(text)
+    if out is not None:
+        out.write_text(text + "\n")
+    return 0
+
+
 def _finished(path: Path) -> dict | None:
     """A finished run's record, or None (absent or unreadable: the run is made again)."""
     try:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from suite import measure_runs, print_table
 
 from voxnerf.depth_fusion import DepthView, backproject
 from voxnerf.export import distances_to_mesh, export_geometry
@@ -84,20 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.scene_dir / "gt_mesh.ply").is_file():
         print(f"{args.scene_dir / 'gt_mesh.ply'}: no true mesh (only synthetic rooms have one)", file=sys.stderr)
         return 2
-    rows = []
-    for config in args.configs.split(","):
-        run = args.runs / args.scene / config
-        if not (run / "checkpoint.pt").is_file():
-            print(f"{run}: no checkpoint, skipped", file=sys.stderr)
-            continue
-        rows.append((config, geometry(run, args.scene_dir, args.voxel_size, args.max_views)))
-    if not rows:
-        return 1
-    text = table(args.scene, rows)
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text + "\n")
-    return 0
+    rows = measure_runs(args.runs, args.scene, args.configs,
+                        lambda run: geometry(run, args.scene_dir, args.voxel_size, args.max_views))
+    return print_table(table(args.scene, rows), args.out) if rows else 1
 
 
 if __name__ == "__main__":
