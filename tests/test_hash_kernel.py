@@ -84,6 +84,9 @@ def test_kernel_ops_pass_torch_library_checks():
     enc, x = _encoding(ENCODINGS[1]), _positions(300)
     args = (x, enc.table, enc.resolution, enc.dense_levels)
     torch.library.opcheck(hash_kernel.hash_encode, args)
+    grad_out = torch.randn(x.shape[0], enc.out_dim)
+    table = enc.table.detach()  # its own gradient (a second derivative) is not defined
+    torch.library.opcheck(hash_kernel.hash_encode_x_grad, (grad_out, x, table, enc.resolution, enc.dense_levels))
 
 
 def test_kernel_inside_torch_compile_matches_eager():
@@ -101,12 +104,44 @@ def test_kernel_inside_torch_compile_matches_eager():
     torch.testing.assert_close(g_compiled, g_eager)
 
 
-def test_positions_that_need_a_gradient_take_the_pytorch_path():
-    enc = _encoding(ENCODINGS[1])
+@pytest.mark.parametrize("spec", ENCODINGS)
+def test_kernel_position_gradient_matches_autograd_of_the_pytorch_encoding(spec):
+    enc, x = _encoding(spec), _positions()
+    grad_out = torch.randn(x.shape[0], enc.out_dim, generator=torch.Generator().manual_seed(4))
+    xr = x.clone().requires_grad_(True)
+    reference, ref_table = torch.autograd.grad(enc(xr), (xr, enc.table), grad_out)
     enc.use_kernel = True
-    x = _positions()[:100].clamp(0, 1).requires_grad_(True)
+    xk = x.clone().requires_grad_(True)
+    grad, grad_table = torch.autograd.grad(enc(xk), (xk, enc.table), grad_out)
+    assert reference.abs().sum() > 0
+    assert torch.equal(grad[200:261] == 0, reference[200:261] == 0)  # clamped axes (outside, infinite) get none
+    torch.testing.assert_close(grad, reference, rtol=1e-4, atol=1e-3)
+    torch.testing.assert_close(grad_table, ref_table, rtol=1e-5, atol=1e-5)
+
+
+def test_kernel_position_gradient_alone_leaves_the_table_out():
+    enc, x = _encoding(ENCODINGS[1]), _positions(300).clamp(0, 1)
+    enc.use_kernel = True
+    enc.table.requires_grad_(False)
+    x.requires_grad_(True)
     enc(x).sum().backward()
-    assert x.grad is not None and x.grad.abs().sum() > 0
+    assert x.grad is not None and x.grad.abs().sum() > 0 and enc.table.grad is None
+
+
+@pytest.mark.parametrize("threads", [1, 3, 64])
+def test_kernel_position_gradient_does_not_depend_on_the_thread_count(threads):
+    enc, x = _encoding(ENCODINGS[0]), _positions(1000)
+    enc.use_kernel = True
+    grad_out = torch.randn(x.shape[0], enc.out_dim, generator=torch.Generator().manual_seed(5))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        g1 = hash_kernel.hash_encode_x_grad(grad_out, x, enc.table, enc.resolution, enc.dense_levels)
+        torch.set_num_threads(threads)
+        g = hash_kernel.hash_encode_x_grad(grad_out, x, enc.table, enc.resolution, enc.dense_levels)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(g, g1)  # each point is one thread's, its sum over levels in one order
 
 
 def test_nan_positions_are_refused_with_a_clear_error():

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from voxnerf.errors import TrainingDiverged
+from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.training.budget import Budget
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
 from voxnerf.training.records import EvalRecord, TrainReport
@@ -20,6 +21,8 @@ class StubModel(torch.nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self.field = torch.nn.Linear(2, 2)
+        self.appearance = None
+        self.pose_refinement = None
 
 
 def _writer(tmp_path, model=None) -> CheckpointWriter:
@@ -49,6 +52,16 @@ def test_non_finite_weights_are_never_saved(tmp_path):
         model.field.weight[0, 0] = math.nan
     with pytest.raises(TrainingDiverged, match="weights became NaN/inf before iteration 8"):
         _writer(tmp_path, model)(8)
+    assert not (tmp_path / "checkpoint.pt").exists()
+
+
+def test_a_non_finite_pose_correction_is_never_saved(tmp_path):
+    model = StubModel()
+    model.pose_refinement = PoseRefinement(2)
+    with torch.no_grad():
+        model.pose_refinement.delta[1, 4] = math.inf
+    with pytest.raises(TrainingDiverged, match="weights became NaN/inf before iteration 3"):
+        _writer(tmp_path, model)(3)
     assert not (tmp_path / "checkpoint.pt").exists()
 
 

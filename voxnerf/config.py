@@ -11,6 +11,7 @@ SamplerName = Literal["voxnerf", "occgrid", "uniform"]
 DepthSource = Literal["auto", "sensor", "prior", "none"]
 LrSchedule = Literal["iterations", "budget"]
 Appearance = Literal["none", "affine"]
+PoseRefinementMode = Literal["none", "so3xr3"]
 MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
@@ -129,6 +130,18 @@ class TrainConfig(BaseModel):
         description="'affine': a colour gain and bias per channel and training image, learnt with the field "
         "(exposure and white balance that vary between frames); evaluation views get none, so compare such runs "
         "by the half-image metrics (docs/engine.md)",
+    )
+    pose_refinement: PoseRefinementMode = Field(
+        default="none",
+        description="'so3xr3': a rotation and a translation per training image, learnt with the field (nerfacto's "
+        "camera optimiser, voxnerf/pose_refinement.py) for scans whose poses are slightly off; evaluation views "
+        "keep their given poses; the report gives the corrections' size",
+    )
+    pose_lr: float = Field(default=6e-4, gt=0, description="learning rate of the pose corrections (nerfacto's)")
+    lambda_pose: float = Field(
+        default=1e-2, ge=0,
+        description="weight of the pose corrections' mean translation norm (normalised units) in the loss; a tenth "
+        "of it weighs their mean rotation (radians), as nerfacto's regulariser",
     )
     lambda_depth: float = Field(
         default=0.3, ge=0, description="lambda_d of the paper's total loss (no value in the paper; docs/performance.md)"

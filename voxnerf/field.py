@@ -70,8 +70,8 @@ class HashEncoding(nn.Module):
         # [levels * features] weight of each level's features (coarse-to-fine training ramps it up; all ones
         # otherwise, and always in a saved model: it is not part of the state dict).
         self.register_buffer("level_weight", torch.ones(levels * features), persistent=False)
-        # Set by voxnerf.model.field_for where voxnerf.hash_kernel is available: CPU float32 positions that need
-        # no gradient then go through its C kernel (the same features; a cheaper backward into the table).
+        # Set by voxnerf.model.field_for where voxnerf.hash_kernel is available: CPU float32 positions then go
+        # through its C kernel (the same features; a cheaper backward into the table, and the positions' own).
         self.use_kernel = False
 
     @property
@@ -89,7 +89,7 @@ class HashEncoding(nn.Module):
         Separable form: each axis contributes its lower/upper grid coordinate once ([N, L, 3, 2]); the 8 corner
         indices are their sums (dense levels) or XORs (hashed levels), and the trilinear blend is three lerps.
         """
-        if self.use_kernel and x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad:
+        if self.use_kernel and x.device.type == "cpu" and x.dtype == torch.float32:
             return hash_encode(x, self.table, self.resolution, self.dense_levels) * self.level_weight
         return self.encode(x) * self.level_weight
 

@@ -6,8 +6,8 @@ its own slice of the gradient without atomics while that slice sits in cache (do
 for the hash encoding", measures both).
 
 The kernel is plain C, built and loaded by :mod:`voxnerf.native`. Where it cannot be built (no compiler)
-:func:`available` is False and the field keeps its pure-PyTorch path; it is never used on CUDA or for positions
-that need a gradient.
+:func:`available` is False and the field keeps its pure-PyTorch path; it is never used on CUDA. Positions
+that need a gradient go through it too (a third entry point, their gradient, for pose refinement).
 """
 
 from __future__ import annotations
@@ -24,12 +24,15 @@ from voxnerf import native
 SOURCE = Path(__file__).with_name("hashgrid.c")
 _SIGNATURE = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.c_int64,
               ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+_SIGNATURE_X = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int, ctypes.c_int,
+                ctypes.c_int64, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
 
 
 @functools.cache
 def _library() -> ctypes.CDLL | str:
     """The loaded kernel, or a one-line reason why there is none."""
-    return native.load(SOURCE, {"hash_encode_forward": _SIGNATURE, "hash_encode_backward": _SIGNATURE})
+    return native.load(SOURCE, {"hash_encode_forward": _SIGNATURE, "hash_encode_backward": _SIGNATURE,
+                                "hash_encode_backward_x": _SIGNATURE_X})
 
 
 def available() -> bool:
@@ -65,7 +68,7 @@ def _check(x: Tensor, table: Tensor, resolution: Tensor) -> None:
 @torch.library.custom_op("voxnerf::hash_encode", mutates_args=())
 def hash_encode(x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int) -> Tensor:
     """Features [N, L * F] of positions ``x`` [N, 3] in [0, 1] from ``table`` [L * T, F] (levels of resolution
-    ``resolution`` [L], the first ``dense_levels`` indexed densely). Differentiable in ``table`` only."""
+    ``resolution`` [L], the first ``dense_levels`` indexed densely). Differentiable in ``table`` and ``x``."""
     _check(x, table, resolution)
     x, table, resolution = x.contiguous(), table.contiguous(), resolution.contiguous()
     levels, (rows, features) = resolution.shape[0], table.shape
@@ -98,17 +101,38 @@ def _(grad_out: Tensor, x: Tensor, resolution: Tensor, rows: int, dense_levels: 
     return grad_out.new_empty(rows, grad_out.shape[1] // resolution.shape[0])
 
 
+@torch.library.custom_op("voxnerf::hash_encode_x_grad", mutates_args=())
+def hash_encode_x_grad(grad_out: Tensor, x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int) -> Tensor:
+    """The gradient [N, 3] of :func:`hash_encode`'s positions, given the output's gradient [N, L * F] (zero in an
+    axis where the position lies outside [0, 1] and is clamped)."""
+    x, table, resolution, grad_out = x.contiguous(), table.contiguous(), resolution.contiguous(), grad_out.contiguous()
+    levels, (rows, features) = resolution.shape[0], table.shape
+    grad = x.new_empty(x.shape[0], 3)
+    _lib().hash_encode_backward_x(x.data_ptr(), x.shape[0], table.data_ptr(), grad_out.data_ptr(), levels,
+                                  features, rows // levels, dense_levels, resolution.data_ptr(), grad.data_ptr(),
+                                  torch.get_num_threads())
+    return grad
+
+
+@hash_encode_x_grad.register_fake
+def _(grad_out: Tensor, x: Tensor, table: Tensor, resolution: Tensor, dense_levels: int) -> Tensor:
+    return x.new_empty(x.shape[0], 3)
+
+
 def _setup_context(ctx, inputs, output) -> None:
     x, table, resolution, dense_levels = inputs
-    ctx.save_for_backward(x, resolution)
+    ctx.save_for_backward(x, table, resolution)
     ctx.rows, ctx.dense_levels = table.shape[0], dense_levels
 
 
 def _backward(ctx, grad_out: Tensor):
-    x, resolution = ctx.saved_tensors
+    x, table, resolution = ctx.saved_tensors
+    grad_x = grad_table = None
     if ctx.needs_input_grad[0]:
-        raise RuntimeError("hash kernel: no gradient for positions; use the pure-PyTorch encoding for that")
-    return None, hash_encode_table_grad(grad_out, x, resolution, ctx.rows, ctx.dense_levels), None, None
+        grad_x = hash_encode_x_grad(grad_out, x, table, resolution, ctx.dense_levels)
+    if ctx.needs_input_grad[1]:
+        grad_table = hash_encode_table_grad(grad_out, x, resolution, ctx.rows, ctx.dense_levels)
+    return grad_x, grad_table, None, None
 
 
 hash_encode.register_autograd(_backward, setup_context=_setup_context)

@@ -32,6 +32,7 @@ typedef struct {
     float *out;             /* forward only */
     const float *grad_out;  /* backward only */
     float *grad_table;      /* backward only */
+    float *grad_x;          /* position backward only */
     int levels, features, dense_levels, first_level, level_step;
     int64_t table_size;
     const float *resolution;
@@ -163,9 +164,54 @@ static void *backward_levels(void *arg) {
     return NULL;
 }
 
+/* The gradient of the positions: grad_x[p] = sum over levels and features of grad_out[p, l, c] times the
+ * derivative of the trilinear blend in each axis, res * (upper face - lower face). A clamped coordinate (outside
+ * [0, 1]) gets none, as through torch.clamp. Points are split between threads (first_level, level_step index
+ * points here), each point summing over every level, so no two threads write the same row. grad_out is
+ * point-major here [n, levels, features]. */
+static void *backward_x_points(void *arg) {
+    const job_t *j = (const job_t *)arg;
+    const int f = j->features;
+    int64_t rows[8];
+    float t[3];
+    const int64_t chunk = (j->n + j->level_step - 1) / j->level_step;
+    const int64_t p_end = (j->first_level + 1) * chunk < j->n ? (j->first_level + 1) * chunk : j->n;
+    for (int64_t p = j->first_level * chunk; p < p_end; p++) {
+        float gx[3] = {0.0f, 0.0f, 0.0f};
+        for (int l = 0; l < j->levels; l++) {
+            corners(j, l, p, rows, t);
+            const float *g = j->grad_out + (p * j->levels + l) * f;
+            float dx = 0.0f, dy = 0.0f, dz = 0.0f;
+            for (int c = 0; c < f; c++) {
+                float v[8];
+                for (int k = 0; k < 8; k++) v[k] = j->table[rows[k] * f + c];
+                float yz[4], dyz[4];
+                for (int k = 0; k < 4; k++) {
+                    yz[k] = v[2 * k] + (v[2 * k + 1] - v[2 * k]) * t[2];
+                    dyz[k] = v[2 * k + 1] - v[2 * k];
+                }
+                const float z0 = yz[0] + (yz[1] - yz[0]) * t[1], z1 = yz[2] + (yz[3] - yz[2]) * t[1];
+                const float dz0 = dyz[0] + (dyz[1] - dyz[0]) * t[1], dz1 = dyz[2] + (dyz[3] - dyz[2]) * t[1];
+                dx += g[c] * (z1 - z0);
+                dy += g[c] * ((1.0f - t[0]) * (yz[1] - yz[0]) + t[0] * (yz[3] - yz[2]));
+                dz += g[c] * (dz0 + (dz1 - dz0) * t[0]);
+            }
+            const float res = j->resolution[l];
+            gx[0] += dx * res;
+            gx[1] += dy * res;
+            gx[2] += dz * res;
+        }
+        for (int a = 0; a < 3; a++) {
+            const float v = j->x[p * 3 + a];
+            j->grad_x[p * 3 + a] = (v >= 0.0f && v <= 1.0f) ? gx[a] : 0.0f;
+        }
+    }
+    return NULL;
+}
+
 static void run(job_t *proto, int threads, void *(*fn)(void *)) {
     if (threads < 1) threads = 1;
-    if (threads > proto->levels) threads = proto->levels;
+    if (threads > proto->levels && fn != backward_x_points) threads = proto->levels;
     if (threads > MAX_THREADS) threads = MAX_THREADS;
     job_t jobs[MAX_THREADS];
     pthread_t ids[MAX_THREADS];
@@ -185,7 +231,7 @@ static void run(job_t *proto, int threads, void *(*fn)(void *)) {
 
 void hash_encode_forward(const float *x, int64_t n, const float *table, int levels, int features,
                          int64_t table_size, int dense_levels, const float *resolution, float *out, int threads) {
-    job_t j = {x, n, table, out, NULL, NULL, levels, features, dense_levels, 0, 1, table_size, resolution};
+    job_t j = {x, n, table, out, NULL, NULL, NULL, levels, features, dense_levels, 0, 1, table_size, resolution};
     run(&j, threads, forward_levels);
 }
 
@@ -193,7 +239,16 @@ void hash_encode_forward(const float *x, int64_t n, const float *table, int leve
 void hash_encode_backward(const float *x, int64_t n, const float *grad_out, int levels, int features,
                           int64_t table_size, int dense_levels, const float *resolution, float *grad_table,
                           int threads) {
-    job_t j = {x, n, NULL, NULL, grad_out, grad_table, levels, features, dense_levels, 0, 1, table_size,
+    job_t j = {x, n, NULL, NULL, grad_out, grad_table, NULL, levels, features, dense_levels, 0, 1, table_size,
                resolution};
     run(&j, threads, backward_levels);
+}
+
+/* grad_x [n, 3] is overwritten; grad_out is point-major [n, levels, features]. */
+void hash_encode_backward_x(const float *x, int64_t n, const float *table, const float *grad_out, int levels,
+                            int features, int64_t table_size, int dense_levels, const float *resolution,
+                            float *grad_x, int threads) {
+    job_t j = {x, n, table, NULL, grad_out, NULL, grad_x, levels, features, dense_levels, 0, 1, table_size,
+               resolution};
+    run(&j, threads, backward_x_points);
 }

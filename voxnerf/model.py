@@ -15,6 +15,7 @@ from voxnerf.appearance import ImageAppearance
 from voxnerf.config import TrainConfig
 from voxnerf.field import RadianceField
 from voxnerf.octree import SparseVoxelOctree
+from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.rendering import volume_render
 from voxnerf.samplers import OccGridSampler, OccupancyGrid, RayBundle, UniformSampler, VoxNeRFSampler
 from voxnerf.scene import SceneTransform
@@ -55,7 +56,8 @@ class VoxNeRFModel:
 
     ``aabb`` [2, 3]: the scene box in normalised units, inside [-1, 1]^3. ``octree`` is None when the scene
     has no prior or the sampler does not use it. ``appearance`` (config ``appearance='affine'``) corrects the
-    training images' colours during training only; rendering never applies it.
+    training images' colours during training only; rendering never applies it. ``pose_refinement`` (config
+    ``pose_refinement='so3xr3'``) likewise corrects the training images' rays only.
     """
 
     config: TrainConfig
@@ -65,6 +67,7 @@ class VoxNeRFModel:
     grid: OccupancyGrid
     octree: SparseVoxelOctree | None
     appearance: ImageAppearance | None = None
+    pose_refinement: PoseRefinement | None = None
     _compiled: dict = field(default_factory=dict, repr=False)
 
     @staticmethod
@@ -148,6 +151,7 @@ class VoxNeRFModel:
             "grid": self.grid.state_dict(),
             "octree": None if self.octree is None else self.octree.state_dict(),
             "appearance": None if self.appearance is None else self.appearance.state_dict(),
+            "pose_refinement": None if self.pose_refinement is None else self.pose_refinement.state_dict(),
         }
 
     @staticmethod
@@ -163,4 +167,7 @@ class VoxNeRFModel:
         if state.get("appearance") is not None:
             model.appearance = ImageAppearance(int(state["appearance"]["bias"].shape[0])).to(device)
             model.appearance.load_state_dict(state["appearance"])
+        if state.get("pose_refinement") is not None:
+            model.pose_refinement = PoseRefinement(int(state["pose_refinement"]["delta"].shape[0])).to(device)
+            model.pose_refinement.load_state_dict(state["pose_refinement"])
         return model

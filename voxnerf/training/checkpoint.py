@@ -101,7 +101,9 @@ def write_report(report: TrainReport, path: Path) -> None:
 
 
 def params_finite(model: VoxNeRFModel) -> bool:
-    return all(bool(torch.isfinite(p).all()) for p in model.field.parameters())
+    """Whether every trained parameter is finite: the field's and the per-image corrections'."""
+    modules = [m for m in (model.field, model.appearance, model.pose_refinement) if m is not None]
+    return all(bool(torch.isfinite(p).all()) for m in modules for p in m.parameters())
 
 
 class CheckpointWriter:

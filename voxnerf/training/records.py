@@ -133,7 +133,8 @@ class TrainReport(BaseModel):
     """A run's report: ``run_dir/report.json`` and what ``train()`` returns.
 
     ``scene``, ``prior`` and ``octree`` are the summaries of those stages' objects; ``warnings`` lists what the
-    user should know (a prior that few pixels see, a sampler asking for a prior the scene lacks). Fields that a
+    user should know (a prior that few pixels see, a sampler asking for a prior the scene lacks); ``pose_refinement``
+    the size of the learnt pose corrections (config ``pose_refinement``). Fields that a
     run never set (a prior-less scene has no ``prior``) stay out of the JSON.
     """
 
@@ -153,6 +154,7 @@ class TrainReport(BaseModel):
     warnings: list[str] = []
     depth_beta: float | None = None
     depth: dict[str, Any] | None = None
+    pose_refinement: dict[str, Any] | None = None
     metrics: dict[str, Any] | None = None
     error: str | None = None
     iteration: int = 0

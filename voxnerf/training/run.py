@@ -14,6 +14,7 @@ replaces ``eval/`` only after that check).
 
 from __future__ import annotations
 
+import json
 import shutil
 import time
 import uuid
@@ -22,13 +23,16 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from voxnerf.config import TrainConfig
 from voxnerf.devices import resolve_device
 from voxnerf.errors import RunError, TrainingDiverged
-from voxnerf.files import CHECKPOINT, REPORT
+from voxnerf.files import CHECKPOINT, REFINED_POSES, REPORT
+from voxnerf.image_io import write_atomic
 from voxnerf.octree import SparseVoxelOctree
+from voxnerf.pose_refinement import refined_frames
 from voxnerf.prior import GeometryPrior
 from voxnerf.scene import Scene
 from voxnerf.training import stages
@@ -317,6 +321,8 @@ def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None
     report.stages.append(StageRecord(name="train", ran=iteration > 0, why=f"{status} at iteration {iteration}",
                                      seconds=train_seconds))
     save(iteration)
+    if setup.built.model.pose_refinement is not None:
+        _write_refined_poses(run, setup)
     status = _final_eval_stage(run, setup, views, status, train_seconds, state)
     use_patches, _, n_patch_rays = _patches(run.cfg, setup)
     report.status, report.iteration = status, iteration
@@ -326,6 +332,17 @@ def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None
     write_report(report, run.dir / REPORT)
     run.events.emit("done", iteration, state.last_loss)
     return report
+
+
+def _write_refined_poses(run: Run, setup: Setup) -> None:
+    """``refined_poses.json`` (the training frames' learnt poses, scene units) and their summary in the report."""
+    model, scene = setup.built.model, setup.scene
+    frames = [scene.frames[i] for i in scene.train_indices]
+    poses = refined_frames(model.pose_refinement, [f.file_path for f in frames], np.stack([f.c2w for f in frames]),
+                           np.asarray(model.transform.center), model.transform.scale)
+    run.fence()
+    write_atomic(run.dir / REFINED_POSES, json.dumps(poses, indent=1).encode())
+    run.report.pose_refinement = model.pose_refinement.summary(model.transform.scale) | {"file": REFINED_POSES}
 
 
 def _final_eval_stage(run: Run, setup: Setup, views: EvalViews, status: str, train_seconds: float,

@@ -25,6 +25,7 @@ from voxnerf.files import FUSED_PRIOR, TRANSFORMS
 from voxnerf.image_io import write_atomic
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree, coverage_octree
+from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
 from voxnerf.scene import Scene, SceneTransform, load_scene, read_depth_map
@@ -214,6 +215,9 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
     if cfg.appearance == "affine":
         model.appearance = ImageAppearance(len(scene.train_indices)).to(device)
         groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})
+    if cfg.pose_refinement == "so3xr3":
+        model.pose_refinement = PoseRefinement(len(scene.train_indices)).to(device)
+        groups.append({"params": list(model.pose_refinement.parameters()), "lr": cfg.pose_lr})
     optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)
     stage = ModelStage(transform, prior_n, model, optimizer)
     if previous is not None:
@@ -221,6 +225,8 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
         model.grid.load_state_dict(previous["model"]["grid"])
         if model.appearance is not None and previous["model"].get("appearance") is not None:
             model.appearance.load_state_dict(previous["model"]["appearance"])
+        if model.pose_refinement is not None and previous["model"].get("pose_refinement") is not None:
+            model.pose_refinement.load_state_dict(previous["model"]["pose_refinement"])
         optimizer.load_state_dict(previous["optimizer"])
         stage.iteration, stage.resumed = int(previous["iteration"]), True
         stage.history = [EvalRecord.model_validate(h) for h in previous["history"]]

@@ -13,6 +13,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
 from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss
 from voxnerf.model import VoxNeRFModel
+from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.training.pixels import TrainingPixels, sample_batch
 from voxnerf.training.prior_rays import PriorRayBank
 
@@ -59,24 +60,29 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
     beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
     so lambda_d keeps its meaning whatever the scene's units and normalisation. A ray's ``target_beta`` scales
     its beta (sensor depth is trusted less far away). The model's ``appearance`` (when it has one) corrects the
-    rendered colour of each ray's training image before the colour loss. The batch's last ``n_prior_rays`` rays
+    rendered colour of each ray's training image before the colour loss; its ``pose_refinement`` moves each image
+    ray as its training image's correction says (the sample intervals stay those of the given pose: a correction
+    is far smaller than the sampling window) and adds its regulariser. The batch's last ``n_prior_rays`` rays
     are prior rays (:mod:`voxnerf.training.prior_rays`): depth targets only, left out of the colour loss; the
     smoothness patches come just before them.
     """
     to_units, lam_dist = PAPER_BETA / (beta * model.transform.scale), cfg.distortion_weight
-    appearance = getattr(model, "appearance", None)
+    appearance, poses = getattr(model, "appearance", None), getattr(model, "pose_refinement", None)
+    lam_pose = cfg.lambda_pose
 
     def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight,
                 colour_weight=None, background=None):
-        out = model.render_samples(origins, dirs, starts, ends, background)
         n_image = origins.shape[0] - n_prior_rays
+        if poses is not None:
+            origins, dirs = refined_rays(poses, origins, dirs, image, n_image)
+        out = model.render_samples(origins, dirs, starts, ends, background)
         rgb = out["rgb"][:n_image] if appearance is None else appearance(out["rgb"][:n_image], image[:n_image])
         if colour_weight is None:
             lc = color_loss(rgb, target_rgb[:n_image])
         else:  # prior rays weighted in (their targets: the mean colour), normalised by the image rays
             per_ray = ((torch.cat([rgb, out["rgb"][n_image:]]) - target_rgb) ** 2).mean(-1)
             lc = (per_ray * colour_weight).sum() / n_image
-        total = lc
+        total = lc if poses is None or lam_pose == 0 else lc + poses.penalty(0.1 * lam_pose, lam_pose)
         ld = lreg = ldist = torch.zeros((), device=origins.device)
         if lam_dist > 0:
             ldist = distortion_loss(out["weights"], starts, ends)
@@ -93,6 +99,14 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
         return total, lc, ld, lreg, ldist
 
     return loss_fn
+
+
+def refined_rays(poses: PoseRefinement, origins: torch.Tensor, dirs: torch.Tensor, image: torch.Tensor,
+                 n_image: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays [R, 3] with the first ``n_image`` (the image rays) moved by their training image's pose correction;
+    the rest (prior rays) as they are."""
+    moved_o, moved_d = poses(origins[:n_image], dirs[:n_image], image[:n_image])
+    return torch.cat([moved_o, origins[n_image:]]), torch.cat([moved_d, dirs[n_image:]])
 
 
 def divergence_guard(losses: Losses, iteration: int) -> float:

@@ -1,0 +1,89 @@
+"""Camera pose refinement: a rigid correction per training image, learnt with the field (nerfacto's SO3 x R3).
+
+Scanned poses (SLAM, KinectFusion, COLMAP) are off by a fraction of a degree and a few millimetres; a ray that
+leaves its camera slightly wrong paints colour onto the wrong surface point. Each training image ``i`` gets six
+parameters, zero at the start: an axis-angle rotation ``w_i`` and a translation ``t_i`` (normalised units). Its
+rays become ``o' = o + t_i`` and ``d' = exp(w_i) d``: the camera turns about its own centre, in world axes, and
+moves by ``t_i``. Training-only: evaluation views keep the poses they were given (a held-out view's pose error is
+not the model's to fix), so the metrics stay comparable with runs without it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+# Below this squared angle (rad^2) the exponential map uses its Taylor series: sin(a)/a and (1-cos(a))/a^2 lose
+# every digit to cancellation near zero, and their gradients there would be 0/0.
+_SMALL_ANGLE_SQ = 1e-8
+
+
+def so3_exp(w: Tensor) -> Tensor:
+    """Rotation matrices [N, 3, 3] of axis-angle vectors ``w`` [N, 3] (radians; Rodrigues' formula), finite with
+    a finite gradient at and near zero."""
+    theta_sq = (w * w).sum(-1)
+    small = theta_sq < _SMALL_ANGLE_SQ
+    theta = torch.sqrt(torch.where(small, torch.ones_like(theta_sq), theta_sq))
+    a = torch.where(small, 1.0 - theta_sq / 6.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta_sq / 24.0, (1.0 - torch.cos(theta)) / (theta * theta))
+    zero = torch.zeros_like(w[:, 0])
+    k = torch.stack([zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero], -1).view(-1, 3, 3)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(k)
+    return eye + a[:, None, None] * k + b[:, None, None] * (k @ k)
+
+
+class PoseRefinement(nn.Module):
+    """Per training image a rotation and a translation; identity at initialisation.
+
+    ``delta``: [images, 6] parameters, axis-angle (radians) then translation (normalised units).
+    ``forward(origins [R, 3], dirs [R, 3] unit, image [R] int64) -> (origins', dirs')``, dirs' still unit.
+    """
+
+    def __init__(self, images: int) -> None:
+        super().__init__()
+        if images < 1:
+            raise ValueError(f"PoseRefinement needs at least one image, got {images}")
+        self.delta = nn.Parameter(torch.zeros(images, 6))
+
+    def forward(self, origins: Tensor, dirs: Tensor, image: Tensor) -> tuple[Tensor, Tensor]:
+        rotation = so3_exp(self.delta[:, :3])[image]  # every image's (a few dozen), then gathered per ray
+        return origins + self.delta[image, 3:], torch.einsum("rij,rj->ri", rotation, dirs)
+
+    def penalty(self, rotation_weight: float, translation_weight: float) -> Tensor:
+        """nerfacto's regulariser: the weighted mean norms of the rotations (radians) and translations."""
+        return (rotation_weight * self.delta[:, :3].norm(dim=-1).mean()
+                + translation_weight * self.delta[:, 3:].norm(dim=-1).mean())
+
+    def refined_c2w(self, c2w: Tensor) -> Tensor:
+        """[images, 4, 4] camera-to-world poses (normalised units) with the learnt corrections applied."""
+        delta = self.delta.detach().to(c2w.dtype)
+        out = c2w.clone()
+        out[:, :3, :3] = so3_exp(delta[:, :3]) @ c2w[:, :3, :3]
+        out[:, :3, 3] = c2w[:, :3, 3] + delta[:, 3:]
+        return out
+
+    def summary(self, scene_scale: float) -> dict:
+        """Size of the learnt corrections (for the report): rotations in degrees, translations in scene units
+        (``scene_scale``: normalised units per scene unit), each as mean and max over the images."""
+        delta = self.delta.detach().cpu()
+        angles = torch.rad2deg(delta[:, :3].norm(dim=-1))
+        moves = delta[:, 3:].norm(dim=-1) / scene_scale
+        return {"images": int(delta.shape[0]),
+                "rotation_deg": {"mean": float(angles.mean()), "max": float(angles.max())},
+                "translation": {"mean": float(moves.mean()), "max": float(moves.max())}}
+
+
+
+def refined_frames(refinement: PoseRefinement, file_paths: list[str], c2w: np.ndarray, center: np.ndarray,
+                   scale: float) -> dict:
+    """The training frames' refined poses in transforms.json's form, ``{"frames": [{"file_path",
+    "transform_matrix"}]}``, in scene units: ``c2w`` [images, 4, 4] are the given poses in scene units, ``center``
+    and ``scale`` the scene's normalisation (``x_n = (x - center) * scale``)."""
+    given = np.asarray(c2w, dtype=np.float64)
+    normalised = given.copy()
+    normalised[:, :3, 3] = (given[:, :3, 3] - center) * scale
+    refined = refinement.refined_c2w(torch.from_numpy(normalised)).numpy()
+    refined[:, :3, 3] = refined[:, :3, 3] / scale + center
+    return {"frames": [{"file_path": path, "transform_matrix": m.tolist()}
+                       for path, m in zip(file_paths, refined, strict=True)]}
