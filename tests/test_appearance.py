@@ -19,14 +19,32 @@ def test_appearance_starts_as_the_identity_and_applies_each_rays_image():
     rgb = torch.rand(6, 3)
     image = torch.tensor([0, 1, 2, 0, 1, 2])
     torch.testing.assert_close(appearance(rgb, image), rgb)
-    with torch.no_grad():
+    with torch.no_grad():  # image 1 twice as bright as image 0, image 2 0.3 brighter: 0 is the darkest
         appearance.log_gain[1] = torch.log(torch.tensor(2.0))
-        appearance.bias[2] = 0.1
+        appearance.bias[2] = 0.3
     out = appearance(rgb, image)
-    torch.testing.assert_close(out[[0, 3]], rgb[[0, 3]])
-    torch.testing.assert_close(out[[1, 4]], 2 * rgb[[1, 4]])
-    torch.testing.assert_close(out[[2, 5]], rgb[[2, 5]] + 0.1)
-    assert appearance.summary() == {"images": 3, "gain": [1.0, pytest.approx(2.0)], "bias": [0.0, pytest.approx(0.1)]}
+    gain0 = 2.0 ** (-1 / 3)  # the log-gains' mean, log(2) / 3, is taken out; so is the biases', 0.1
+    torch.testing.assert_close(out[[0, 3]], gain0 * rgb[[0, 3]] - 0.1)
+    torch.testing.assert_close(out[[1, 4]], 2 * gain0 * rgb[[1, 4]] - 0.1)
+    torch.testing.assert_close(out[[2, 5]], gain0 * rgb[[2, 5]] + 0.2)
+    assert appearance.summary() == {"images": 3, "gain": [pytest.approx(gain0), pytest.approx(2 * gain0)],
+                                    "bias": [pytest.approx(-0.1), pytest.approx(0.2)]}
+
+
+def test_appearance_corrections_keep_zero_mean_so_one_image_gets_none():
+    appearance = ImageAppearance(4)
+    with torch.no_grad():
+        appearance.log_gain.normal_()
+        appearance.bias.normal_()
+    log_gain, bias = appearance.corrections()
+    torch.testing.assert_close(log_gain.mean(0), torch.zeros(3), atol=1e-6, rtol=0)
+    torch.testing.assert_close(bias.mean(0), torch.zeros(3), atol=1e-6, rtol=0)
+    single = ImageAppearance(1)
+    with torch.no_grad():
+        single.log_gain.fill_(0.5)
+        single.bias.fill_(0.2)
+    rgb = torch.rand(5, 3)
+    torch.testing.assert_close(single(rgb, torch.zeros(5, dtype=torch.int64)), rgb)
 
 
 def test_appearance_needs_an_image():

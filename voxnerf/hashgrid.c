@@ -166,45 +166,53 @@ static void *backward_levels(void *arg) {
 
 /* The gradient of the positions: grad_x[p] = sum over levels and features of grad_out[p, l, c] times the
  * derivative of the trilinear blend in each axis, res * (upper face - lower face). A clamped coordinate (outside
- * [0, 1]) gets none, as through torch.clamp. Points are split between threads (first_level, level_step index
- * points here), each point summing over every level, so no two threads write the same row. grad_out is
- * point-major here [n, levels, features]. */
+ * [0, 1]) gets none, as through torch.clamp. Points are split between threads in contiguous ranges (here
+ * first_level and level_step number the thread and the threads), each point summing over every level, so no
+ * two threads write the same row; a block of points at a time, its corners prefetched level by level.
+ * grad_out is point-major here [n, levels, features]. */
 static void *backward_x_points(void *arg) {
     const job_t *j = (const job_t *)arg;
     const int f = j->features;
-    int64_t rows[8];
-    float t[3];
+    int64_t rows[BLOCK][8];
+    float t[BLOCK][3], gx[BLOCK][3];
     const int64_t chunk = (j->n + j->level_step - 1) / j->level_step;
-    const int64_t p_end = (j->first_level + 1) * chunk < j->n ? (j->first_level + 1) * chunk : j->n;
-    for (int64_t p = j->first_level * chunk; p < p_end; p++) {
-        float gx[3] = {0.0f, 0.0f, 0.0f};
+    const int64_t begin = j->first_level * chunk;
+    const int64_t end = begin + chunk < j->n ? begin + chunk : j->n;
+    job_t range = *j;
+    range.n = end; /* block_corners stops at the range's end */
+    for (int64_t p0 = begin; p0 < end; p0 += BLOCK) {
+        int nb = 0;
+        memset(gx, 0, sizeof(gx));
         for (int l = 0; l < j->levels; l++) {
-            corners(j, l, p, rows, t);
-            const float *g = j->grad_out + (p * j->levels + l) * f;
-            float dx = 0.0f, dy = 0.0f, dz = 0.0f;
-            for (int c = 0; c < f; c++) {
-                float v[8];
-                for (int k = 0; k < 8; k++) v[k] = j->table[rows[k] * f + c];
-                float yz[4], dyz[4];
-                for (int k = 0; k < 4; k++) {
-                    yz[k] = v[2 * k] + (v[2 * k + 1] - v[2 * k]) * t[2];
-                    dyz[k] = v[2 * k + 1] - v[2 * k];
-                }
-                const float z0 = yz[0] + (yz[1] - yz[0]) * t[1], z1 = yz[2] + (yz[3] - yz[2]) * t[1];
-                const float dz0 = dyz[0] + (dyz[1] - dyz[0]) * t[1], dz1 = dyz[2] + (dyz[3] - dyz[2]) * t[1];
-                dx += g[c] * (z1 - z0);
-                dy += g[c] * ((1.0f - t[0]) * (yz[1] - yz[0]) + t[0] * (yz[3] - yz[2]));
-                dz += g[c] * (dz0 + (dz1 - dz0) * t[0]);
-            }
+            nb = block_corners(&range, l, p0, j->table, 0, rows, t);
             const float res = j->resolution[l];
-            gx[0] += dx * res;
-            gx[1] += dy * res;
-            gx[2] += dz * res;
+            for (int i = 0; i < nb; i++) {
+                const float *g = j->grad_out + ((p0 + i) * j->levels + l) * f;
+                float dx = 0.0f, dy = 0.0f, dz = 0.0f;
+                for (int c = 0; c < f; c++) {
+                    float v[8], yz[4], dyz[4];
+                    for (int k = 0; k < 8; k++) v[k] = j->table[rows[i][k] * f + c];
+                    for (int k = 0; k < 4; k++) {
+                        yz[k] = v[2 * k] + (v[2 * k + 1] - v[2 * k]) * t[i][2];
+                        dyz[k] = v[2 * k + 1] - v[2 * k];
+                    }
+                    const float z0 = yz[0] + (yz[1] - yz[0]) * t[i][1], z1 = yz[2] + (yz[3] - yz[2]) * t[i][1];
+                    const float dz0 = dyz[0] + (dyz[1] - dyz[0]) * t[i][1];
+                    const float dz1 = dyz[2] + (dyz[3] - dyz[2]) * t[i][1];
+                    dx += g[c] * (z1 - z0);
+                    dy += g[c] * ((1.0f - t[i][0]) * (yz[1] - yz[0]) + t[i][0] * (yz[3] - yz[2]));
+                    dz += g[c] * (dz0 + (dz1 - dz0) * t[i][0]);
+                }
+                gx[i][0] += dx * res;
+                gx[i][1] += dy * res;
+                gx[i][2] += dz * res;
+            }
         }
-        for (int a = 0; a < 3; a++) {
-            const float v = j->x[p * 3 + a];
-            j->grad_x[p * 3 + a] = (v >= 0.0f && v <= 1.0f) ? gx[a] : 0.0f;
-        }
+        for (int i = 0; i < nb; i++)
+            for (int a = 0; a < 3; a++) {
+                const float v = j->x[(p0 + i) * 3 + a];
+                j->grad_x[(p0 + i) * 3 + a] = (v >= 0.0f && v <= 1.0f) ? gx[i][a] : 0.0f;
+            }
     }
     return NULL;
 }

@@ -4,8 +4,11 @@ Scanned poses (SLAM, KinectFusion, COLMAP) are off by a fraction of a degree and
 leaves its camera slightly wrong paints colour onto the wrong surface point. Each training image ``i`` gets six
 parameters, zero at the start: an axis-angle rotation ``w_i`` and a translation ``t_i`` (normalised units). Its
 rays become ``o' = o + t_i`` and ``d' = exp(w_i) d``: the camera turns about its own centre, in world axes, and
-moves by ``t_i``. Training-only: evaluation views keep the poses they were given (a held-out view's pose error is
-not the model's to fix), so the metrics stay comparable with runs without it.
+moves by ``t_i``. The corrections are held at zero mean over the images (the parameters less their mean), so
+the cameras can move against each other but the rig as a whole cannot drift away from the poses evaluation
+views are given (a shared turn or shift of every camera fits the training images as well, and an early, still
+blurry field pulls that way). Training-only: evaluation views keep the poses they were given (a held-out view's
+pose error is not the model's to fix), so the metrics stay comparable with runs without it.
 """
 
 from __future__ import annotations
@@ -36,7 +39,8 @@ def so3_exp(w: Tensor) -> Tensor:
 class PoseRefinement(nn.Module):
     """Per training image a rotation and a translation; identity at initialisation.
 
-    ``delta``: [images, 6] parameters, axis-angle (radians) then translation (normalised units).
+    ``delta``: [images, 6] parameters, axis-angle (radians) then translation (normalised units); the corrections
+    applied are ``delta`` less its mean over the images (:meth:`corrections`).
     ``forward(origins [R, 3], dirs [R, 3] unit, image [R] int64) -> (origins', dirs')``, dirs' still unit.
     """
 
@@ -46,18 +50,24 @@ class PoseRefinement(nn.Module):
             raise ValueError(f"PoseRefinement needs at least one image, got {images}")
         self.delta = nn.Parameter(torch.zeros(images, 6))
 
+    def corrections(self) -> Tensor:
+        """[images, 6] the corrections as applied: ``delta`` less its mean over the images."""
+        return self.delta - self.delta.mean(0)
+
     def forward(self, origins: Tensor, dirs: Tensor, image: Tensor) -> tuple[Tensor, Tensor]:
-        rotation = so3_exp(self.delta[:, :3])[image]  # every image's (a few dozen), then gathered per ray
-        return origins + self.delta[image, 3:], torch.einsum("rij,rj->ri", rotation, dirs)
+        delta = self.corrections()
+        rotation = so3_exp(delta[:, :3])[image]  # every image's (a few dozen), then gathered per ray
+        return origins + delta[image, 3:], torch.einsum("rij,rj->ri", rotation, dirs)
 
     def penalty(self, rotation_weight: float, translation_weight: float) -> Tensor:
         """nerfacto's regulariser: the weighted mean norms of the rotations (radians) and translations."""
-        return (rotation_weight * self.delta[:, :3].norm(dim=-1).mean()
-                + translation_weight * self.delta[:, 3:].norm(dim=-1).mean())
+        delta = self.corrections()
+        return (rotation_weight * delta[:, :3].norm(dim=-1).mean()
+                + translation_weight * delta[:, 3:].norm(dim=-1).mean())
 
     def refined_c2w(self, c2w: Tensor) -> Tensor:
         """[images, 4, 4] camera-to-world poses (normalised units) with the learnt corrections applied."""
-        delta = self.delta.detach().to(c2w.dtype)
+        delta = self.corrections().detach().to(c2w.dtype)
         out = c2w.clone()
         out[:, :3, :3] = so3_exp(delta[:, :3]) @ c2w[:, :3, :3]
         out[:, :3, 3] = c2w[:, :3, 3] + delta[:, 3:]
@@ -66,7 +76,7 @@ class PoseRefinement(nn.Module):
     def summary(self, scene_scale: float) -> dict:
         """Size of the learnt corrections (for the report): rotations in degrees, translations in scene units
         (``scene_scale``: normalised units per scene unit), each as mean and max over the images."""
-        delta = self.delta.detach().cpu()
+        delta = self.corrections().detach().cpu()
         angles = torch.rad2deg(delta[:, :3].norm(dim=-1))
         moves = delta[:, 3:].norm(dim=-1) / scene_scale
         return {"images": int(delta.shape[0]),
