@@ -56,6 +56,7 @@ CONFIGS: dict[str, dict] = {
     "depth-decay": {"depth_weight_final": 0.1},
     "appearance": {"appearance": "affine"},
     "pose-refine": {"pose_refinement": "so3xr3"},
+    "pose-refine-slow": {"pose_refinement": "so3xr3", "pose_lr": 1e-4},
     "prior-rays": {"prior_rays": 512},
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]},

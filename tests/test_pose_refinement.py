@@ -13,10 +13,12 @@ import torch
 from synthetic_fixtures import make_micro_scene, micro_config
 
 from voxnerf import hash_kernel
-from voxnerf.cameras import camera_rays
+from voxnerf import render as render_module
+from voxnerf.cameras import Intrinsics, camera_rays, image_rays
 from voxnerf.config import TrainConfig
 from voxnerf.model import VoxNeRFModel
 from voxnerf.pose_refinement import PoseRefinement, refined_frames, so3_exp
+from voxnerf.render import render_normalized
 from voxnerf.scene import SceneTransform, load_scene
 from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.run import train
@@ -226,3 +228,62 @@ def test_refined_frames_are_the_given_poses_moved_by_the_corrections_in_scene_un
     moved = np.array(refined_frames(poses, ["a.png", "b.png"], c2w, center, scale)["frames"][1]["transform_matrix"])
     np.testing.assert_allclose(moved[:3, 3], [2.4, 1.0, -1.0], atol=1e-6)
     np.testing.assert_allclose(moved[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6)
+
+
+def _cameras() -> torch.Tensor:
+    """Four training cameras along x, all looking down -z."""
+    cameras = torch.eye(4).repeat(4, 1, 1)
+    cameras[:, 0, 3] = torch.tensor([0.0, 0.2, 0.4, 0.6])
+    return cameras
+
+
+def test_a_rendered_pose_takes_its_nearest_training_cameras_corrections():
+    poses = PoseRefinement(4, _cameras())
+    with torch.no_grad():
+        poses.delta[:, 3] = torch.tensor([0.03, 0.01, -0.01, -0.03])  # zero mean: applied as they are
+        poses.delta[:, 2] = torch.tensor([0.02, -0.02, 0.02, -0.02])
+    own = poses.view_corrections(_cameras())
+    torch.testing.assert_close(own, poses.corrections().detach(), atol=1e-5, rtol=0)
+    between = _cameras()[:1].clone()
+    between[0, 0, 3] = 0.1  # halfway between the first two; the other two at 3x and 5x the distance
+    weights = torch.tensor([1 / 0.1, 1 / 0.1, 1 / 0.3, 1 / 0.5])
+    expected = (weights[:, None] * poses.corrections().detach()).sum(0) / weights.sum()
+    torch.testing.assert_close(poses.view_corrections(between)[0], expected, atol=1e-6, rtol=0)
+    moved = poses.correct_views(between)[0]
+    torch.testing.assert_close(moved[:3, 3], between[0, :3, 3] + expected[3:])
+    torch.testing.assert_close(moved[:3, :3], so3_exp(expected[None, :3])[0])
+
+
+def test_a_view_looking_elsewhere_counts_as_further():
+    poses = PoseRefinement(2, _cameras()[:2])
+    turned = _cameras()[:1].clone()
+    turned[0, 0, 3] = 0.05  # nearer camera 0, but turned a quarter turn away from both
+    turned[0, :3, :3] = so3_exp(torch.tensor([[0.0, math.pi / 2, 0.0]]))[0]
+    far = turned.clone()
+    far[0, 0, 3] = 0.15
+    with torch.no_grad():
+        poses.delta[:, 3] = torch.tensor([0.01, -0.01])
+    a, b = poses.view_corrections(turned)[0, 3], poses.view_corrections(far)[0, 3]
+    assert 0 < float(a) < 0.01 and -0.01 < float(b) < 0  # the angle (the same to both) evens the weights out
+    with pytest.raises(ValueError, match=r"cameras must be \[2, 4, 4\]"):
+        PoseRefinement(2, _cameras())
+
+
+def test_rendering_a_pose_moves_it_by_the_learnt_corrections(monkeypatch):
+    cfg = TrainConfig(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32, hidden_dim=16,
+                      sampler="uniform")
+    aabb = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
+    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
+    seen = []
+    monkeypatch.setattr(render_module, "image_rays", lambda c2w, intr: seen.append(c2w) or image_rays(c2w, intr))
+    intr = Intrinsics(fl_x=4.0, fl_y=4.0, cx=2.0, cy=2.0, width=4, height=4)
+    pose = _cameras()[1]
+    render_normalized(model, pose, intr, ("rgb",))
+    torch.testing.assert_close(seen[-1], pose)  # no refinement: the pose as given
+    model.pose_refinement = PoseRefinement(4, _cameras())
+    with torch.no_grad():
+        model.pose_refinement.delta[:, 4] = torch.tensor([0.05, -0.05, 0.05, -0.05])
+    render_normalized(model, pose, intr, ("rgb",))
+    torch.testing.assert_close(seen[-1][:3, 3], pose[:3, 3] + torch.tensor([0.0, -0.05, 0.0]))
+    loaded = VoxNeRFModel.from_state_dict(model.state_dict(), torch.device("cpu"))
+    torch.testing.assert_close(loaded.pose_refinement.cameras, _cameras())

@@ -57,7 +57,8 @@ class VoxNeRFModel:
     ``aabb`` [2, 3]: the scene box in normalised units, inside [-1, 1]^3. ``octree`` is None when the scene
     has no prior or the sampler does not use it. ``appearance`` (config ``appearance='affine'``) corrects the
     training images' colours during training only; rendering never applies it. ``pose_refinement`` (config
-    ``pose_refinement='so3xr3'``) likewise corrects the training images' rays only.
+    ``pose_refinement='so3xr3'``) corrects the training images' rays, and a rendered pose by its nearest training
+    cameras' corrections (:func:`voxnerf.render.render_normalized`).
     """
 
     config: TrainConfig

@@ -7,8 +7,13 @@ rays become ``o' = o + t_i`` and ``d' = exp(w_i) d``: the camera turns about its
 moves by ``t_i``. The corrections are held at zero mean over the images (the parameters less their mean), so
 the cameras can move against each other but the rig as a whole cannot drift away from the poses evaluation
 views are given (a shared turn or shift of every camera fits the training images as well, and an early, still
-blurry field pulls that way). Training-only: evaluation views keep the poses they were given (a held-out view's
-pose error is not the model's to fix), so the metrics stay comparable with runs without it.
+blurry field pulls that way).
+
+A scan's pose errors drift slowly along its path, so a pose the scan gives for any other view (a held-out frame,
+a novel view in the scan's frame) carries about the error of the training cameras near it. Rendering a pose
+therefore moves it by the corrections of its nearest training cameras (:meth:`PoseRefinement.correct_views`,
+weighted by inverse distance): the correction the model learnt for that part of the path, from the training
+images alone.
 """
 
 from __future__ import annotations
@@ -20,6 +25,10 @@ from torch import Tensor, nn
 # Below this squared angle (rad^2) the exponential map uses its Taylor series: sin(a)/a and (1-cos(a))/a^2 lose
 # every digit to cancellation near zero, and their gradients there would be 0/0.
 _SMALL_ANGLE_SQ = 1e-8
+# Training cameras whose corrections a rendered pose takes, and the distance (normalised units) that one radian
+# between viewing directions counts as when finding them.
+NEIGHBOURS = 4
+RADIAN_DISTANCE = 0.5
 
 
 def so3_exp(w: Tensor) -> Tensor:
@@ -44,11 +53,16 @@ class PoseRefinement(nn.Module):
     ``forward(origins [R, 3], dirs [R, 3] unit, image [R] int64) -> (origins', dirs')``, dirs' still unit.
     """
 
-    def __init__(self, images: int) -> None:
+    def __init__(self, images: int, cameras: Tensor | None = None) -> None:
         super().__init__()
         if images < 1:
             raise ValueError(f"PoseRefinement needs at least one image, got {images}")
+        if cameras is not None and tuple(cameras.shape) != (images, 4, 4):
+            raise ValueError(f"PoseRefinement: cameras must be [{images}, 4, 4], got {list(cameras.shape)}")
         self.delta = nn.Parameter(torch.zeros(images, 6))
+        # [images, 4, 4] the training cameras' given poses (normalised units), where correct_views looks
+        given = torch.eye(4).repeat(images, 1, 1) if cameras is None else cameras.detach().float().clone()
+        self.register_buffer("cameras", given)
 
     def corrections(self) -> Tensor:
         """[images, 6] the corrections as applied: ``delta`` less its mean over the images."""
@@ -67,11 +81,25 @@ class PoseRefinement(nn.Module):
 
     def refined_c2w(self, c2w: Tensor) -> Tensor:
         """[images, 4, 4] camera-to-world poses (normalised units) with the learnt corrections applied."""
-        delta = self.corrections().detach().to(c2w.dtype)
-        out = c2w.clone()
-        out[:, :3, :3] = so3_exp(delta[:, :3]) @ c2w[:, :3, :3]
-        out[:, :3, 3] = c2w[:, :3, 3] + delta[:, 3:]
-        return out
+        return _moved(c2w, self.corrections().detach().to(c2w.dtype))
+
+    def view_corrections(self, c2w: Tensor) -> Tensor:
+        """[M, 6] corrections for poses ``c2w`` [M, 4, 4] (normalised units): the inverse-distance-weighted mean
+        of the corrections of the :data:`NEIGHBOURS` nearest training cameras, the distance being that between
+        the centres plus :data:`RADIAN_DISTANCE` per radian between the viewing directions. A training camera's
+        own pose gets its own correction."""
+        cameras = self.cameras.to(c2w.dtype)
+        gap = torch.cdist(c2w[:, :3, 3], cameras[:, :3, 3])
+        cos = (c2w[:, None, :3, 2] * cameras[None, :, :3, 2]).sum(-1).clamp(-1.0, 1.0)
+        distance = gap + RADIAN_DISTANCE * torch.arccos(cos)
+        near, index = distance.topk(min(NEIGHBOURS, cameras.shape[0]), dim=1, largest=False)
+        weight = 1.0 / near.clamp_min(1e-6)
+        weight = weight / weight.sum(1, keepdim=True)
+        return (weight[..., None] * self.corrections().detach().to(c2w.dtype)[index]).sum(1)
+
+    def correct_views(self, c2w: Tensor) -> Tensor:
+        """[M, 4, 4] poses ``c2w`` (normalised units) moved by :meth:`view_corrections`."""
+        return _moved(c2w, self.view_corrections(c2w))
 
     def summary(self, scene_scale: float) -> dict:
         """Size of the learnt corrections (for the report): rotations in degrees, translations in scene units
@@ -83,6 +111,14 @@ class PoseRefinement(nn.Module):
                 "rotation_deg": {"mean": float(angles.mean()), "max": float(angles.max())},
                 "translation": {"mean": float(moves.mean()), "max": float(moves.max())}}
 
+
+
+def _moved(c2w: Tensor, delta: Tensor) -> Tensor:
+    """[M, 4, 4] poses ``c2w`` turned about their centres by ``delta[:, :3]`` and moved by ``delta[:, 3:]``."""
+    out = c2w.clone()
+    out[:, :3, :3] = so3_exp(delta[:, :3]) @ c2w[:, :3, :3]
+    out[:, :3, 3] = c2w[:, :3, 3] + delta[:, 3:]
+    return out
 
 
 def refined_frames(refinement: PoseRefinement, file_paths: list[str], c2w: np.ndarray, center: np.ndarray,

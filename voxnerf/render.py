@@ -66,6 +66,16 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
     return trained
 
 
+def _view_rays(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`image_rays` of pose ``c2w`` [4, 4] (normalised) on the model's device, moved by the model's pose
+    refinement where it has one."""
+    c2w = c2w.to(model.device, torch.float32)
+    poses = getattr(model, "pose_refinement", None)
+    if poses is not None:
+        c2w = poses.correct_views(c2w[None])[0]
+    return image_rays(c2w, intrinsics)
+
+
 @torch.no_grad()
 def render_normalized(
     model: VoxNeRFModel,
@@ -75,7 +85,8 @@ def render_normalized(
     chunk: int | None = None,
     path: str = "fast",
 ) -> dict[str, Tensor]:
-    """Render one view whose pose is already in normalised units.
+    """Render one view whose pose is already in normalised units (a model that refined the training poses moves
+    it by its nearest training cameras' corrections first: :mod:`voxnerf.pose_refinement`).
 
     Args:
         c2w: [4, 4] camera-to-world (OpenGL axes), normalised units.
@@ -96,7 +107,7 @@ def render_normalized(
         raise RunError(f"unknown render path {path!r}; choose from {list(RENDER_PATHS)}")
     fast = path == "fast"
     chunk = chunk or (FAST_CHUNK if fast else int(model.config.eval_chunk))
-    origins, dirs, z_per_t = image_rays(c2w.to(model.device, torch.float32), intrinsics)
+    origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
     n = origins.shape[0]
     compiled = bool(model.config.compile) and not fast
     if compiled and n % chunk:  # pad with copies of the last ray so every chunk has the compiled shape

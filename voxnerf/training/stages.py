@@ -216,7 +216,8 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
         model.appearance = ImageAppearance(len(scene.train_indices)).to(device)
         groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})
     if cfg.pose_refinement == "so3xr3":
-        model.pose_refinement = PoseRefinement(len(scene.train_indices)).to(device)
+        cameras = np.stack([transform.c2w_to_normalized(scene.frames[i].c2w) for i in scene.train_indices])
+        model.pose_refinement = PoseRefinement(len(cameras), torch.from_numpy(cameras)).to(device)
         groups.append({"params": list(model.pose_refinement.parameters()), "lr": cfg.pose_lr})
     optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)
     stage = ModelStage(transform, prior_n, model, optimizer)
