@@ -3,14 +3,18 @@ training-config knobs that reach the trainer only through ``voxnerf train --set`
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 from voxnerf.appearance import ImageAppearance
+from voxnerf.cameras import Intrinsics
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
 from voxnerf.metrics import fit_colour_affine, half_image_pairs, psnr
 from voxnerf.model import VoxNeRFModel
+from voxnerf.render import render_normalized
 from voxnerf.scene import SceneTransform
 
 
@@ -120,3 +124,51 @@ def test_voxnerf_train_set_wins_over_a_flag_of_the_same_field(tmp_path, capsys):
     code = main(["train", str(tmp_path / "scene"), "--out", str(tmp_path / "run"), "--max-iters", "1",
                  "--sampler", "voxnerf", "--set", "sampler=\"warp\"", "--set", "depth_loss=false"])
     assert code == 2 and "sampler: Input should be 'voxnerf', 'occgrid' or 'uniform'" in capsys.readouterr().err
+
+
+def _cameras() -> torch.Tensor:
+    cameras = torch.eye(4).repeat(3, 1, 1)
+    cameras[:, 0, 3] = torch.tensor([0.0, 0.2, 0.4])
+    return cameras
+
+
+def test_a_view_takes_its_nearest_training_cameras_colour_correction():
+    appearance = ImageAppearance(3, _cameras())
+    with torch.no_grad():  # zero-mean corrections: applied as they are
+        appearance.log_gain[:, 0] = torch.tensor([0.2, 0.0, -0.2])
+        appearance.bias[:, 1] = torch.tensor([-0.1, 0.0, 0.1])
+    rgb = torch.full((2, 2, 3), 0.5)
+    own = appearance.view_colour(rgb, _cameras()[0])
+    torch.testing.assert_close(own[..., 0], torch.full((2, 2), 0.5 * math.exp(0.2)), atol=1e-4, rtol=0)
+    torch.testing.assert_close(own[..., 1], torch.full((2, 2), 0.4), atol=1e-4, rtol=0)
+    between = _cameras()[0].clone()
+    between[0, 3] = 0.3  # halfway between cameras 1 and 2, camera 0 three times as far
+    w = torch.tensor([1 / 0.3, 1 / 0.1, 1 / 0.1])
+    w = w / w.sum()
+    out = appearance.view_colour(rgb, between)
+    torch.testing.assert_close(out[0, 0, 0], 0.5 * torch.exp((w * torch.tensor([0.2, 0.0, -0.2])).sum()))
+    torch.testing.assert_close(out[0, 0, 1], 0.5 + (w * torch.tensor([-0.1, 0.0, 0.1])).sum())
+    without = ImageAppearance(3)  # no cameras kept: every view takes the mean correction, none
+    without.load_state_dict({k: v for k, v in appearance.state_dict().items() if k != "cameras"}, strict=False)
+    torch.testing.assert_close(without.view_colour(rgb, between), rgb)
+    with pytest.raises(ValueError, match=r"cameras must be \[2, 4, 4\]"):
+        ImageAppearance(2, _cameras())
+
+
+def test_a_render_is_corrected_and_an_old_checkpoint_without_cameras_loads():
+    cfg = TrainConfig(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32, hidden_dim=16,
+                      sampler="uniform")
+    aabb = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
+    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
+    intr = Intrinsics(fl_x=4.0, fl_y=4.0, cx=2.0, cy=2.0, width=4, height=4)
+    plain = render_normalized(model, _cameras()[1], intr, ("rgb",))["rgb"]
+    model.appearance = ImageAppearance(3, _cameras())
+    with torch.no_grad():
+        model.appearance.bias[:, 2] = torch.tensor([-0.05, 0.1, -0.05])
+    corrected = render_normalized(model, _cameras()[1], intr, ("rgb",))["rgb"]
+    torch.testing.assert_close(corrected[..., :2], plain[..., :2])
+    assert float((corrected[..., 2] - plain[..., 2]).mean()) > 0.05  # camera 1's blue bias, nearly all of it
+    state = model.state_dict()
+    del state["appearance"]["cameras"]
+    loaded = VoxNeRFModel.from_state_dict(state, torch.device("cpu"))
+    torch.testing.assert_close(loaded.appearance.cameras, torch.eye(4).repeat(3, 1, 1))

@@ -135,10 +135,14 @@ class TrainConfig(BaseModel):
     pose_refinement: PoseRefinementMode = Field(
         default="none",
         description="'so3xr3': a rotation and a translation per training image, learnt with the field (nerfacto's "
-        "camera optimiser, voxnerf/pose_refinement.py) for scans whose poses are slightly off; evaluation views "
-        "keep their given poses; the report gives the corrections' size",
+        "camera optimiser, voxnerf/pose_refinement.py) for scans whose poses drift (SLAM, tracking); a rendered "
+        "pose takes the corrections of its nearest training cameras; the refined poses go to refined_poses.json",
     )
-    pose_lr: float = Field(default=6e-4, gt=0, description="learning rate of the pose corrections (nerfacto's)")
+    pose_lr: float = Field(
+        default=1e-4, gt=0,
+        description="learning rate of the pose corrections; nerfacto's 6e-4 moved redkitchen's poses further and "
+        "scored lower at 120 s (docs/benchmarks.md)",
+    )
     lambda_pose: float = Field(
         default=1e-2, ge=0,
         description="weight of the pose corrections' mean translation norm (normalised units) in the loss; a tenth "

@@ -65,6 +65,16 @@ def lpips_model() -> LPIPS | None:
     return LPIPS.load("cpu")
 
 
+def _corrections_note(model: VoxNeRFModel) -> dict[str, str]:
+    """What the model's per-image corrections did to the views (nothing for a model without them)."""
+    note = {}
+    if model.pose_refinement is not None:
+        note["poses"] = "given, moved by the pose corrections of the nearest training cameras"
+    if model.appearance is not None:
+        note["colours"] = "corrected as the nearest training cameras' images were"
+    return note
+
+
 def evaluate_views(
     model: VoxNeRFModel,
     views: dict[str, list[EvalView]],
@@ -81,7 +91,8 @@ def evaluate_views(
     Returns ``{split: {"psnr", "ssim", "lpips" (None if unavailable or not asked), "lpips_note"?, "renderer",
     "views": [{"name", "psnr", "ssim", "lpips"}]}}`` (means at the top; ``renderer`` says which path rendered
     them); LPIPS is also left out, with a note saying why, when a view is smaller than its network accepts.
-    A model with pose refinement adds ``"poses"``, saying how the views' poses were moved.
+    A model with pose refinement adds ``"poses"``, saying how the views' poses were moved, and one with per-image
+    appearance ``"colours"``.
     ``half_image`` adds ``"half": {"psnr", "ssim", "lpips"}``, the means of the half-image protocol
     (:func:`voxnerf.metrics.half_image_pairs`: colour affine fitted on each view's left half, scored on its right).
     Writes ``out_dir/<split>/<name>.png`` when ``out_dir`` is given. Raises EvaluationStopped when
@@ -114,8 +125,7 @@ def evaluate_views(
              "lpips": None if scores["lpips"] is None else scores["lpips"][i]}
             for i, v in enumerate(split_views)
         ]}
-        if model.pose_refinement is not None:
-            entry["poses"] = "given, moved by the pose corrections of the nearest training cameras"
+        entry |= _corrections_note(model)
         if half_image:
             halves = [half_image_pairs(p, g) for p, g in zip(preds, gts, strict=True)]
             entry["half"] = evaluate_images([p for p, _ in halves], [g for _, g in halves], lp)["mean"]

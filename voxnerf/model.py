@@ -56,9 +56,9 @@ class VoxNeRFModel:
 
     ``aabb`` [2, 3]: the scene box in normalised units, inside [-1, 1]^3. ``octree`` is None when the scene
     has no prior or the sampler does not use it. ``appearance`` (config ``appearance='affine'``) corrects the
-    training images' colours during training only; rendering never applies it. ``pose_refinement`` (config
-    ``pose_refinement='so3xr3'``) corrects the training images' rays, and a rendered pose by its nearest training
-    cameras' corrections (:func:`voxnerf.render.render_normalized`).
+    training images' colours, and a rendered view's as its nearest training cameras' were; ``pose_refinement``
+    (config ``pose_refinement='so3xr3'``) corrects the training images' rays, and a rendered pose by its nearest
+    training cameras' corrections (both applied by :func:`voxnerf.render.render_normalized`).
     """
 
     config: TrainConfig
@@ -167,7 +167,8 @@ class VoxNeRFModel:
         model.grid.load_state_dict(state["grid"])
         if state.get("appearance") is not None:
             model.appearance = ImageAppearance(int(state["appearance"]["bias"].shape[0])).to(device)
-            model.appearance.load_state_dict(state["appearance"])
+            # a checkpoint from before the cameras were kept: identity cameras, so views take the mean (none)
+            model.appearance.load_state_dict({"cameras": model.appearance.cameras} | state["appearance"])
         if state.get("pose_refinement") is not None:
             model.pose_refinement = PoseRefinement(int(state["pose_refinement"]["delta"].shape[0])).to(device)
             model.pose_refinement.load_state_dict(state["pose_refinement"])

@@ -12,8 +12,8 @@ blurry field pulls that way).
 A scan's pose errors drift slowly along its path, so a pose the scan gives for any other view (a held-out frame,
 a novel view in the scan's frame) carries about the error of the training cameras near it. Rendering a pose
 therefore moves it by the corrections of its nearest training cameras (:meth:`PoseRefinement.correct_views`,
-weighted by inverse distance): the correction the model learnt for that part of the path, from the training
-images alone.
+weighted by inverse distance, :mod:`voxnerf.neighbours`): the correction the model learnt for that part of the
+path, from the training images alone.
 """
 
 from __future__ import annotations
@@ -22,13 +22,11 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from voxnerf.neighbours import blend, checked_cameras, nearest_cameras
+
 # Below this squared angle (rad^2) the exponential map uses its Taylor series: sin(a)/a and (1-cos(a))/a^2 lose
 # every digit to cancellation near zero, and their gradients there would be 0/0.
 _SMALL_ANGLE_SQ = 1e-8
-# Training cameras whose corrections a rendered pose takes, and the distance (normalised units) that one radian
-# between viewing directions counts as when finding them.
-NEIGHBOURS = 4
-RADIAN_DISTANCE = 0.5
 
 
 def so3_exp(w: Tensor) -> Tensor:
@@ -57,12 +55,9 @@ class PoseRefinement(nn.Module):
         super().__init__()
         if images < 1:
             raise ValueError(f"PoseRefinement needs at least one image, got {images}")
-        if cameras is not None and tuple(cameras.shape) != (images, 4, 4):
-            raise ValueError(f"PoseRefinement: cameras must be [{images}, 4, 4], got {list(cameras.shape)}")
         self.delta = nn.Parameter(torch.zeros(images, 6))
         # [images, 4, 4] the training cameras' given poses (normalised units), where correct_views looks
-        given = torch.eye(4).repeat(images, 1, 1) if cameras is None else cameras.detach().float().clone()
-        self.register_buffer("cameras", given)
+        self.register_buffer("cameras", checked_cameras(images, cameras, "PoseRefinement"))
 
     def corrections(self) -> Tensor:
         """[images, 6] the corrections as applied: ``delta`` less its mean over the images."""
@@ -84,18 +79,10 @@ class PoseRefinement(nn.Module):
         return _moved(c2w, self.corrections().detach().to(c2w.dtype))
 
     def view_corrections(self, c2w: Tensor) -> Tensor:
-        """[M, 6] corrections for poses ``c2w`` [M, 4, 4] (normalised units): the inverse-distance-weighted mean
-        of the corrections of the :data:`NEIGHBOURS` nearest training cameras, the distance being that between
-        the centres plus :data:`RADIAN_DISTANCE` per radian between the viewing directions. A training camera's
+        """[M, 6] corrections for poses ``c2w`` [M, 4, 4] (normalised units): those of the nearest training
+        cameras, blended by inverse distance (:func:`voxnerf.neighbours.nearest_cameras`). A training camera's
         own pose gets its own correction."""
-        cameras = self.cameras.to(c2w.dtype)
-        gap = torch.cdist(c2w[:, :3, 3], cameras[:, :3, 3])
-        cos = (c2w[:, None, :3, 2] * cameras[None, :, :3, 2]).sum(-1).clamp(-1.0, 1.0)
-        distance = gap + RADIAN_DISTANCE * torch.arccos(cos)
-        near, index = distance.topk(min(NEIGHBOURS, cameras.shape[0]), dim=1, largest=False)
-        weight = 1.0 / near.clamp_min(1e-6)
-        weight = weight / weight.sum(1, keepdim=True)
-        return (weight[..., None] * self.corrections().detach().to(c2w.dtype)[index]).sum(1)
+        return blend(self.corrections().detach(), *nearest_cameras(self.cameras, c2w))
 
     def correct_views(self, c2w: Tensor) -> Tensor:
         """[M, 4, 4] poses ``c2w`` (normalised units) moved by :meth:`view_corrections`."""

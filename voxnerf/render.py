@@ -86,7 +86,8 @@ def render_normalized(
     path: str = "fast",
 ) -> dict[str, Tensor]:
     """Render one view whose pose is already in normalised units (a model that refined the training poses moves
-    it by its nearest training cameras' corrections first: :mod:`voxnerf.pose_refinement`).
+    it by its nearest training cameras' corrections first, :mod:`voxnerf.pose_refinement`; one that learnt
+    per-image appearance gives it their colour correction, :mod:`voxnerf.appearance`).
 
     Args:
         c2w: [4, 4] camera-to-world (OpenGL axes), normalised units.
@@ -107,6 +108,7 @@ def render_normalized(
         raise RunError(f"unknown render path {path!r}; choose from {list(RENDER_PATHS)}")
     fast = path == "fast"
     chunk = chunk or (FAST_CHUNK if fast else int(model.config.eval_chunk))
+    c2w = c2w.to(model.device, torch.float32)
     origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
     n = origins.shape[0]
     compiled = bool(model.config.compile) and not fast
@@ -124,13 +126,23 @@ def render_normalized(
             out = model.render_rays(rays, sampler, compiled=compiled)
         for name, values in parts.items():
             values.append(out[name])
+    return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
+
+
+def _view_outputs(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, parts: dict[str, list[Tensor]],
+                  z_per_t: Tensor) -> dict[str, Tensor]:
+    """The chunks ``parts`` of each output put together as images (depth as z-depth), the colour corrected by
+    the model's per-image appearance where it has one."""
     h, w = intrinsics.height, intrinsics.width
     result = {}
     for name, values in parts.items():
-        tensor = torch.cat(values)[:n]
+        tensor = torch.cat(values)[: h * w]
         if name == "depth":
             tensor = tensor * z_per_t
         result[name] = tensor.view(h, w, 3) if name == "rgb" else tensor.view(h, w)
+    appearance = getattr(model, "appearance", None)
+    if appearance is not None and "rgb" in result:
+        result["rgb"] = appearance.view_colour(result["rgb"], c2w).clamp(0.0, 1.0)
     return result
 
 

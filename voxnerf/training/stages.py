@@ -212,12 +212,13 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
     # fused: one pass over each parameter per step instead of one per Adam operation (benchmarks/optimizer_step.py;
     # see docs/performance.md).
     groups = [{"params": list(model.field.parameters()), "lr": cfg.lr}]
+    cameras = torch.from_numpy(np.stack([transform.c2w_to_normalized(scene.frames[i].c2w)
+                                         for i in scene.train_indices]))
     if cfg.appearance == "affine":
-        model.appearance = ImageAppearance(len(scene.train_indices)).to(device)
+        model.appearance = ImageAppearance(len(cameras), cameras).to(device)
         groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})
     if cfg.pose_refinement == "so3xr3":
-        cameras = np.stack([transform.c2w_to_normalized(scene.frames[i].c2w) for i in scene.train_indices])
-        model.pose_refinement = PoseRefinement(len(cameras), torch.from_numpy(cameras)).to(device)
+        model.pose_refinement = PoseRefinement(len(cameras), cameras).to(device)
         groups.append({"params": list(model.pose_refinement.parameters()), "lr": cfg.pose_lr})
     optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)
     stage = ModelStage(transform, prior_n, model, optimizer)
