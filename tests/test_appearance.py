@@ -3,10 +3,12 @@ training-config knobs that reach the trainer only through ``voxnerf train --set`
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 import torch
+from synthetic_fixtures import make_micro_scene, micro_config
 
 from voxnerf.appearance import ImageAppearance
 from voxnerf.cameras import Intrinsics
@@ -16,6 +18,7 @@ from voxnerf.metrics import fit_colour_affine, half_image_pairs, psnr
 from voxnerf.model import VoxNeRFModel
 from voxnerf.render import render_normalized
 from voxnerf.scene import SceneTransform
+from voxnerf.training.run import train
 
 
 def test_appearance_starts_as_the_identity_and_applies_each_rays_image():
@@ -172,3 +175,17 @@ def test_a_render_is_corrected_and_an_old_checkpoint_without_cameras_loads():
     del state["appearance"]["cameras"]
     loaded = VoxNeRFModel.from_state_dict(state, torch.device("cpu"))
     torch.testing.assert_close(loaded.appearance.cameras, torch.eye(4).repeat(3, 1, 1))
+
+
+def test_a_run_with_appearance_and_pose_refinement_says_how_its_views_were_corrected(tmp_path_factory, tmp_path):
+    room = make_micro_scene(tmp_path_factory, "appearance-run")
+    cfg = micro_config(max_iters=6, appearance="affine", pose_refinement="so3xr3")
+    train(room, tmp_path / "run", cfg, progress_bar=False)
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["appearance"]["images"] == 10 and report["pose_refinement"]["images"] == 10
+    assert report["metrics"]
+    for split in report["metrics"].values():
+        assert split["colours"] == "corrected as the nearest training cameras' images were"
+        assert split["poses"].startswith("given, moved by")
+    plain = train(room, tmp_path / "plain", micro_config(max_iters=2), progress_bar=False)
+    assert all("colours" not in s and "poses" not in s for s in plain.metrics.values())

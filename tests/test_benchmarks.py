@@ -29,6 +29,7 @@ render_speed = importlib.import_module("render_speed")
 suite = importlib.import_module("suite")
 sample_placement = importlib.import_module("sample_placement")
 suite_geometry = importlib.import_module("suite_geometry")
+pose_views = importlib.import_module("pose_views")
 suite_rooms = importlib.import_module("voxnerf.synthetic.suite")
 
 pytestmark = pytest.mark.timeout(300)
@@ -378,3 +379,22 @@ def test_suite_refuses_unknown_configs(capsys) -> None:
     with pytest.raises(SystemExit):
         suite.main(["--out", "/nonexistent", "--configs", "defaults,warp-drive"])
     assert "unknown configs ['warp-drive']" in capsys.readouterr().err
+
+
+def test_pose_views_scores_held_out_views_at_given_and_moved_poses(room: Path, tmp_path: Path, capsys) -> None:
+    from voxnerf.config import TrainConfig
+    from voxnerf.training.run import train
+
+    cfg = TrainConfig(max_iters=8, compile=False, device="cpu", rays_per_batch=256, hash_levels=4,
+                      hash_log2_size=10, hidden_dim=16, final_eval=False, pose_refinement="so3xr3", pose_lr=0.01)
+    train(room, tmp_path / "run", cfg, progress_bar=False)
+    out = tmp_path / "pose_views.json"
+    assert pose_views.main([str(tmp_path / "run"), str(room), "--every", "4", "--out", str(out)]) == 0
+    splits = json.loads(out.read_text())["splits"]
+    assert set(splits) == {"interpolation", "extrapolation"}
+    for r in splits.values():
+        assert r["views"] >= 1 and 0 < r["given"] < 100 and 0 < r["moved"] < 100 and r["given"] != r["moved"]
+    assert "at the moved poses" in capsys.readouterr().out
+    train(room, tmp_path / "plain", cfg.model_copy(update={"pose_refinement": "none"}), progress_bar=False)
+    assert pose_views.main([str(tmp_path / "plain"), str(room)]) == 2
+    assert "did not refine its poses" in capsys.readouterr().err

@@ -23,7 +23,7 @@ def _train(args: argparse.Namespace) -> int:
     values = dict(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
         depth_loss=not args.no_depth_loss, depth_source=args.depth_source, downscale=args.downscale,
-        pose_refinement=args.pose_refinement,
+        pose_refinement=args.pose_refinement, appearance=args.appearance,
         device=args.device, seed=args.seed,
         compile=not args.no_compile, hash_kernel=not args.no_hash_kernel, eval_at=args.eval_at or [],
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
@@ -407,6 +407,9 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
                    help="so3xr3: learn a rotation and translation per training image (scans whose poses drift, "
                    "e.g. from SLAM); rendered poses take their nearest training cameras' corrections; the refined "
                    "poses go to refined_poses.json (docs/engine.md)")
+    p.add_argument("--appearance", choices=["none", "affine"], default="none",
+                   help="affine: learn a colour gain and bias per training image (auto-exposure, white balance); "
+                   "a rendered view takes its nearest training cameras' correction (docs/engine.md)")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")

@@ -129,8 +129,7 @@ class TrainConfig(BaseModel):
         default="none",
         description="'affine': a colour gain and bias per channel and training image, learnt with the field "
         "(exposure and white balance that vary between frames), held at zero mean over the images so the field "
-        "keeps their average; evaluation views get none of their own, so compare such runs by the half-image "
-        "metrics too (docs/engine.md)",
+        "keeps their average; a rendered view takes its nearest training cameras' corrections (docs/engine.md)",
     )
     pose_refinement: PoseRefinementMode = Field(
         default="none",

@@ -67,9 +67,8 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
 
 
 def _view_rays(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`image_rays` of pose ``c2w`` [4, 4] (normalised) on the model's device, moved by the model's pose
-    refinement where it has one."""
-    c2w = c2w.to(model.device, torch.float32)
+    """:func:`image_rays` of pose ``c2w`` [4, 4] (normalised, float32 on the model's device), moved by the model's
+    pose refinement where it has one."""
     poses = getattr(model, "pose_refinement", None)
     if poses is not None:
         c2w = poses.correct_views(c2w[None])[0]

@@ -134,7 +134,7 @@ class TrainReport(BaseModel):
 
     ``scene``, ``prior`` and ``octree`` are the summaries of those stages' objects; ``warnings`` lists what the
     user should know (a prior that few pixels see, a sampler asking for a prior the scene lacks); ``pose_refinement``
-    the size of the learnt pose corrections (config ``pose_refinement``). Fields that a
+    and ``appearance`` the size of the learnt per-image corrections (configs of those names). Fields that a
     run never set (a prior-less scene has no ``prior``) stay out of the JSON.
     """
 
@@ -155,6 +155,7 @@ class TrainReport(BaseModel):
     depth_beta: float | None = None
     depth: dict[str, Any] | None = None
     pose_refinement: dict[str, Any] | None = None
+    appearance: dict[str, Any] | None = None
     metrics: dict[str, Any] | None = None
     error: str | None = None
     iteration: int = 0

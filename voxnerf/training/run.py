@@ -323,6 +323,8 @@ def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None
     save(iteration)
     if setup.built.model.pose_refinement is not None:
         _write_refined_poses(run, setup)
+    if setup.built.model.appearance is not None:
+        report.appearance = setup.built.model.appearance.summary()
     status = _final_eval_stage(run, setup, views, status, train_seconds, state)
     use_patches, _, n_patch_rays = _patches(run.cfg, setup)
     report.status, report.iteration = status, iteration
