@@ -9,15 +9,14 @@ import math
 import pytest
 import torch
 from synthetic_fixtures import make_micro_scene, micro_config
+from tiny_run import tiny_model
 
 from voxnerf.appearance import ImageAppearance
 from voxnerf.cameras import Intrinsics
 from voxnerf.cli import main
-from voxnerf.config import TrainConfig
 from voxnerf.metrics import fit_colour_affine, half_image_pairs, psnr
 from voxnerf.model import VoxNeRFModel
 from voxnerf.render import render_normalized
-from voxnerf.scene import SceneTransform
 from voxnerf.training.run import train
 
 
@@ -60,10 +59,7 @@ def test_appearance_needs_an_image():
 
 
 def test_a_model_with_appearance_round_trips_and_one_without_loads_as_before():
-    cfg = TrainConfig(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32, hidden_dim=16,
-                      appearance="affine")
-    aabb = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
-    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
+    model = tiny_model(appearance="affine")
     model.appearance = ImageAppearance(4)
     with torch.no_grad():
         model.appearance.bias.fill_(0.25)
@@ -159,10 +155,7 @@ def test_a_view_takes_its_nearest_training_cameras_colour_correction():
 
 
 def test_a_render_is_corrected_and_an_old_checkpoint_without_cameras_loads():
-    cfg = TrainConfig(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32, hidden_dim=16,
-                      sampler="uniform")
-    aabb = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
-    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
+    model = tiny_model(sampler="uniform")
     intr = Intrinsics(fl_x=4.0, fl_y=4.0, cx=2.0, cy=2.0, width=4, height=4)
     plain = render_normalized(model, _cameras()[1], intr, ("rgb",))["rgb"]
     model.appearance = ImageAppearance(3, _cameras())

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from synthetic_fixtures import make_micro_scene, micro_config
+from tiny_run import tiny_model
 
 from voxnerf import hash_kernel
 from voxnerf import render as render_module
@@ -19,7 +20,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.model import VoxNeRFModel
 from voxnerf.pose_refinement import PoseRefinement, refined_frames, so3_exp
 from voxnerf.render import render_normalized
-from voxnerf.scene import SceneTransform, load_scene
+from voxnerf.scene import load_scene
 from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.run import train
 from voxnerf.training.step import make_loss_fn
@@ -107,9 +108,7 @@ def test_summary_gives_degrees_and_scene_units_and_an_image_is_needed():
 
 
 def test_a_model_with_pose_refinement_round_trips_and_one_without_loads_as_before():
-    cfg = TrainConfig(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32, hidden_dim=16)
-    aabb = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
-    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
+    model = tiny_model()
     model.pose_refinement = PoseRefinement(4)
     with torch.no_grad():
         model.pose_refinement.delta.fill_(0.01)
@@ -270,10 +269,7 @@ def test_a_view_looking_elsewhere_counts_as_further():
 
 
 def test_rendering_a_pose_moves_it_by_the_learnt_corrections(monkeypatch):
-    cfg = TrainConfig(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32, hidden_dim=16,
-                      sampler="uniform")
-    aabb = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
-    model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
+    model = tiny_model(sampler="uniform")
     seen = []
     monkeypatch.setattr(render_module, "image_rays", lambda c2w, intr: seen.append(c2w) or image_rays(c2w, intr))
     intr = Intrinsics(fl_x=4.0, fl_y=4.0, cx=2.0, cy=2.0, width=4, height=4)

@@ -36,3 +36,12 @@ def write_tiny_run(run_dir: Path, seed: int = 0) -> Path:
         run_dir / CHECKPOINT,
     )
     return run_dir
+
+
+def tiny_model(**overrides) -> VoxNeRFModel:
+    """A freshly initialised small model (4 hash levels, 16 hidden) over the box ``[-1, 1]^3``, normalised units
+    equal to scene units; ``overrides`` replace TrainConfig fields."""
+    config = TrainConfig(**{**dict(max_iters=1, hash_levels=4, hash_log2_size=10, hash_max_resolution=32,
+                                   hidden_dim=16), **overrides})
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    return VoxNeRFModel.create(config, SceneTransform((0.0, 0.0, 0.0), 1.0), aabb, None, torch.device("cpu"))
