@@ -20,7 +20,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.model import VoxNeRFModel
 from voxnerf.pose_refinement import PoseRefinement, refined_frames, so3_exp
 from voxnerf.render import render_normalized
-from voxnerf.scene import load_scene
+from voxnerf.scene import SceneTransform, load_scene
 from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.run import train
 from voxnerf.training.step import make_loss_fn
@@ -218,13 +218,14 @@ def test_refined_frames_are_the_given_poses_moved_by_the_corrections_in_scene_un
     c2w = np.stack([np.eye(4), np.eye(4)])
     c2w[1, :3, 3] = [2.0, 1.0, -1.0]
     center, scale = np.array([1.0, 0.0, 0.0]), 0.25
-    same = refined_frames(poses, ["a.png", "b.png"], c2w, center, scale)["frames"]
+    transform = SceneTransform(tuple(center), scale)
+    same = refined_frames(poses, ["a.png", "b.png"], c2w, transform)["frames"]
     assert [f["file_path"] for f in same] == ["a.png", "b.png"]
     np.testing.assert_allclose(np.array([f["transform_matrix"] for f in same]), c2w, atol=1e-12)
     with torch.no_grad():
         poses.delta[1] = torch.tensor([0.0, 0.0, math.pi / 2, 0.1, 0.0, 0.0])  # 0.1 normalised = 0.4 scene units
         poses.delta[0] = -poses.delta[1]
-    moved = np.array(refined_frames(poses, ["a.png", "b.png"], c2w, center, scale)["frames"][1]["transform_matrix"])
+    moved = np.array(refined_frames(poses, ["a.png", "b.png"], c2w, transform)["frames"][1]["transform_matrix"])
     np.testing.assert_allclose(moved[:3, 3], [2.4, 1.0, -1.0], atol=1e-6)
     np.testing.assert_allclose(moved[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6)
 

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from voxnerf.neighbours import blend, checked_cameras, nearest_cameras
+from voxnerf.scene import SceneTransform
 
 # Below this squared angle (rad^2) the exponential map uses its Taylor series: sin(a)/a and (1-cos(a))/a^2 lose
 # every digit to cancellation near zero, and their gradients there would be 0/0.
@@ -108,15 +109,12 @@ def _moved(c2w: Tensor, delta: Tensor) -> Tensor:
     return out
 
 
-def refined_frames(refinement: PoseRefinement, file_paths: list[str], c2w: np.ndarray, center: np.ndarray,
-                   scale: float) -> dict:
+def refined_frames(refinement: PoseRefinement, file_paths: list[str], c2w: np.ndarray,
+                   transform: SceneTransform) -> dict:
     """The training frames' refined poses in transforms.json's form, ``{"frames": [{"file_path",
-    "transform_matrix"}]}``, in scene units: ``c2w`` [images, 4, 4] are the given poses in scene units, ``center``
-    and ``scale`` the scene's normalisation (``x_n = (x - center) * scale``)."""
-    given = np.asarray(c2w, dtype=np.float64)
-    normalised = given.copy()
-    normalised[:, :3, 3] = (given[:, :3, 3] - center) * scale
-    refined = refinement.refined_c2w(torch.from_numpy(normalised)).numpy()
-    refined[:, :3, 3] = refined[:, :3, 3] / scale + center
+    "transform_matrix"}]}``, in scene units: ``c2w`` [images, 4, 4] are the given poses in scene units and
+    ``transform`` the scene's normalisation."""
+    normalised = torch.from_numpy(transform.c2w_to_normalized(c2w))
+    refined = transform.c2w_to_scene(refinement.refined_c2w(normalised).numpy())
     return {"frames": [{"file_path": path, "transform_matrix": m.tolist()}
                        for path, m in zip(file_paths, refined, strict=True)]}

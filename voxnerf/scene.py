@@ -147,6 +147,13 @@ class SceneTransform:
         out[..., :3, 3] = (out[..., :3, 3] - np.asarray(self.center)) * self.scale
         return out
 
+    def c2w_to_scene(self, c2w: np.ndarray) -> np.ndarray:
+        """[..., 4, 4] camera-to-world in normalised units -> scene units (the inverse of
+        :meth:`c2w_to_normalized`)."""
+        out = np.array(c2w, dtype=np.float64, copy=True)
+        out[..., :3, 3] = out[..., :3, 3] / self.scale + np.asarray(self.center)
+        return out
+
     @staticmethod
     def fit(points: np.ndarray, margin: float = 0.05) -> SceneTransform:
         """The transform that puts ``points`` [N, 3] inside ``[-1+margin, 1-margin]^3``."""

@@ -341,7 +341,7 @@ def _write_refined_poses(run: Run, setup: Setup) -> None:
     model, scene = setup.built.model, setup.scene
     frames = [scene.frames[i] for i in scene.train_indices]
     poses = refined_frames(model.pose_refinement, [f.file_path for f in frames], np.stack([f.c2w for f in frames]),
-                           np.asarray(model.transform.center), model.transform.scale)
+                           model.transform)
     run.fence()
     write_atomic(run.dir / REFINED_POSES, json.dumps(poses, indent=1).encode())
     run.report.pose_refinement = model.pose_refinement.summary(model.transform.scale) | {"file": REFINED_POSES}

@@ -212,8 +212,10 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
     # fused: one pass over each parameter per step instead of one per Adam operation (benchmarks/optimizer_step.py;
     # see docs/performance.md).
     groups = [{"params": list(model.field.parameters()), "lr": cfg.lr}]
-    cameras = torch.from_numpy(np.stack([transform.c2w_to_normalized(scene.frames[i].c2w)
-                                         for i in scene.train_indices]))
+    cameras = None
+    if cfg.appearance == "affine" or cfg.pose_refinement == "so3xr3":  # the training cameras both blend from
+        cameras = torch.from_numpy(np.stack([transform.c2w_to_normalized(scene.frames[i].c2w)
+                                             for i in scene.train_indices]))
     if cfg.appearance == "affine":
         model.appearance = ImageAppearance(len(cameras), cameras).to(device)
         groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})

@@ -105,6 +105,8 @@ def refined_rays(poses: PoseRefinement, origins: torch.Tensor, dirs: torch.Tenso
                  n_image: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Rays [R, 3] with the first ``n_image`` (the image rays) moved by their training image's pose correction;
     the rest (prior rays) as they are."""
+    if n_image == origins.shape[0]:  # no prior rays: nothing to put back
+        return poses(origins, dirs, image)
     moved_o, moved_d = poses(origins[:n_image], dirs[:n_image], image[:n_image])
     return torch.cat([moved_o, origins[n_image:]]), torch.cat([moved_d, dirs[n_image:]])
 
