@@ -162,7 +162,8 @@ def test_the_loss_recovers_known_pose_errors():
     starts = torch.rand(512, 4)
     opt = torch.optim.Adam(model.pose_refinement.parameters(), lr=2e-3)
     for _ in range(400):
-        total, *_ = loss_fn(origins, dirs, starts, starts + 0.1, target, None, None, None, image, torch.tensor(0.0))
+        total, *_ = loss_fn(origins, dirs, starts, starts + 0.1, target, None, None, None, image, torch.tensor(0.0),
+                            pose_corrections=model.pose_refinement.corrections())
         opt.zero_grad()
         total.backward()
         opt.step()
@@ -181,7 +182,8 @@ def test_prior_rays_are_not_moved_and_the_regulariser_counts():
     seen = []
     render = model.render_samples
     model.render_samples = lambda o, d, *a, **k: seen.append((o, d)) or render(o, d, *a, **k)
-    args = (origins, dirs, starts, starts + 0.1, target, None, None, None, image, torch.tensor(0.0))
+    args = (origins, dirs, starts, starts + 0.1, target, None, None, None, image, torch.tensor(0.0), None, None,
+            model.pose_refinement.corrections())
     total, lc, *_ = make_loss_fn(model, TrainConfig(max_iters=1, lambda_pose=0.5), 0.1, 0, 8, n_prior_rays=3)(*args)
     o, d = seen[0]
     torch.testing.assert_close(o[5:], origins[5:])  # the 3 prior rays
@@ -194,7 +196,8 @@ def test_prior_rays_are_not_moved_and_the_regulariser_counts():
     not hash_kernel.available(), reason="the compiled step runs the C hash kernel's position gradient"))])
 def test_a_run_with_pose_refinement_learns_keeps_and_reports_the_corrections(tmp_path_factory, tmp_path, compile_step):
     room = make_micro_scene(tmp_path_factory, "pose-refinement")
-    cfg = micro_config(max_iters=12, pose_refinement="so3xr3", pose_lr=1e-3, final_eval=False, compile=compile_step)
+    cfg = micro_config(max_iters=12, pose_refinement="so3xr3", pose_lr=1e-3, pose_every=2, final_eval=False,
+                       compile=compile_step)
     report = train(room, tmp_path / "run", cfg, progress_bar=False)
     assert report.status == "succeeded"
     summary = json.loads((tmp_path / "run" / "report.json").read_text())["pose_refinement"]

@@ -11,6 +11,7 @@ import torch
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
 from voxnerf.losses import color_loss
+from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.samplers import RayBundle
 from voxnerf.training.pixels import TrainingPixels
 from voxnerf.training.step import PAPER_BETA, Batch, Losses, TrainStep, divergence_guard, make_loss_fn
@@ -185,3 +186,44 @@ def test_losses_zero_the_gradients_then_backpropagate_and_apply_steps():
     assert float(losses.total.detach()) == 6.0 and float(w.grad) == 3.0 and log == [("zero_grad", True)]
     step.apply()
     assert log[-1] == "step"
+
+
+@pytest.mark.parametrize("with_prior_rays", [False, True])
+def test_every_nth_batch_carries_the_pose_corrections_with_their_gradient(with_prior_rays):
+    def sampler(rays, training):
+        return torch.zeros(len(rays.origins), 4), torch.ones(len(rays.origins), 4)
+
+    model = StubModel()
+    model.pose_refinement = PoseRefinement(2)
+    bank = None
+    if with_prior_rays:
+        rays = RayBundle(torch.zeros(4, 3), torch.ones(4, 3), torch.zeros(4), torch.ones(4))
+        bank = SimpleNamespace(draw=lambda n, gen: (rays, torch.ones(4), None))
+    cfg = TrainConfig(max_iters=1, rays_per_batch=32, prior_rays=4, pose_refinement="so3xr3", pose_every=3)
+    step = TrainStep(model, StubOptimizer([]), _pixels(True), cfg, None, True, sampler,
+                     torch.Generator().manual_seed(0), prior_rays=bank)
+    carried = [step.batch().pose_corrections for _ in range(7)]
+    assert [c.requires_grad for c in carried] == [True, False, False, True, False, False, True]
+    assert all(c.shape == (2, 6) for c in carried)
+    without = TrainStep(StubModel(), StubOptimizer([]), _pixels(True), cfg, None, True, sampler,
+                        torch.Generator().manual_seed(0))
+    assert without.batch().pose_corrections is None
+
+
+def test_detached_pose_corrections_still_move_the_rays_but_leave_the_poses_without_a_gradient():
+    seen = []
+    model = StubModel()
+    render = model.render_samples
+    model.render_samples = lambda o, d, *a, **k: seen.append(o) or render(o, d, *a, **k)
+    poses = PoseRefinement(2)
+    with torch.no_grad():
+        poses.delta[0, 3] = 0.2
+    args = _inputs(8, with_depth=False)
+    loss_fn = make_loss_fn(model, TrainConfig(max_iters=1, lambda_pose=0.5), 0.1, 0, 8)
+    total, *_ = loss_fn(*args, None, None, poses.corrections().detach())
+    total.backward()
+    assert poses.delta.grad is None
+    torch.testing.assert_close(seen[0], args[0] + torch.tensor([0.1, 0.0, 0.0]))  # image 0, held at zero mean
+    total, *_ = loss_fn(*args, None, None, poses.corrections())
+    total.backward()
+    assert poses.delta.grad is not None and float(poses.delta.grad.abs().sum()) > 0

@@ -142,6 +142,11 @@ class TrainConfig(BaseModel):
         description="learning rate of the pose corrections; nerfacto's 6e-4 moved redkitchen's poses further and "
         "scored lower at 120 s (docs/benchmarks.md)",
     )
+    pose_every: int = Field(
+        default=1, ge=1,
+        description="the pose corrections learn on every n-th step; the steps between move the rays as the poses "
+        "stand without their gradient, which makes them as cheap as steps without pose refinement",
+    )
     lambda_pose: float = Field(
         default=1e-2, ge=0,
         description="weight of the pose corrections' mean translation norm (normalised units) in the loss; a tenth "

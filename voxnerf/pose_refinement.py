@@ -49,7 +49,8 @@ class PoseRefinement(nn.Module):
 
     ``delta``: [images, 6] parameters, axis-angle (radians) then translation (normalised units); the corrections
     applied are ``delta`` less its mean over the images (:meth:`corrections`).
-    ``forward(origins [R, 3], dirs [R, 3] unit, image [R] int64) -> (origins', dirs')``, dirs' still unit.
+    ``forward(origins [R, 3], dirs [R, 3] unit, image [R] int64) -> (origins', dirs')``, dirs' still unit
+    (:func:`moved_rays` with :meth:`corrections`).
     """
 
     def __init__(self, images: int, cameras: Tensor | None = None) -> None:
@@ -65,15 +66,8 @@ class PoseRefinement(nn.Module):
         return self.delta - self.delta.mean(0)
 
     def forward(self, origins: Tensor, dirs: Tensor, image: Tensor) -> tuple[Tensor, Tensor]:
-        delta = self.corrections()
-        rotation = so3_exp(delta[:, :3])[image]  # every image's (a few dozen), then gathered per ray
-        return origins + delta[image, 3:], torch.einsum("rij,rj->ri", rotation, dirs)
+        return moved_rays(self.corrections(), origins, dirs, image)
 
-    def penalty(self, rotation_weight: float, translation_weight: float) -> Tensor:
-        """nerfacto's regulariser: the weighted mean norms of the rotations (radians) and translations."""
-        delta = self.corrections()
-        return (rotation_weight * delta[:, :3].norm(dim=-1).mean()
-                + translation_weight * delta[:, 3:].norm(dim=-1).mean())
 
     def refined_c2w(self, c2w: Tensor) -> Tensor:
         """[images, 4, 4] camera-to-world poses (normalised units) with the learnt corrections applied."""
@@ -99,6 +93,20 @@ class PoseRefinement(nn.Module):
                 "rotation_deg": {"mean": float(angles.mean()), "max": float(angles.max())},
                 "translation": {"mean": float(moves.mean()), "max": float(moves.max())}}
 
+
+
+def moved_rays(corrections: Tensor, origins: Tensor, dirs: Tensor, image: Tensor) -> tuple[Tensor, Tensor]:
+    """Rays ``origins``, ``dirs`` [R, 3] (normalised units, dirs unit) moved by their image's row of
+    ``corrections`` [images, 6] (``image`` [R] int64): origins shifted, dirs turned (still unit)."""
+    rotation = so3_exp(corrections[:, :3])[image]  # every image's (a few dozen), then gathered per ray
+    return origins + corrections[image, 3:], torch.einsum("rij,rj->ri", rotation, dirs)
+
+
+def pose_penalty(corrections: Tensor, rotation_weight: float, translation_weight: float) -> Tensor:
+    """nerfacto's regulariser: the weighted mean norms of the corrections' rotations (radians) and translations
+    (``corrections`` [images, 6])."""
+    return (rotation_weight * corrections[:, :3].norm(dim=-1).mean()
+            + translation_weight * corrections[:, 3:].norm(dim=-1).mean())
 
 
 def _moved(c2w: Tensor, delta: Tensor) -> Tensor:

@@ -13,7 +13,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
 from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss
 from voxnerf.model import VoxNeRFModel
-from voxnerf.pose_refinement import PoseRefinement
+from voxnerf.pose_refinement import moved_rays, pose_penalty
 from voxnerf.training.pixels import TrainingPixels, sample_batch
 from voxnerf.training.prior_rays import PriorRayBank
 
@@ -37,6 +37,9 @@ class Batch(NamedTuple):
     depth_weight: torch.Tensor
     colour_weight: torch.Tensor | None = None  # [R] each ray's weight in the colour loss (None: image rays 1)
     background: torch.Tensor | None = None  # [R, 3] each ray's background colour (None: the model's)
+    # [images, 6] the pose corrections moving the image rays (None: no pose refinement); detached on the steps
+    # that leave the poses as they are
+    pose_corrections: torch.Tensor | None = None
 
 
 class Losses(NamedTuple):
@@ -60,21 +63,22 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
     beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
     so lambda_d keeps its meaning whatever the scene's units and normalisation. A ray's ``target_beta`` scales
     its beta (sensor depth is trusted less far away). The model's ``appearance`` (when it has one) corrects the
-    rendered colour of each ray's training image before the colour loss; its ``pose_refinement`` moves each image
-    ray as its training image's correction says (the sample intervals stay those of the given pose: a correction
-    is far smaller than the sampling window) and adds its regulariser. The batch's last ``n_prior_rays`` rays
-    are prior rays (:mod:`voxnerf.training.prior_rays`): depth targets only, left out of the colour loss; the
-    smoothness patches come just before them.
+    rendered colour of each ray's training image before the colour loss. With a ``pose_refinement`` the batch's
+    ``pose_corrections`` move each image ray as its training image's row says (the sample intervals stay those
+    of the given pose: a correction is far smaller than the sampling window) and their regulariser joins the
+    loss; detached corrections (a step that leaves the poses alone) make the step as cheap as one without
+    refinement, since no gradient then flows into the sample positions and directions. The batch's last
+    ``n_prior_rays`` rays are prior rays (:mod:`voxnerf.training.prior_rays`): depth targets only, left out of
+    the colour loss; the smoothness patches come just before them.
     """
     to_units, lam_dist = PAPER_BETA / (beta * model.transform.scale), cfg.distortion_weight
-    appearance, poses = getattr(model, "appearance", None), getattr(model, "pose_refinement", None)
-    lam_pose = cfg.lambda_pose
+    appearance, lam_pose = getattr(model, "appearance", None), cfg.lambda_pose
 
     def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight,
-                colour_weight=None, background=None):
+                colour_weight=None, background=None, pose_corrections=None):
         n_image = origins.shape[0] - n_prior_rays
-        if poses is not None:
-            origins, dirs = refined_rays(poses, origins, dirs, image, n_image)
+        if pose_corrections is not None:
+            origins, dirs = refined_rays(pose_corrections, origins, dirs, image, n_image)
         out = model.render_samples(origins, dirs, starts, ends, background)
         rgb = out["rgb"][:n_image] if appearance is None else appearance(out["rgb"][:n_image], image[:n_image])
         if colour_weight is None:
@@ -82,7 +86,9 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
         else:  # prior rays weighted in (their targets: the mean colour), normalised by the image rays
             per_ray = ((torch.cat([rgb, out["rgb"][n_image:]]) - target_rgb) ** 2).mean(-1)
             lc = (per_ray * colour_weight).sum() / n_image
-        total = lc if poses is None or lam_pose == 0 else lc + poses.penalty(0.1 * lam_pose, lam_pose)
+        total = lc
+        if pose_corrections is not None and lam_pose > 0:
+            total = total + pose_penalty(pose_corrections, 0.1 * lam_pose, lam_pose)
         ld = lreg = ldist = torch.zeros((), device=origins.device)
         if lam_dist > 0:
             ldist = distortion_loss(out["weights"], starts, ends)
@@ -101,13 +107,13 @@ def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_ray
     return loss_fn
 
 
-def refined_rays(poses: PoseRefinement, origins: torch.Tensor, dirs: torch.Tensor, image: torch.Tensor,
+def refined_rays(corrections: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, image: torch.Tensor,
                  n_image: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays [R, 3] with the first ``n_image`` (the image rays) moved by their training image's pose correction;
-    the rest (prior rays) as they are."""
+    """Rays [R, 3] with the first ``n_image`` (the image rays) moved by their training image's row of the pose
+    ``corrections`` [images, 6]; the rest (prior rays) as they are."""
     if n_image == origins.shape[0]:  # no prior rays: nothing to put back
-        return poses(origins, dirs, image)
-    moved_o, moved_d = poses(origins[:n_image], dirs[:n_image], image[:n_image])
+        return moved_rays(corrections, origins, dirs, image)
+    moved_o, moved_d = moved_rays(corrections, origins[:n_image], dirs[:n_image], image[:n_image])
     return torch.cat([moved_o, origins[n_image:]]), torch.cat([moved_d, dirs[n_image:]])
 
 
@@ -125,7 +131,9 @@ def divergence_guard(losses: Losses, iteration: int) -> float:
 
 class TrainStep:
     """The step, split where the divergence guard looks: ``batch()``, ``losses(batch)`` (forward and
-    backward) and ``apply()`` (the optimiser update, only after the guard passed)."""
+    backward) and ``apply()`` (the optimiser update, only after the guard passed). With pose refinement, every
+    ``cfg.pose_every``-th batch carries the corrections with their gradient and the others carry them detached
+    (those steps move the rays as the poses stand and leave the poses alone)."""
 
     def __init__(self, model: VoxNeRFModel, optimizer: torch.optim.Optimizer, pixels: TrainingPixels,
                  cfg: TrainConfig, loss_fn: LossFn, use_patches: bool, sampler, gen: torch.Generator,
@@ -135,6 +143,7 @@ class TrainStep:
         self.mean_colour = pixels.images.float().mean((0, 1, 2)) / 255.0 if prior_rays is not None else None
         self.loss_fn, self.use_patches, self.sampler, self.gen = loss_fn, use_patches, sampler, gen
         self.depth_weight = torch.tensor(float(cfg.lambda_depth), device=pixels.images.device)  # the schedule sets it
+        self.batches = 0  # batches drawn by this step (which ones refine the poses)
 
     def batch(self) -> Batch:
         pixels = self.pixels
@@ -152,8 +161,19 @@ class TrainStep:
         if pixels.depth_beta_scale is not None:
             target_beta = pixels.depth_beta_scale[img, py, px]
         batch = Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, img,
-                      self.depth_weight, background=self._random_background(len(img)))
+                      self.depth_weight, background=self._random_background(len(img)),
+                      pose_corrections=self._pose_corrections())
+        self.batches += 1
         return batch if self.prior_rays is None or target_t is None else self._with_prior_rays(batch)
+
+    def _pose_corrections(self) -> torch.Tensor | None:
+        """The model's pose corrections [images, 6] for this batch: with their gradient on every
+        ``cfg.pose_every``-th batch, detached on the others; None without pose refinement."""
+        poses = getattr(self.model, "pose_refinement", None)
+        if poses is None:
+            return None
+        corrections = poses.corrections()
+        return corrections if self.batches % self.cfg.pose_every == 0 else corrections.detach()
 
     def _random_background(self, n: int) -> torch.Tensor | None:
         """[n, 3] a uniform random colour behind each ray when ``train_background`` is 'random' (else None: the
@@ -180,7 +200,8 @@ class TrainStep:
                      torch.cat([batch.target_rgb, colour]), torch.cat([batch.target_t, target_t]),
                      torch.cat([batch.target_ok, torch.ones_like(target_t, dtype=torch.bool)]), beta,
                      torch.cat([batch.image, batch.image.new_zeros(n)]), batch.depth_weight, weight,
-                     None if batch.background is None else torch.cat([batch.background, self._random_background(n)]))
+                     None if batch.background is None else torch.cat([batch.background, self._random_background(n)]),
+                     batch.pose_corrections)
 
     def losses(self, batch: Batch) -> Losses:
         losses = Losses(*self.loss_fn(*batch))
