@@ -162,6 +162,7 @@ INTERNAL_TRAIN_FIELDS = frozenset(
         "coarse_levels",
         "depth_weight_final",
         "pose_lr",
+        "pose_every",
         "lambda_pose",
         "prior_rays",
         "prior_ray_colour",

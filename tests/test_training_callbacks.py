@@ -382,6 +382,31 @@ def test_compile_stage_is_recorded_after_the_first_step_only():
     assert recorded == [(StageRecord(name="compile", ran=True, why=COMPILE_RAN_WHY, seconds=10.0), 1)]
 
 
+def test_a_step_of_two_graphs_counts_the_first_step_of_each_and_not_what_ran_between():
+    clock, recorded = FakeClock(), []
+    timer = CompileTimer(started=90.0, record=lambda rec, it: recorded.append((rec, it)), clock=clock, steps=2)
+    timer.after_step(LoopState(1))  # 10 s from started
+    clock.now += 30.0  # an evaluation before the second step
+    timer.before_step(LoopState(1))
+    clock.now += 4.0
+    timer.after_step(LoopState(2))
+    timer.before_step(LoopState(2))
+    clock.now += 1.0
+    timer.after_step(LoopState(3))
+    timer.finish(3)
+    why = "torch.compile of the training step's 2 graphs (time of the first step of each)"
+    assert recorded == [(StageRecord(name="compile", ran=True, why=why, seconds=14.0), 2)]
+
+
+def test_a_run_that_stops_between_the_graphs_records_the_first_step():
+    clock, recorded = FakeClock(), []
+    timer = CompileTimer(started=90.0, record=lambda rec, it: recorded.append((rec, it)), clock=clock, steps=2)
+    timer.after_step(LoopState(1))
+    clock.now += 7.0
+    timer.finish(1)
+    assert recorded[0][0].ran and recorded[0][0].seconds == 10.0
+
+
 def test_compile_stage_without_any_step_says_so():
     recorded = []
     timer = CompileTimer(started=99.0, record=lambda rec, it: recorded.append((rec, it)), clock=FakeClock())

@@ -138,14 +138,15 @@ class TrainConfig(BaseModel):
         "pose takes the corrections of its nearest training cameras; the refined poses go to refined_poses.json",
     )
     pose_lr: float = Field(
-        default=1e-4, gt=0,
-        description="learning rate of the pose corrections; nerfacto's 6e-4 moved redkitchen's poses further and "
-        "scored lower at 120 s (docs/benchmarks.md)",
+        default=8e-4, gt=0,
+        description="learning rate of the pose corrections (on the steps that refine them, pose_every); chosen on "
+        "redkitchen at 300 s among 1e-4 to 1.6e-3 (docs/benchmarks.md)",
     )
     pose_every: int = Field(
-        default=1, ge=1,
+        default=4, ge=1,
         description="the pose corrections learn on every n-th step; the steps between move the rays as the poses "
-        "stand without their gradient, which makes them as cheap as steps without pose refinement",
+        "stand without their gradient, which makes them as cheap as steps without pose refinement "
+        "(docs/benchmarks.md: 1, 2, 4 and 8 on redkitchen)",
     )
     lambda_pose: float = Field(
         default=1e-2, ge=0,

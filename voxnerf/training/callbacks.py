@@ -335,25 +335,41 @@ class ProgressBar(Callback):
 
 
 class CompileTimer(Callback):
-    """Records the compile stage after the first step (``torch.compile`` compiles on the first call, so that
-    step's time, from ``started``, is the compile time), or at :meth:`finish` when no step ran."""
+    """Records the compile stage after the first ``steps`` steps, or at :meth:`finish` when fewer ran.
+    ``torch.compile`` compiles a graph on its first call: the first step's time, from ``started``, is the step's
+    compile time, and where the step alternates between graphs (pose refinement on every n-th step only) the
+    first step of each other graph adds its own time (from its ``before_step``, so evaluations before it do not
+    count)."""
 
     def __init__(self, started: float, record: Callable[[StageRecord, int], None],
-                 clock: Clock = time.perf_counter) -> None:
-        self.started, self.record, self.clock = started, record, clock
-        self.pending = True
+                 clock: Clock = time.perf_counter, steps: int = 1) -> None:
+        self.started, self.record, self.clock, self.steps = started, record, clock, steps
+        self.pending, self.timed, self.spent = True, 0, 0.0
+
+    def before_step(self, state: LoopState) -> None:
+        if self.pending and self.timed:
+            self.started = self.clock()
 
     def after_step(self, state: LoopState) -> None:
         if self.pending:
-            self._record(True, COMPILE_RAN_WHY, state.iteration)
+            self.spent += self.clock() - self.started
+            self.timed += 1
+            if self.timed == self.steps:
+                self._record(True, self._ran_why(), state.iteration)
 
     def finish(self, iteration: int) -> None:
         if self.pending:
-            self._record(False, COMPILE_NO_STEP_WHY, iteration)
+            self._record(self.timed > 0, self._ran_why() if self.timed else COMPILE_NO_STEP_WHY, iteration)
+
+    def _ran_why(self) -> str:
+        if self.steps == 1:
+            return COMPILE_RAN_WHY
+        return f"torch.compile of the training step's {self.steps} graphs (time of the first step of each)"
 
     def _record(self, ran: bool, why: str, iteration: int) -> None:
         self.pending = False
-        self.record(StageRecord(name="compile", ran=ran, why=why, seconds=self.clock() - self.started), iteration)
+        seconds = self.spent if self.timed else self.clock() - self.started
+        self.record(StageRecord(name="compile", ran=ran, why=why, seconds=seconds), iteration)
 
 
 def present(callbacks: Sequence[Callback | None]) -> list[Callback]:
