@@ -46,6 +46,13 @@ REDKITCHEN_DOWNSCALE = 2
 NOISE_DB = 0.3
 """A per-scene change smaller than this is read as noise (the issue's bar for "loses")."""
 
+def _corrections(appearance: bool, pose_lr: float, pose_every: int) -> dict:
+    """The real-scan corrections' fields: pose refinement at ``pose_lr`` on every ``pose_every``-th step, with
+    per-image appearance or without."""
+    fields = {"appearance": "affine"} if appearance else {}
+    return fields | {"pose_refinement": "so3xr3", "pose_lr": pose_lr, "pose_every": pose_every}
+
+
 CONFIGS: dict[str, dict] = {
     "defaults": {},
     "lr-budget": {"lr_schedule": "budget", "lr_final": 0.1},
@@ -55,23 +62,17 @@ CONFIGS: dict[str, dict] = {
     "sh-1": {"sh_bands": 1},
     "depth-decay": {"depth_weight_final": 0.1},
     "appearance": {"appearance": "affine"},
-    "pose-refine": {"pose_refinement": "so3xr3", "pose_lr": 6e-4, "pose_every": 1},
-    "pose-refine-slow": {"pose_refinement": "so3xr3", "pose_lr": 1e-4, "pose_every": 1},
-    "appearance-pose": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 1e-4, "pose_every": 1},
-    "pose-refine-every4-lr8": {"pose_refinement": "so3xr3", "pose_lr": 8e-4, "pose_every": 4},
-    "appearance-pose-every4": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 1e-4, "pose_every": 4},
-    "appearance-pose-every4-lr2": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 2e-4,
-                                   "pose_every": 4},
-    "appearance-pose-every4-lr4": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 4e-4,
-                                   "pose_every": 4},
-    "appearance-pose-every4-lr8": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 8e-4,
-                                   "pose_every": 4},
-    "appearance-pose-every4-lr16": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 1.6e-3,
-                                    "pose_every": 4},
-    "appearance-pose-every2-lr8": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 8e-4,
-                                   "pose_every": 2},
-    "appearance-pose-every8-lr8": {"appearance": "affine", "pose_refinement": "so3xr3", "pose_lr": 8e-4,
-                                   "pose_every": 8},
+    "pose-refine": _corrections(appearance=False, pose_lr=6e-4, pose_every=1),
+    "pose-refine-slow": _corrections(appearance=False, pose_lr=1e-4, pose_every=1),
+    "appearance-pose": _corrections(appearance=True, pose_lr=1e-4, pose_every=1),
+    "pose-refine-every4-lr8": _corrections(appearance=False, pose_lr=8e-4, pose_every=4),
+    "appearance-pose-every4": _corrections(appearance=True, pose_lr=1e-4, pose_every=4),
+    "appearance-pose-every4-lr2": _corrections(appearance=True, pose_lr=2e-4, pose_every=4),
+    "appearance-pose-every4-lr4": _corrections(appearance=True, pose_lr=4e-4, pose_every=4),
+    "appearance-pose-every4-lr8": _corrections(appearance=True, pose_lr=8e-4, pose_every=4),
+    "appearance-pose-every4-lr16": _corrections(appearance=True, pose_lr=1.6e-3, pose_every=4),
+    "appearance-pose-every2-lr8": _corrections(appearance=True, pose_lr=8e-4, pose_every=2),
+    "appearance-pose-every8-lr8": _corrections(appearance=True, pose_lr=8e-4, pose_every=8),
     "prior-rays": {"prior_rays": 512},
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]},

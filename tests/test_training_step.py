@@ -205,9 +205,10 @@ def test_every_nth_batch_carries_the_pose_corrections_with_their_gradient(with_p
     carried = [step.batch().pose_corrections for _ in range(7)]
     assert [c.requires_grad for c in carried] == [True, False, False, True, False, False, True]
     assert all(c.shape == (2, 6) for c in carried)
+    assert step.graphs == 2
     without = TrainStep(StubModel(), StubOptimizer([]), _pixels(True), cfg, None, True, sampler,
                         torch.Generator().manual_seed(0))
-    assert without.batch().pose_corrections is None
+    assert without.batch().pose_corrections is None and without.graphs == 1
 
 
 def test_detached_pose_corrections_still_move_the_rays_but_leave_the_poses_without_a_gradient():

@@ -68,7 +68,6 @@ class PoseRefinement(nn.Module):
     def forward(self, origins: Tensor, dirs: Tensor, image: Tensor) -> tuple[Tensor, Tensor]:
         return moved_rays(self.corrections(), origins, dirs, image)
 
-
     def refined_c2w(self, c2w: Tensor) -> Tensor:
         """[images, 4, 4] camera-to-world poses (normalised units) with the learnt corrections applied."""
         return _moved(c2w, self.corrections().detach().to(c2w.dtype))
@@ -92,7 +91,6 @@ class PoseRefinement(nn.Module):
         return {"images": int(delta.shape[0]),
                 "rotation_deg": {"mean": float(angles.mean()), "max": float(angles.max())},
                 "translation": {"mean": float(moves.mean()), "max": float(moves.max())}}
-
 
 
 def moved_rays(corrections: Tensor, origins: Tensor, dirs: Tensor, image: Tensor) -> tuple[Tensor, Tensor]:

@@ -257,10 +257,7 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     save = _fenced(run, CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget,
                                          run.report.history, setup.scene))
     saving = Checkpointing(save, cfg.checkpoint_every_s)
-    timer = None
-    if compiled.record is None:
-        graphs = 2 if built.model.pose_refinement is not None and cfg.pose_every > 1 else 1  # poses' grad or not
-        timer = CompileTimer(compiled.started, run.events.stage, steps=graphs)
+    timer = CompileTimer(compiled.started, run.events.stage, steps=step.graphs) if compiled.record is None else None
     bar = ProgressBar.create(cfg.max_iters, built.iteration, progress_bar)
     progress = TrainingProgress(budget, cfg.max_iters, evaluation.final_eval_reserve)
     schedules = _schedules(cfg, built, step, progress)

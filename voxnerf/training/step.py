@@ -166,6 +166,12 @@ class TrainStep:
         self.batches += 1
         return batch if self.prior_rays is None or target_t is None else self._with_prior_rays(batch)
 
+    @property
+    def graphs(self) -> int:
+        """How many forms the batches take for a compiled loss function: two where only every
+        ``cfg.pose_every``-th one carries the pose corrections with their gradient, else one."""
+        return 2 if getattr(self.model, "pose_refinement", None) is not None and self.cfg.pose_every > 1 else 1
+
     def _pose_corrections(self) -> torch.Tensor | None:
         """The model's pose corrections [images, 6] for this batch: with their gradient on every
         ``cfg.pose_every``-th batch, detached on the others; None without pose refinement."""
