@@ -74,7 +74,11 @@ def test_a_stop_signal_stops_serve_and_every_worker(tmp_path, sig):
         )
     tree: set[int] = set()
     try:
-        wait_for(lambda: _all_workers_ready(f"http://127.0.0.1:{port}"), 180, "all three workers in /healthz", 1)
+        try:
+            wait_for(lambda: _all_workers_ready(f"http://127.0.0.1:{port}"), 180, "all three workers in /healthz", 1)
+        except AssertionError as err:
+            log_tail = log_path.read_text(errors="replace")[-3000:]
+            raise AssertionError(f"{err}; voxnerf serve's log ends:\n{log_tail}") from err
         tree = _descendants(serve.pid)
         assert len(tree) >= len(QUEUES), f"expected the workers below voxnerf serve, found {sorted(tree)}"
 

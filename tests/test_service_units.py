@@ -11,7 +11,7 @@ import time
 import imageio.v3 as iio
 import numpy as np
 import pytest
-from kombu import Connection
+from kombu import Connection, Exchange, Queue
 
 from app.core import jobstore
 from app.core.celery_app import create_celery
@@ -151,6 +151,50 @@ def test_filesystem_broker_delivers_each_message_once_to_competing_consumers(tmp
     assert sorted(received) == list(range(200))  # every message once: none lost, none twice
     assert not [p for p in (tmp_path / "q").iterdir() if p.name.endswith(".msg")]
     assert not list((tmp_path / "claimed").iterdir())
+
+
+BIND_ROUNDS = 20
+
+
+def _bind_in_rounds(folder, name, barrier) -> None:
+    """Bind queue ``name`` to a fresh fanout exchange each round, all binders released together."""
+    with _broker(folder) as conn:
+        channel = conn.channel()
+        for round_ in range(BIND_ROUNDS):
+            barrier.wait(30)
+            Queue(name, Exchange(f"fanout{round_}", type="fanout"), channel=channel).declare()
+
+
+def test_filesystem_broker_keeps_every_binding_of_processes_binding_at_once(tmp_path):
+    for name in ("q", "c", "claimed"):
+        (tmp_path / name).mkdir()
+    context = multiprocessing.get_context("spawn")
+    barrier = context.Barrier(6)
+    binders = [context.Process(target=_bind_in_rounds, args=(tmp_path, f"w{i}", barrier)) for i in range(6)]
+    for proc in binders:
+        proc.start()
+    for proc in binders:
+        proc.join(120)
+    assert [proc.exitcode for proc in binders] == [0] * 6
+    with _broker(tmp_path) as conn:
+        channel = conn.channel()
+        bound = [sorted(b.queue for b in channel.get_table(f"fanout{r}")) for r in range(BIND_ROUNDS)]
+    assert bound == [[f"w{i}" for i in range(6)]] * BIND_ROUNDS  # kombu's own channel loses some
+
+
+def test_filesystem_broker_unbinds_one_queue_and_reads_an_empty_exchange_file_as_unbound(tmp_path):
+    for name in ("q", "c", "claimed"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "c" / "empty.exchange").touch()  # created by a binder that has not written yet
+    with _broker(tmp_path) as conn:
+        channel = conn.channel()
+        assert channel.get_table("empty") == []
+        queues = [Queue(n, Exchange("fan", type="fanout"), channel=channel) for n in ("a", "b", "c")]
+        for queue in queues:
+            queue.declare()
+        queues[1].delete()
+        assert sorted(b.queue for b in channel.get_table("fan")) == ["a", "c"]
+        assert channel.get_table("never-bound") == []
 
 
 @pytest.fixture

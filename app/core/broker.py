@@ -4,25 +4,32 @@ kombu's stock filesystem channel writes a message file in place (a consumer poll
 read it half written: kombu issue #1551) and claims a message by moving it to the system temp directory
 (a copy, not a rename, when that is another filesystem, so two consumers could both take it). Here a
 message is written to a hidden temporary name and renamed into the queue folder, and a consumer claims
-it by renaming it into a ``claimed`` folder beside the queue: one rename, one winner. Message names,
-ordering, fanout exchanges and every other behaviour stay kombu's.
+it by renaming it into a ``claimed`` folder beside the queue: one rename, one winner. kombu's channel also
+binds a queue to a fanout exchange by testing whether the exchange's file exists and then truncating it
+(processes that bind at the same moment, such as the workers of ``voxnerf serve``, lose each other's bindings
+or leave the file unreadable, and a worker whose binding is lost never answers ``/healthz``). Here the file is
+read, changed and rewritten under one exclusive lock, and an empty file is an empty table. Message names,
+ordering and every other behaviour stay kombu's.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import uuid
 from queue import Empty
 from time import monotonic
 
-from kombu.transport import filesystem
+from kombu.transport import filesystem, virtual
 from kombu.utils.encoding import bytes_to_str, str_to_bytes
 from kombu.utils.json import dumps, loads
 
+Binding = filesystem.exchange_queue_t  # (routing_key, pattern, queue) of a queue bound to an exchange
+
 
 class Channel(filesystem.Channel):
-    """Filesystem channel whose ``_put`` and ``_get`` are atomic across processes."""
+    """Filesystem channel whose ``_put``, ``_get`` and exchange bindings are atomic across processes."""
 
     @property
     def claimed_folder(self) -> str:
@@ -60,6 +67,49 @@ class Channel(filesystem.Channel):
                 os.remove(claimed)
             return loads(bytes_to_str(payload))
         raise Empty()
+
+
+    def get_table(self, exchange) -> list[Binding]:
+        path = self._exchange_file(exchange)
+        try:
+            with open(path, "rb") as f:
+                fcntl.flock(f, fcntl.LOCK_SH)  # released by close
+                return _parse_table(f.read())
+        except FileNotFoundError:
+            return []
+        except OSError as exc:
+            raise filesystem.ChannelError(f"Cannot open {path}") from exc
+
+    def _queue_bind(self, exchange, routing_key, pattern, queue) -> None:
+        binding = Binding(routing_key or "", pattern or "", queue or "")
+        self._edit_table(exchange, lambda table: table if binding in table else [binding, *table])
+
+    def _delete(self, queue, exchange, routing_key, pattern, *args, **kwargs) -> None:
+        virtual.Channel._delete(self, queue, exchange, routing_key, pattern, *args, **kwargs)  # not kombu's file edit
+        binding = Binding(routing_key or "", pattern or "", queue or "")
+        self._edit_table(exchange, lambda table: [b for b in table if b != binding])
+
+    def _edit_table(self, exchange, edit) -> None:
+        """Replace the bindings of ``exchange`` by ``edit(bindings)``: read, edit and rewrite under one
+        exclusive lock, so no other process's change between the read and the write is lost."""
+        path = self._exchange_file(exchange)
+        self.control_folder.mkdir(parents=True, exist_ok=True)
+        try:
+            with open(os.open(path, os.O_RDWR | os.O_CREAT, 0o644), "r+b") as f:  # never truncated unlocked
+                fcntl.flock(f, fcntl.LOCK_EX)  # released by close
+                table = _parse_table(f.read())
+                edited = edit(table)
+                if edited != table:
+                    f.seek(0)
+                    f.write(str_to_bytes(dumps(edited)))
+                    f.truncate()
+        except OSError as exc:
+            raise filesystem.ChannelError(f"Cannot open {path}") from exc
+
+
+def _parse_table(data: bytes) -> list[Binding]:
+    """The bindings stored in an exchange file; an empty file (created, not yet written) holds none."""
+    return [Binding(*entry) for entry in loads(bytes_to_str(data))] if data.strip() else []
 
 
 class Transport(filesystem.Transport):
