@@ -531,10 +531,6 @@ class CompileStage:
     record: StageRecord | None = None
 
 
-COMPILE_RAN_WHY = "torch.compile of the training step (time of the first step)"
-COMPILE_NO_STEP_WHY = "no training step ran"
-
-
 def compile_stage(cfg: TrainConfig, loss_fn: LossFn) -> CompileStage:
     """The step's loss function through ``torch.compile`` (unless disabled). Inductor's cache goes to
     :func:`inductor_cache_dir` unless ``TORCHINDUCTOR_CACHE_DIR`` says otherwise, so a later run of the same
