@@ -68,7 +68,6 @@ class Channel(filesystem.Channel):
             return loads(bytes_to_str(payload))
         raise Empty()
 
-
     def get_table(self, exchange) -> list[Binding]:
         path = self._exchange_file(exchange)
         try:
