@@ -46,11 +46,12 @@ REDKITCHEN_DOWNSCALE = 2
 NOISE_DB = 0.3
 """A per-scene change smaller than this is read as noise (the issue's bar for "loses")."""
 
-def _corrections(appearance: bool, pose_lr: float, pose_every: int) -> dict:
-    """The real-scan corrections' fields: pose refinement at ``pose_lr`` on every ``pose_every``-th step, with
-    per-image appearance or without."""
+def _corrections(appearance: bool, pose_lr: float, pose_every: int, lambda_pose: float | None = None) -> dict:
+    """The real-scan corrections' fields: pose refinement at ``pose_lr`` on every ``pose_every``-th step
+    (regularised by ``lambda_pose`` when given), with per-image appearance or without."""
     fields = {"appearance": "affine"} if appearance else {}
-    return fields | {"pose_refinement": "so3xr3", "pose_lr": pose_lr, "pose_every": pose_every}
+    fields |= {"pose_refinement": "so3xr3", "pose_lr": pose_lr, "pose_every": pose_every}
+    return fields if lambda_pose is None else fields | {"lambda_pose": lambda_pose}
 
 
 CONFIGS: dict[str, dict] = {
@@ -73,8 +74,8 @@ CONFIGS: dict[str, dict] = {
     "appearance-pose-every4-lr16": _corrections(appearance=True, pose_lr=1.6e-3, pose_every=4),
     "appearance-pose-every2-lr8": _corrections(appearance=True, pose_lr=8e-4, pose_every=2),
     "appearance-pose-every8-lr8": _corrections(appearance=True, pose_lr=8e-4, pose_every=8),
-    "appearance-pose-lambda-3e-3": _corrections(appearance=True, pose_lr=8e-4, pose_every=4) | {"lambda_pose": 3e-3},
-    "appearance-pose-lambda-3e-2": _corrections(appearance=True, pose_lr=8e-4, pose_every=4) | {"lambda_pose": 3e-2},
+    "appearance-pose-lambda-3e-3": _corrections(appearance=True, pose_lr=8e-4, pose_every=4, lambda_pose=3e-3),
+    "appearance-pose-lambda-3e-2": _corrections(appearance=True, pose_lr=8e-4, pose_every=4, lambda_pose=3e-2),
     "prior-rays": {"prior_rays": 512},
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]},

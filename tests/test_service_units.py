@@ -115,6 +115,12 @@ def _broker(folder) -> Connection:
     return Connection("filesystem://", transport="app.core.broker:Transport", transport_options=options)
 
 
+def _broker_folders(folder) -> None:
+    """The queue, control and claimed folders that :func:`_broker` names, under ``folder``."""
+    for name in ("q", "c", "claimed"):
+        (folder / name).mkdir()
+
+
 def _consume(folder, out):
     got = []
     with _broker(folder) as conn:
@@ -133,8 +139,7 @@ def _consume(folder, out):
 
 
 def test_filesystem_broker_delivers_each_message_once_to_competing_consumers(tmp_path):
-    for name in ("q", "c", "claimed"):
-        (tmp_path / name).mkdir()
+    _broker_folders(tmp_path)
     context = multiprocessing.get_context("spawn")
     out = context.Queue()
     consumers = [context.Process(target=_consume, args=(tmp_path, out)) for _ in range(2)]
@@ -166,8 +171,7 @@ def _bind_in_rounds(folder, name, barrier) -> None:
 
 
 def test_filesystem_broker_keeps_every_binding_of_processes_binding_at_once(tmp_path):
-    for name in ("q", "c", "claimed"):
-        (tmp_path / name).mkdir()
+    _broker_folders(tmp_path)
     context = multiprocessing.get_context("spawn")
     barrier = context.Barrier(6)
     binders = [context.Process(target=_bind_in_rounds, args=(tmp_path, f"w{i}", barrier)) for i in range(6)]
@@ -183,8 +187,7 @@ def test_filesystem_broker_keeps_every_binding_of_processes_binding_at_once(tmp_
 
 
 def test_filesystem_broker_unbinds_one_queue_and_reads_an_empty_exchange_file_as_unbound(tmp_path):
-    for name in ("q", "c", "claimed"):
-        (tmp_path / name).mkdir()
+    _broker_folders(tmp_path)
     (tmp_path / "c" / "empty.exchange").touch()  # created by a binder that has not written yet
     with _broker(tmp_path) as conn:
         channel = conn.channel()

@@ -80,12 +80,12 @@ class Channel(filesystem.Channel):
             raise filesystem.ChannelError(f"Cannot open {path}") from exc
 
     def _queue_bind(self, exchange, routing_key, pattern, queue) -> None:
-        binding = Binding(routing_key or "", pattern or "", queue or "")
+        binding = _binding(routing_key, pattern, queue)
         self._edit_table(exchange, lambda table: table if binding in table else [binding, *table])
 
     def _delete(self, queue, exchange, routing_key, pattern, *args, **kwargs) -> None:
         virtual.Channel._delete(self, queue, exchange, routing_key, pattern, *args, **kwargs)  # not kombu's file edit
-        binding = Binding(routing_key or "", pattern or "", queue or "")
+        binding = _binding(routing_key, pattern, queue)
         self._edit_table(exchange, lambda table: [b for b in table if b != binding])
 
     def _edit_table(self, exchange, edit) -> None:
@@ -104,6 +104,11 @@ class Channel(filesystem.Channel):
                     f.truncate()
         except OSError as exc:
             raise filesystem.ChannelError(f"Cannot open {path}") from exc
+
+
+def _binding(routing_key, pattern, queue) -> Binding:
+    """A binding as kombu stores it (None as "")."""
+    return Binding(routing_key or "", pattern or "", queue or "")
 
 
 def _parse_table(data: bytes) -> list[Binding]:
