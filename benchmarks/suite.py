@@ -76,6 +76,8 @@ CONFIGS: dict[str, dict] = {
     "appearance-pose-every8-lr8": _corrections(appearance=True, pose_lr=8e-4, pose_every=8),
     "appearance-pose-lambda-3e-3": _corrections(appearance=True, pose_lr=8e-4, pose_every=4, lambda_pose=3e-3),
     "appearance-pose-lambda-3e-2": _corrections(appearance=True, pose_lr=8e-4, pose_every=4, lambda_pose=3e-2),
+    "appearance-pose-distortion": _corrections(appearance=True, pose_lr=8e-4, pose_every=4)
+    | {"distortion_weight": 0.01},
     "prior-rays": {"prior_rays": 512},
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]},
