@@ -49,10 +49,13 @@ NOISE_DB = 0.3
 def _corrections(appearance: bool, pose_lr: float, pose_every: int, lambda_pose: float | None = None) -> dict:
     """The real-scan corrections' fields: pose refinement at ``pose_lr`` on every ``pose_every``-th step
     (regularised by ``lambda_pose`` when given), with per-image appearance or without."""
-    fields = {"appearance": "affine"} if appearance else {}
+    fields = {"appearance": "affine" if appearance else "none"}
     fields |= {"pose_refinement": "so3xr3", "pose_lr": pose_lr, "pose_every": pose_every}
     return fields if lambda_pose is None else fields | {"lambda_pose": lambda_pose}
 
+
+# The defaults before appearance and pose refinement became "auto" (on for a captured scan): neither learnt.
+NO_CORRECTIONS = {"appearance": "none", "pose_refinement": "none"}
 
 CONFIGS: dict[str, dict] = {
     "defaults": {},
@@ -62,7 +65,7 @@ CONFIGS: dict[str, dict] = {
     "sh-2": {"sh_bands": 2},
     "sh-1": {"sh_bands": 1},
     "depth-decay": {"depth_weight_final": 0.1},
-    "appearance": {"appearance": "affine"},
+    "appearance": {"appearance": "affine", "pose_refinement": "none"},
     "pose-refine": _corrections(appearance=False, pose_lr=6e-4, pose_every=1),
     "pose-refine-slow": _corrections(appearance=False, pose_lr=1e-4, pose_every=1),
     "appearance-pose": _corrections(appearance=True, pose_lr=1e-4, pose_every=1),
@@ -80,7 +83,8 @@ CONFIGS: dict[str, dict] = {
     | {"distortion_weight": 0.01},
     "prior-rays": {"prior_rays": 512},
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
-    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]},
+    "no-corrections": NO_CORRECTIONS,
+    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]} | NO_CORRECTIONS,
     "background-mean": {"train_background": "fixed", "background": "training_mean"},
     "background-gray": {"train_background": "fixed", "background": [0.5, 0.5, 0.5]},
     "render-black": {"background": [0.0, 0.0, 0.0]},
@@ -240,7 +244,8 @@ def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
     return rows
 
 
-SET_UP_STAGES = ("load_scene", "prior", "hash_kernel", "octree", "pseudo_depth", "depth_target", "first_hit_cache")
+SET_UP_STAGES = ("load_scene", "corrections", "prior", "hash_kernel", "octree", "pseudo_depth", "depth_target",
+                 "first_hit_cache")
 
 
 def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:

@@ -30,6 +30,7 @@ from voxnerf.synthetic.sensor import (
 )
 from voxnerf.synthetic.suite import QUICK_SUITE, SUITE, main, make_suite, spec_json, split_sizes
 from voxnerf.synthetic.textures import PATTERNS, Material
+from voxnerf.synthetic.writer import WRITER_VERSION
 
 # 24 x 18 pixels, 7 training, 5 interpolation and 3 extrapolation frames, no prior: renders in a fraction of a second.
 TINY = RoomSpec(width=24, height=18, n_frames=36, train_every=4, n_gaps=1, gap_len=12, prior_kind="none")
@@ -43,12 +44,21 @@ DEFAULT_HASHES = {
 }
 
 
+def _without_version_2_keys(text: str) -> bytes:
+    """transforms.json as the writer wrote it before version 2 added ``synthetic`` and ``voxnerf_synthetic.writer``."""
+    meta = json.loads(text)
+    assert meta.pop("synthetic") is True and meta["voxnerf_synthetic"].pop("writer") == WRITER_VERSION
+    return (json.dumps(meta, indent=2) + "\n").encode()
+
+
 def _tree_hash(root: Path) -> str:
+    """Every file's path and bytes; transforms.json as the writer before version 2 wrote it."""
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*")):
         if path.is_file():
             digest.update(str(path.relative_to(root)).encode())
-            digest.update(path.read_bytes())
+            is_meta = path.name == "transforms.json"
+            digest.update(_without_version_2_keys(path.read_text()) if is_meta else path.read_bytes())
     return digest.hexdigest()
 
 
@@ -334,6 +344,20 @@ def test_make_suite_rebuilds_a_room_whose_spec_changed(tmp_path: Path):
     (tmp_path / "room.spec.json").write_text("{not json")
     make_suite(tmp_path, suite={"room": spec})
     assert _meta(tmp_path / "room")["voxnerf_synthetic"]["seed"] == spec.seed
+
+
+def test_make_suite_rebuilds_a_room_an_older_writer_wrote(tmp_path: Path):
+    spec = QUICK_SUITE["quick_plain"]
+    make_suite(tmp_path, suite={"room": spec})
+    assert _meta(tmp_path / "room")["voxnerf_synthetic"]["writer"] == WRITER_VERSION
+    old = _meta(tmp_path / "room")
+    del old["synthetic"], old["voxnerf_synthetic"]["writer"]  # what the writer before version 2 wrote
+    (tmp_path / "room" / "transforms.json").write_text(json.dumps(old))
+    make_suite(tmp_path, suite={"room": spec})
+    assert _meta(tmp_path / "room")["synthetic"] is True
+    (tmp_path / "room" / "transforms.json").write_text("[]")
+    make_suite(tmp_path, suite={"room": spec})
+    assert _meta(tmp_path / "room")["voxnerf_synthetic"]["writer"] == WRITER_VERSION
 
 
 def test_make_suite_refuses_unknown_rooms_and_bad_specs_before_writing(tmp_path: Path):

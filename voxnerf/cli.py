@@ -35,7 +35,7 @@ def _train(args: argparse.Namespace) -> int:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
     report = train(args.scene, args.out, config, resume=not args.restart)
     for stage in report.stages:
-        if stage.name in ("prior", "depth_target"):
+        if stage.name in ("corrections", "prior", "depth_target"):
             print(f"{stage.name}: {stage.why}")
     for warning in report.warnings:
         print(f"warning: {warning}")
@@ -403,13 +403,15 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
                    help="what the depth loss compares with: the training frames' depth maps (the prior's depth "
                    "where they have none), the prior's depth, or nothing; auto: sensor when the training frames "
                    "have depth maps, else prior when there is one")
-    p.add_argument("--pose-refinement", choices=["none", "so3xr3"], default="none",
+    p.add_argument("--pose-refinement", choices=["auto", "none", "so3xr3"], default="auto",
                    help="so3xr3: learn a rotation and translation per training image (scans whose poses drift, "
-                   "e.g. from SLAM); rendered poses take their nearest training cameras' corrections; the refined "
-                   "poses go to refined_poses.json (docs/engine.md)")
-    p.add_argument("--appearance", choices=["none", "affine"], default="none",
+                   "e.g. from SLAM or COLMAP); rendered poses take their nearest training cameras' corrections; the "
+                   "refined poses go to refined_poses.json (docs/engine.md); auto: so3xr3 unless transforms.json "
+                   "says the scene is synthetic")
+    p.add_argument("--appearance", choices=["auto", "none", "affine"], default="auto",
                    help="affine: learn a colour gain and bias per training image (auto-exposure, white balance); "
-                   "a rendered view takes its nearest training cameras' correction (docs/engine.md)")
+                   "a rendered view takes its nearest training cameras' correction (docs/engine.md); auto: affine "
+                   "unless transforms.json says the scene is synthetic")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")

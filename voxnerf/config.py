@@ -10,8 +10,8 @@ Preset = Literal["cpu", "paper"]
 SamplerName = Literal["voxnerf", "occgrid", "uniform"]
 DepthSource = Literal["auto", "sensor", "prior", "none"]
 LrSchedule = Literal["iterations", "budget"]
-Appearance = Literal["none", "affine"]
-PoseRefinementMode = Literal["none", "so3xr3"]
+Appearance = Literal["auto", "none", "affine"]
+PoseRefinementMode = Literal["auto", "none", "so3xr3"]
 MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
@@ -126,16 +126,19 @@ class TrainConfig(BaseModel):
         "towards the training images' mean colour (a neutral guess for what no image shows); 0 leaves it out",
     )
     appearance: Appearance = Field(
-        default="none",
-        description="'affine': a colour gain and bias per channel and training image, learnt with the field "
+        default="auto",
+        description="'affine': a colour gain and bias per training image and channel, learnt with the field "
         "(exposure and white balance that vary between frames), held at zero mean over the images so the field "
-        "keeps their average; a rendered view takes its nearest training cameras' corrections (docs/engine.md)",
+        "keeps their average; a rendered view takes its nearest training cameras' corrections (docs/engine.md). "
+        "'auto': affine for a captured scan, none for a scene whose transforms.json says it is synthetic "
+        "(voxnerf/training/corrections.py)",
     )
     pose_refinement: PoseRefinementMode = Field(
-        default="none",
+        default="auto",
         description="'so3xr3': a rotation and a translation per training image, learnt with the field (nerfacto's "
-        "camera optimiser, voxnerf/pose_refinement.py) for scans whose poses drift (SLAM, tracking); a rendered "
-        "pose takes the corrections of its nearest training cameras; the refined poses go to refined_poses.json",
+        "camera optimiser, voxnerf/pose_refinement.py) for scans whose poses drift (SLAM, tracking, SfM); a "
+        "rendered pose takes the corrections of its nearest training cameras; the refined poses go to "
+        "refined_poses.json. 'auto': so3xr3 for a captured scan, none for a synthetic scene (exact poses)",
     )
     pose_lr: float = Field(
         default=8e-4, gt=0,

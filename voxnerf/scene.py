@@ -79,6 +79,7 @@ class Scene:
     images: list[np.ndarray | None] | None = None
     depths: list[np.ndarray | None] | None = None  # training frames only: held-out depth is never read
     warnings: list[str] = field(default_factory=list)
+    synthetic: bool = False  # transforms.json's ``synthetic``: rendered images with exact poses
 
     @property
     def train_indices(self) -> list[int]:
@@ -123,6 +124,7 @@ class Scene:
             "camera_models": self.camera_models(),
             "depth_frames": {"all": sum(f.depth_path is not None for f in self.frames),
                              "train": sum(self.frames[i].depth_path is not None for i in self.train_indices)},
+            "synthetic": self.synthetic,
             "warnings": list(self.warnings),
         }
 
@@ -182,6 +184,12 @@ def _positive_number(value, path: Path, key: str) -> float:
 
 def _finite_number(value, path: Path, key: str) -> float:
     return _checked(finite_number, value, path, key)
+
+
+def _boolean(value, path: Path, key: str) -> bool:
+    if not isinstance(value, bool):
+        raise _fail(path, f"must be true or false, got {short_repr(value)}", key)
+    return value
 
 
 def _pixel_count(value, path: Path, key: str) -> int:
@@ -514,8 +522,9 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
         depth_max = _positive_number(meta["depth_max"], json_path, "depth_max")
     prior_path, prior_sigma, prior_key = _read_prior_keys(root, meta, json_path, warnings)
     _check_image_sizes(frames, json_path, downscale)
+    synthetic = _boolean(meta.get("synthetic", False), json_path, "synthetic")
     scene = Scene(root.resolve(), frames, splits, prior_path, prior_sigma, depth_scale, prior_key, depth_max,
-                  downscale, warnings=warnings)
+                  downscale, warnings=warnings, synthetic=synthetic)
     if load_images:
         _load_pixels(scene)
     return scene

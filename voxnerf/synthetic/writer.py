@@ -23,6 +23,9 @@ from voxnerf.synthetic.room import LIGHT_TEMPERATURE_RANGE_K, ROOM_SIZE_RANGE, R
 from voxnerf.synthetic.sensor import CameraResponse, capture_linear, drift_walk, sensor_depth, vignette_gain
 
 HORIZONTAL_FOV_DEG = 65.0
+# What this writer's scenes hold changed (1: no top-level "synthetic"; 2: it is true); stored as
+# voxnerf_synthetic.writer, so a cached room written by an older writer is rendered again (synthetic/suite.py).
+WRITER_VERSION = 2
 DEPTH_UNIT_SCALE = 0.001
 """Metres per unit of the 16-bit depth PNGs (millimetres)."""
 
@@ -209,6 +212,7 @@ def _write_scene(root: Path, spec: RoomSpec, splits: FrameSplits) -> None:
         meta.update({key: getattr(lens, key) for key in MODEL_COEFFICIENTS[lens.model]})
     if spec.write_depth:
         meta["depth_unit_scale_factor"] = DEPTH_UNIT_SCALE
+    meta["synthetic"] = True  # rendered with exact poses (voxnerf/training/corrections.py)
     drift = _drift(spec)
     meta["frames"] = _write_frames(root, spec, geom, splits.used, fl, drift)
     meta.update(_split_lists(splits))
@@ -310,6 +314,7 @@ def _spec_record(spec: RoomSpec) -> dict:
 def _generator_record(spec: RoomSpec, splits: FrameSplits, geom: RoomGeometry, prior_info: dict | None) -> dict:
     """transforms.json ``voxnerf_synthetic``: how the scene was made and where its objects are."""
     return {
+        "writer": WRITER_VERSION,
         "seed": spec.seed,
         "room_size": list(geom.room_size),
         "world_up": [0.0, 0.0, 1.0],

@@ -51,6 +51,7 @@ from voxnerf.training.callbacks import (
     present,
 )
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
+from voxnerf.training.corrections import corrections_stage
 from voxnerf.training.evals import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
 from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.pixels import TrainingPixels, training_pixels
@@ -165,11 +166,15 @@ def _stopped_in_set_up(run: Run, previous: dict | None) -> TrainReport:
 
 
 def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Setup:
-    """Stages load_scene, prior, hash_kernel, then the model (and the resumed state)."""
-    cfg, report, events = run.cfg, run.report, run.events
-    loaded = stages.load_scene_stage(scene_dir, cfg)
+    """Stages load_scene, corrections, prior, hash_kernel, then the model (and the resumed state)."""
+    report, events = run.report, run.events
+    loaded = stages.load_scene_stage(scene_dir, run.cfg)
     report.scene = loaded.scene.summary()
     events.stage(loaded.record, 0)
+    corrections = corrections_stage(run.cfg, loaded.scene, previous)
+    run.cfg = cfg = corrections.cfg  # "auto" resolved: the report's config says what the run learns
+    report.config = cfg.model_dump()
+    events.stage(corrections.record, 0)
     run.stop_point()
     run.fence()  # the prior stage may write the fused prior into the run directory
     found = stages.prior_stage(loaded.scene, cfg, run.dir)

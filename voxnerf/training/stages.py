@@ -200,6 +200,24 @@ def training_mean_colour(scene: Scene) -> tuple[float, float, float]:
 APPEARANCE_LR_SCALE = 0.1  # the per-image corrections learn at a tenth of the field's rate
 
 
+def _corrections(cfg: TrainConfig, scene: Scene, model: VoxNeRFModel, device: torch.device) -> list[dict]:
+    """Give ``model`` the per-image corrections ``cfg`` asks for; their optimiser parameter groups."""
+    if "auto" in (cfg.appearance, cfg.pose_refinement):
+        raise ValueError("model_stage: resolve 'auto' appearance and pose_refinement first (corrections_stage)")
+    if cfg.appearance == "none" and cfg.pose_refinement == "none":
+        return []
+    cameras = torch.from_numpy(np.stack([model.transform.c2w_to_normalized(scene.frames[i].c2w)
+                                         for i in scene.train_indices]))  # both blend from the training cameras
+    groups = []
+    if cfg.appearance == "affine":
+        model.appearance = ImageAppearance(len(cameras), cameras).to(device)
+        groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})
+    if cfg.pose_refinement == "so3xr3":
+        model.pose_refinement = PoseRefinement(len(cameras), cameras).to(device)
+        groups.append({"params": list(model.pose_refinement.parameters()), "lr": cfg.pose_lr})
+    return groups
+
+
 def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, device: torch.device,
                 previous: dict | None) -> ModelStage:
     transform, aabb = scene_box(scene, prior)
@@ -211,17 +229,7 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
         model.grid.seed_from_points(torch.from_numpy(prior_n.points).float().to(device))
     # fused: one pass over each parameter per step instead of one per Adam operation (benchmarks/optimizer_step.py;
     # see docs/performance.md).
-    groups = [{"params": list(model.field.parameters()), "lr": cfg.lr}]
-    cameras = None
-    if cfg.appearance == "affine" or cfg.pose_refinement == "so3xr3":  # the training cameras both blend from
-        cameras = torch.from_numpy(np.stack([transform.c2w_to_normalized(scene.frames[i].c2w)
-                                             for i in scene.train_indices]))
-    if cfg.appearance == "affine":
-        model.appearance = ImageAppearance(len(cameras), cameras).to(device)
-        groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})
-    if cfg.pose_refinement == "so3xr3":
-        model.pose_refinement = PoseRefinement(len(cameras), cameras).to(device)
-        groups.append({"params": list(model.pose_refinement.parameters()), "lr": cfg.pose_lr})
+    groups = [{"params": list(model.field.parameters()), "lr": cfg.lr}, *_corrections(cfg, scene, model, device)]
     optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)
     stage = ModelStage(transform, prior_n, model, optimizer)
     if previous is not None:
