@@ -28,6 +28,7 @@ import csv
 import io
 import json
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -40,7 +41,7 @@ from make_priors import SOURCES, make_priors, prior_scene_dir
 from voxnerf.config import TrainConfig
 from voxnerf.errors import SceneError
 from voxnerf.image_io import write_atomic
-from voxnerf.synthetic import RoomSpec, make_room_scene
+from voxnerf.synthetic.writer import RoomSpec, make_room_scene, written_by_this_writer
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,8 @@ def make_scene(kind: str, out: Path, quick: bool) -> Path:
     if kind != "room":
         return Path(kind)
     scene = out / "scene"
-    if not (scene / "transforms.json").is_file():
+    if not written_by_this_writer(scene):  # absent, or cached by an older writer
+        shutil.rmtree(scene, ignore_errors=True)
         make_room_scene(scene, QUICK_ROOM if quick else FULL_ROOM)
     return scene
 

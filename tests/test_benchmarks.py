@@ -116,6 +116,18 @@ def test_ratio_bounds_when_the_baseline_starts_above_its_target() -> None:
     assert error_vs_runtime._ratio_cell(25.0, 50.0, False, False) == "25 s, 2.00x"
 
 
+def test_the_benchmark_room_is_rendered_again_when_an_older_writer_cached_it(tmp_path: Path) -> None:
+    scene = error_vs_runtime.make_scene("room", tmp_path, quick=True)
+    stamp = (scene / "transforms.json").stat().st_mtime_ns
+    assert error_vs_runtime.make_scene("room", tmp_path, quick=True) == scene
+    assert (scene / "transforms.json").stat().st_mtime_ns == stamp  # reused
+    meta = json.loads((scene / "transforms.json").read_text())
+    del meta["synthetic"], meta["voxnerf_synthetic"]["writer"]  # as the writer before version 2 wrote it
+    (scene / "transforms.json").write_text(json.dumps(meta))
+    error_vs_runtime.make_scene("room", tmp_path, quick=True)
+    assert json.loads((scene / "transforms.json").read_text())["synthetic"] is True
+
+
 def test_error_vs_runtime_quick(room: Path, tmp_path: Path) -> None:
     out = tmp_path / "evr"
     assert error_vs_runtime.main(["--quick", "--scene", str(room), "--out", str(out)]) == 0

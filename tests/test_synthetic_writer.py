@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -10,6 +11,7 @@ import pytest
 from synthetic_fixtures import TINY, make_tiny_scene, meta_of
 
 from voxnerf.synthetic import RoomSpec, make_room_scene
+from voxnerf.synthetic.writer import WRITER_VERSION, written_by_this_writer
 
 
 @pytest.fixture(scope="module")
@@ -76,3 +78,15 @@ def test_no_prior_and_refused_output(tmp_path: Path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["none"], "no temporary directory is left behind"
     with pytest.raises(ValueError, match="prior_kind"):
         make_room_scene(tmp_path / "bad", RoomSpec(prior_kind="tsdf"))
+
+
+def test_a_scene_says_it_is_synthetic_and_which_writer_wrote_it(tiny_scene: Path, tmp_path: Path):
+    meta = meta_of(tiny_scene)
+    assert meta["synthetic"] is True and meta["voxnerf_synthetic"]["writer"] == WRITER_VERSION
+    assert written_by_this_writer(tiny_scene)
+    assert not written_by_this_writer(tmp_path / "absent")
+    for written in ({**meta, "voxnerf_synthetic": {}}, {**meta, "voxnerf_synthetic": [1]}, [meta]):
+        (tmp_path / "transforms.json").write_text(json.dumps(written))
+        assert not written_by_this_writer(tmp_path)
+    (tmp_path / "transforms.json").write_text("{")
+    assert not written_by_this_writer(tmp_path)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from voxnerf.image_io import write_atomic
 from voxnerf.synthetic.cameras import split_frames
-from voxnerf.synthetic.writer import WRITER_VERSION, RoomSpec, make_room_scene
+from voxnerf.synthetic.writer import RoomSpec, make_room_scene, written_by_this_writer
 
 # Splits: 18 training, 15 interpolation and 10 extrapolation views (n_frames 240, every 10th, 2 gaps of 30).
 _SPLITS = dict(n_frames=240, train_every=10, n_gaps=2, gap_len=30)
@@ -91,9 +91,10 @@ def make_suite(
 ) -> dict[str, Path]:
     """Write the rooms ``names`` (default: all) of ``suite`` (default: :data:`SUITE`) into ``out_dir/<name>``.
 
-    A room is reused when ``out_dir/<name>.spec.json`` equals its spec and ``out_dir/<name>/transforms.json``
-    exists; otherwise both are removed and the room is rendered again (the scene appears whole, its spec file
-    after it). Every spec is validated before anything is written. Returns ``{name: room directory}``.
+    A room is reused when ``out_dir/<name>.spec.json`` equals its spec and ``out_dir/<name>`` holds a scene of
+    this writer's version (:func:`~voxnerf.synthetic.writer.written_by_this_writer`); otherwise both are removed
+    and the room is rendered again (the scene appears whole, its spec file after it). Every spec is validated
+    before anything is written. Returns ``{name: room directory}``.
     """
     suite = SUITE if suite is None else suite
     names = list(suite) if names is None else list(names)
@@ -114,20 +115,10 @@ def _check_names(names: list[str], suite: Mapping[str, RoomSpec]) -> None:
         raise ValueError(f"unknown suite room(s) {unknown}; rooms: {sorted(suite)}")
 
 
-def _written_by_this_writer(room: Path) -> bool:
-    """Whether ``room/transforms.json`` exists and records :data:`WRITER_VERSION` (an older writer's room lacks
-    what scenes hold now, and is rendered again)."""
-    try:
-        meta = json.loads((room / "transforms.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(meta, dict) and (meta.get("voxnerf_synthetic") or {}).get("writer") == WRITER_VERSION
-
-
 def _make_room(out_dir: Path, name: str, spec: RoomSpec) -> Path:
     room, spec_path = out_dir / name, out_dir / f"{name}.spec.json"
     wanted = spec_json(spec)
-    if _stored_spec(spec_path) == wanted and _written_by_this_writer(room):
+    if _stored_spec(spec_path) == wanted and written_by_this_writer(room):
         return room
     spec_path.unlink(missing_ok=True)
     if room.is_dir() and not room.is_symlink():

@@ -24,7 +24,7 @@ from voxnerf.synthetic.sensor import CameraResponse, capture_linear, drift_walk,
 
 HORIZONTAL_FOV_DEG = 65.0
 # What this writer's scenes hold changed (1: no top-level "synthetic"; 2: it is true); stored as
-# voxnerf_synthetic.writer, so a cached room written by an older writer is rendered again (synthetic/suite.py).
+# voxnerf_synthetic.writer, so a cached room written by an older writer is rendered again (written_by_this_writer).
 WRITER_VERSION = 2
 DEPTH_UNIT_SCALE = 0.001
 """Metres per unit of the 16-bit depth PNGs (millimetres)."""
@@ -180,6 +180,17 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 def _check_out_dir(out_dir: Path) -> None:
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise FileExistsError(f"{out_dir}: output must not exist or be an empty directory")
+
+
+def written_by_this_writer(room: Path) -> bool:
+    """Whether ``room/transforms.json`` exists and records :data:`WRITER_VERSION` (a room cached by an older
+    writer lacks what scenes hold now, and callers that cache rooms render it again)."""
+    try:
+        meta = json.loads((room / "transforms.json").read_text())
+    except (OSError, ValueError):
+        return False
+    record = meta.get("voxnerf_synthetic") if isinstance(meta, dict) else None
+    return isinstance(record, dict) and record.get("writer") == WRITER_VERSION
 
 
 def make_room_scene(out_dir: Path, spec: RoomSpec | None = None) -> Path:
