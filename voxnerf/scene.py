@@ -260,9 +260,7 @@ def _lens_checked(model: str, coefficients: dict, path: Path, where: str, contex
 def _instant_ngp_lens(meta: dict, frame: dict, path: Path, where: str) -> tuple[Lens | None, str]:
     """Coefficients without ``camera_model``, read as instant-ngp reads them: any non-zero coefficient makes
     the camera ``OPENCV``, or ``OPENCV_FISHEYE`` when ``is_fisheye`` is true; all zero (or none) is a pinhole."""
-    fisheye = frame.get("is_fisheye", meta.get("is_fisheye", False))
-    if not isinstance(fisheye, bool):
-        raise _fail(path, f"must be true or false, got {short_repr(fisheye)}", f"{where}is_fisheye")
+    fisheye = _boolean(frame.get("is_fisheye", meta.get("is_fisheye", False)), path, f"{where}is_fisheye")
     values = {key: frame.get(key, meta.get(key)) for key in DISTORTION_KEYS}
     numbers = {key: _finite_number(v, path, f"{where}{key}") for key, v in values.items() if v is not None}
     if not any(numbers.values()):
