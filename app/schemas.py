@@ -158,6 +158,7 @@ INTERNAL_TRAIN_FIELDS = frozenset(
         "lr_final",
         "sh_bands",
         "distortion_weight",
+        "field_weight_decay",
         "coarse_to_fine",
         "coarse_levels",
         "depth_weight_final",

@@ -56,6 +56,8 @@ def _corrections(appearance: bool, pose_lr: float, pose_every: int, lambda_pose:
 
 # The defaults before appearance and pose refinement became "auto" (on for a captured scan): neither learnt.
 NO_CORRECTIONS = {"appearance": "none", "pose_refinement": "none"}
+# The defaults before field_weight_decay became "auto" (a decay in proportion to the training images' noise).
+NO_DECAY = {"field_weight_decay": 0.0}
 
 CONFIGS: dict[str, dict] = {
     "defaults": {},
@@ -83,14 +85,21 @@ CONFIGS: dict[str, dict] = {
     | {"distortion_weight": 0.01},
     "prior-rays": {"prior_rays": 512},
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
-    "no-corrections": NO_CORRECTIONS,
-    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]} | NO_CORRECTIONS,
+    "no-weight-decay": NO_DECAY,
+    "no-corrections": NO_CORRECTIONS | NO_DECAY,
+    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]} | NO_CORRECTIONS | NO_DECAY,
     "background-mean": {"train_background": "fixed", "background": "training_mean"},
     "background-gray": {"train_background": "fixed", "background": [0.5, 0.5, 0.5]},
     "render-black": {"background": [0.0, 0.0, 0.0]},
     "samples-4-2": {"n_importance": 4, "n_rest": 2},
     "rays-4096": {"rays_per_batch": 4096},
     "table-2^18": {"hash_log2_size": 18},
+    "max-res-512": {"hash_max_resolution": 512},
+    "max-res-256": {"hash_max_resolution": 256},
+    "weight-decay-1e-8": {"field_weight_decay": 1e-8},
+    "weight-decay-3e-7": {"field_weight_decay": 3e-7},
+    "weight-decay-1e-6": {"field_weight_decay": 1e-6},
+    "weight-decay-1e-5": {"field_weight_decay": 1e-5},
     "no-depth-loss": {"depth_loss": False},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
@@ -244,8 +253,8 @@ def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
     return rows
 
 
-SET_UP_STAGES = ("load_scene", "corrections", "prior", "hash_kernel", "octree", "pseudo_depth", "depth_target",
-                 "first_hit_cache")
+SET_UP_STAGES = ("load_scene", "corrections", "weight_decay", "prior", "hash_kernel", "octree", "pseudo_depth",
+                 "depth_target", "first_hit_cache")
 
 
 def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:

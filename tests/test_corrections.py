@@ -119,4 +119,4 @@ def test_a_run_on_a_synthetic_scene_learns_none(synthetic_room: Path, tmp_path: 
 def test_the_model_stage_refuses_an_unresolved_auto(synthetic_room: Path):
     scene = load_scene(synthetic_room)
     with pytest.raises(ValueError, match="resolve 'auto'"):
-        model_stage(micro_config(), scene, None, torch.device("cpu"), None)
+        model_stage(micro_config(field_weight_decay=0.0), scene, None, torch.device("cpu"), None)

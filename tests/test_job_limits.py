@@ -160,7 +160,7 @@ def test_a_cancel_during_set_up_stops_before_the_next_stage(tiny_room, tmp_path)
     report = train(tiny_room, tmp_path, _config(), on_progress=lambda e: stages.append(e.stage),
                    should_stop=lambda: "prior" in stages, progress_bar=False)
     assert report.status == "cancelled" and report.iteration == 0
-    assert [s.name for s in report.stages] == ["load_scene", "corrections", "prior", "train"]
+    assert [s.name for s in report.stages] == ["load_scene", "corrections", "weight_decay", "prior", "train"]
     assert report.stages[-1].why == "cancelled during set-up"
     assert not (tmp_path / CHECKPOINT).exists() and (tmp_path / REPORT).is_file()
 

@@ -9,9 +9,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from synthetic_fixtures import make_micro_scene, micro_config
 
 from voxnerf import hash_kernel
 from voxnerf.config import TrainConfig
+from voxnerf.scene import load_scene
 from voxnerf.training import stages
 from voxnerf.training.records import StageRecord
 
@@ -129,3 +131,41 @@ def test_an_unresolved_training_mean_background_shows_black():
     model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), torch.tensor([[-1.0] * 3, [1.0] * 3]),
                                 None, torch.device("cpu"))
     assert model.background.tolist() == [0.0, 0.0, 0.0]
+
+
+@pytest.fixture(scope="module")
+def micro_room(tmp_path_factory):
+    return make_micro_scene(tmp_path_factory, "stages")
+
+
+def _model_stage(room, previous=None, **overrides):
+    cfg = micro_config(appearance="affine", pose_refinement="so3xr3", **overrides)
+    return stages.model_stage(cfg, load_scene(room), None, CPU, previous)
+
+
+def test_the_field_weight_decay_reaches_the_field_alone(micro_room):
+    groups = _model_stage(micro_room, field_weight_decay=1e-6).optimizer.param_groups
+    assert [g["weight_decay"] for g in groups] == [1e-6, 0.0, 0.0]  # field, appearance, pose corrections
+
+
+@pytest.mark.parametrize(("decay", "shrinks"), [(0.0, False), (1e-3, True)])
+def test_weight_decay_shrinks_features_no_image_asks_for(micro_room, decay, shrinks):
+    built = _model_stage(micro_room, field_weight_decay=decay)
+    table = built.model.field.encoding.table
+    with torch.no_grad():
+        table.fill_(1.0)
+    for p in built.model.field.parameters():
+        p.grad = torch.zeros_like(p)  # no data gradient anywhere
+    built.optimizer.step()
+    assert bool((table < 1.0).all()) is shrinks and bool((table == 1.0).all()) is not shrinks
+
+
+def test_a_resumed_run_decays_as_its_command_says(micro_room, tmp_path):
+    from voxnerf.training.run import train
+
+    train(micro_room, tmp_path / "run", micro_config(max_iters=2, field_weight_decay=0.0), progress_bar=False)
+    previous = torch.load(tmp_path / "run" / "checkpoint.pt", map_location="cpu", weights_only=False)
+    assert previous["optimizer"]["param_groups"][0]["weight_decay"] == 0.0
+    cfg = micro_config(field_weight_decay=1e-6, appearance="none", pose_refinement="none")
+    groups = stages.model_stage(cfg, load_scene(micro_room), None, CPU, previous).optimizer.param_groups
+    assert groups[0]["weight_decay"] == 1e-6

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field, field_validator
 
@@ -103,6 +103,13 @@ class TrainConfig(BaseModel):
         default=0.0, ge=0,
         description="weight of mip-NeRF 360's distortion loss (the O(N) form, distances as fractions of each "
         "ray's [near, far]); 0 leaves it out",
+    )
+    field_weight_decay: Annotated[float, Field(ge=0, le=1e-2)] | Literal["auto"] = Field(
+        default="auto",
+        description="L2 weight decay of the field's parameters (Adam's coupled form: the coefficient times each "
+        "parameter joins its gradient), which keeps the hash grid's features from fitting the training images' "
+        "noise; 'auto': in proportion to the variance of that noise, measured on the training images "
+        "(voxnerf/training/weight_decay.py); 0 leaves it out",
     )
     coarse_to_fine: float = Field(
         default=0.0, ge=0, le=1,

@@ -58,6 +58,7 @@ from voxnerf.training.pixels import TrainingPixels, training_pixels
 from voxnerf.training.prior_rays import PriorRayBank
 from voxnerf.training.records import StageRecord, TrainReport
 from voxnerf.training.step import PAPER_BETA, TrainStep, make_loss_fn
+from voxnerf.training.weight_decay import weight_decay_stage
 
 
 class LeaseLost(RunError):
@@ -166,15 +167,17 @@ def _stopped_in_set_up(run: Run, previous: dict | None) -> TrainReport:
 
 
 def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Setup:
-    """Stages load_scene, corrections, prior, hash_kernel, then the model (and the resumed state)."""
+    """Stages load_scene, corrections, weight_decay, prior, hash_kernel, then the model (and the resumed state)."""
     report, events = run.report, run.events
     loaded = stages.load_scene_stage(scene_dir, run.cfg)
     report.scene = loaded.scene.summary()
     events.stage(loaded.record, 0)
     corrections = corrections_stage(run.cfg, loaded.scene, previous)
-    run.cfg = cfg = corrections.cfg  # "auto" resolved: the report's config says what the run learns
+    decay = weight_decay_stage(corrections.cfg, loaded.scene)
+    run.cfg = cfg = decay.cfg  # "auto" resolved: the report's config says what the run learns
     report.config = cfg.model_dump()
     events.stage(corrections.record, 0)
+    events.stage(decay.record, 0)
     run.stop_point()
     run.fence()  # the prior stage may write the fused prior into the run directory
     found = stages.prior_stage(loaded.scene, cfg, run.dir)

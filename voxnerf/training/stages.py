@@ -220,6 +220,8 @@ def _corrections(cfg: TrainConfig, scene: Scene, model: VoxNeRFModel, device: to
 
 def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, device: torch.device,
                 previous: dict | None) -> ModelStage:
+    if cfg.field_weight_decay == "auto":
+        raise ValueError("model_stage: resolve 'auto' field_weight_decay first (weight_decay_stage)")
     transform, aabb = scene_box(scene, prior)
     prior_n = prior.transformed(np.asarray(transform.center), transform.scale) if prior is not None else None
     if cfg.background == "training_mean":
@@ -229,7 +231,8 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
         model.grid.seed_from_points(torch.from_numpy(prior_n.points).float().to(device))
     # fused: one pass over each parameter per step instead of one per Adam operation (benchmarks/optimizer_step.py;
     # see docs/performance.md).
-    groups = [{"params": list(model.field.parameters()), "lr": cfg.lr}, *_corrections(cfg, scene, model, device)]
+    groups = [{"params": list(model.field.parameters()), "lr": cfg.lr, "weight_decay": cfg.field_weight_decay},
+              *_corrections(cfg, scene, model, device)]
     optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)
     stage = ModelStage(transform, prior_n, model, optimizer)
     if previous is not None:
@@ -240,6 +243,7 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
         if model.pose_refinement is not None and previous["model"].get("pose_refinement") is not None:
             model.pose_refinement.load_state_dict(previous["model"]["pose_refinement"])
         optimizer.load_state_dict(previous["optimizer"])
+        optimizer.param_groups[0]["weight_decay"] = cfg.field_weight_decay  # the command's, not the checkpoint's
         stage.iteration, stage.resumed = int(previous["iteration"]), True
         stage.history = [EvalRecord.model_validate(h) for h in previous["history"]]
     return stage
