@@ -81,3 +81,13 @@ def test_auto_is_refused_before_it_is_resolved(room: Path):
     with pytest.raises(ValueError, match="resolve 'auto' field_weight_decay"):
         model_stage(micro_config(appearance="none", pose_refinement="none"), load_scene(room), None,
                     torch.device("cpu"), None)
+
+
+@pytest.mark.parametrize("value", [-1e-7, 0.1, "sometimes", None, float("nan")])
+def test_a_decay_that_is_neither_auto_nor_a_small_non_negative_number_is_refused(value):
+    from pydantic import ValidationError
+
+    from voxnerf.config import TrainConfig
+
+    with pytest.raises(ValidationError, match="field_weight_decay"):
+        TrainConfig(max_iters=1, field_weight_decay=value)
