@@ -91,3 +91,12 @@ def test_a_decay_that_is_neither_auto_nor_a_small_non_negative_number_is_refused
 
     with pytest.raises(ValidationError, match="field_weight_decay"):
         TrainConfig(max_iters=1, field_weight_decay=value)
+
+
+def test_a_large_scan_is_measured_on_a_bounded_sample_of_its_images():
+    from voxnerf.training.weight_decay import NOISE_IMAGES
+
+    image = np.full((8, 8, 3), 100, np.uint8)
+    scene = SimpleNamespace(images=[image] * 100, train_indices=list(range(100)))
+    stage = weight_decay_stage(micro_config(), scene)
+    assert f"median of {len(range(0, 100, 4))} images" in stage.record.why and len(range(0, 100, 4)) <= NOISE_IMAGES

@@ -26,6 +26,9 @@ from voxnerf.training.records import StageRecord
 NOISE_DECAY = 4e-4
 # A noise sigma below this (in [0, 1] units) is what a clean image reads: no decay
 NOISE_FLOOR = 2.0 / 255.0
+# The noise is measured on at most this many training images, evenly spaced: a median over them is one figure
+# for the scan, and the measure's cost (charged to max_seconds) stays bounded whatever the scan's size
+NOISE_IMAGES = 32
 
 
 @dataclass
@@ -38,7 +41,8 @@ def weight_decay_stage(cfg: TrainConfig, scene: Scene) -> WeightDecayStage:
     """Resolve ``auto`` in ``cfg.field_weight_decay`` from the noise of ``scene``'s (loaded) training images."""
     t0 = time.perf_counter()
     if cfg.field_weight_decay == "auto":
-        images = [scene.images[i] for i in scene.train_indices if scene.images and scene.images[i] is not None]
+        step = -(-len(scene.train_indices) // NOISE_IMAGES)  # ceil: at most NOISE_IMAGES of them
+        images = [scene.images[i] for i in scene.train_indices[::step] if scene.images and scene.images[i] is not None]
         sigma = images_noise_sigma(images)
         clean = sigma < NOISE_FLOOR
         cfg = cfg.model_copy(update={"field_weight_decay": 0.0 if clean else NOISE_DECAY * sigma**2})
