@@ -28,7 +28,6 @@ import csv
 import io
 import json
 import shlex
-import shutil
 import subprocess
 import sys
 import time
@@ -41,7 +40,8 @@ from make_priors import SOURCES, make_priors, prior_scene_dir
 from voxnerf.config import TrainConfig
 from voxnerf.errors import SceneError
 from voxnerf.image_io import write_atomic
-from voxnerf.synthetic.writer import RoomSpec, make_room_scene, written_by_this_writer
+from voxnerf.synthetic.suite import make_suite
+from voxnerf.synthetic.writer import RoomSpec
 
 
 @dataclass(frozen=True)
@@ -83,15 +83,12 @@ PROGRESS_VIEWS = TrainConfig.model_fields["eval_views"].default
 
 
 def make_scene(kind: str, out: Path, quick: bool) -> Path:
-    """``room``: the synthetic room (``QUICK_ROOM`` or ``FULL_ROOM``, generated once into ``out/scene``);
-    anything else is taken as a scene directory."""
+    """``room``: the synthetic room (``QUICK_ROOM`` or ``FULL_ROOM``) in ``out/scene``, reused while its stored
+    spec and writer version match (:func:`~voxnerf.synthetic.suite.make_suite`'s cache, so a quick room is
+    not taken for the full one); anything else is taken as a scene directory."""
     if kind != "room":
         return Path(kind)
-    scene = out / "scene"
-    if not written_by_this_writer(scene):  # absent, or cached by an older writer
-        shutil.rmtree(scene, ignore_errors=True)
-        make_room_scene(scene, QUICK_ROOM if quick else FULL_ROOM)
-    return scene
+    return make_suite(out, names=["scene"], suite={"scene": QUICK_ROOM if quick else FULL_ROOM})["scene"]
 
 
 def train_command(scene: Path, run: Path, budget: float, eval_at: list[float], flags: list[str]) -> list[str]:

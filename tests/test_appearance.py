@@ -104,6 +104,11 @@ def test_half_image_pairs_refuse_nan():
     ("sh_bands=9", "sh_bands: Input should be less than or equal to 4"),
     ("no_such_field=1", "no_such_field: Extra inputs are not permitted"),
     ("lr_schedule=weekly", "lr_schedule: Input should be 'iterations' or 'budget'"),
+    ("field_weight_decay=-1",
+     "field_weight_decay: Input should be greater than or equal to 0, or input should be 'auto'"),
+    ("field_weight_decay=often",
+     "field_weight_decay: Input should be a valid number, unable to parse string as a number, or input should be "
+     "'auto'"),
 ])
 def test_voxnerf_train_set_refuses_bad_fields_in_one_line_before_training(tmp_path, capsys, setting, message):
     code = main(["train", str(tmp_path / "scene"), "--out", str(tmp_path / "run"), "--max-iters", "1",

@@ -7,6 +7,7 @@ its CSV, markdown table and plot. The scene is generated once and shared.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import importlib
 import json
 import math
@@ -126,6 +127,16 @@ def test_the_benchmark_room_is_rendered_again_when_an_older_writer_cached_it(tmp
     (scene / "transforms.json").write_text(json.dumps(meta))
     error_vs_runtime.make_scene("room", tmp_path, quick=True)
     assert json.loads((scene / "transforms.json").read_text())["synthetic"] is True
+
+
+def test_the_benchmark_room_is_rendered_again_when_its_spec_changed(tmp_path: Path, monkeypatch) -> None:
+    scene = error_vs_runtime.make_scene("room", tmp_path, quick=True)
+    sigma = json.loads((tmp_path / "scene.spec.json").read_text())["prior_sigma"]
+    other = dataclasses.replace(error_vs_runtime.QUICK_ROOM, prior_sigma=sigma / 2)
+    monkeypatch.setattr(error_vs_runtime, "QUICK_ROOM", other)  # as a full room would differ from a quick one
+    assert error_vs_runtime.make_scene("room", tmp_path, quick=True) == scene
+    assert json.loads((tmp_path / "scene.spec.json").read_text())["prior_sigma"] == sigma / 2
+    assert json.loads((scene / "transforms.json").read_text())["prior_sigma"] == sigma / 2
 
 
 def test_error_vs_runtime_quick(room: Path, tmp_path: Path) -> None:

@@ -200,6 +200,33 @@ def test_filesystem_broker_unbinds_one_queue_and_reads_an_empty_exchange_file_as
         assert channel.get_table("never-bound") == []
 
 
+def _bind_and_die_before_the_rename(folder) -> None:
+    """Bind queue ``b`` to exchange ``crash`` and die (SIGKILL) when the new table is written, before it is renamed
+    into place: a binder killed while writing."""
+    def killed(*_args):
+        os.kill(os.getpid(), 9)
+
+    os.replace = killed  # this child process's only: the atomic writer's rename
+    with _broker(folder) as conn:
+        Queue("b", Exchange("crash", type="fanout"), channel=conn.channel()).declare()
+
+
+def test_filesystem_broker_keeps_the_whole_table_when_a_binder_dies_while_writing_it(tmp_path):
+    """(An exchange name no other test binds: kombu keeps the bindings it made in a process-wide state.)"""
+    _broker_folders(tmp_path)
+    with _broker(tmp_path) as conn:
+        Queue("a", Exchange("crash", type="fanout"), channel=conn.channel()).declare()
+    binder = multiprocessing.get_context("spawn").Process(target=_bind_and_die_before_the_rename, args=(tmp_path,))
+    binder.start()
+    binder.join(60)
+    assert binder.exitcode == -9
+    with _broker(tmp_path) as conn:
+        channel = conn.channel()
+        assert [b.queue for b in channel.get_table("crash")] == ["a"]  # the old table, whole
+        Queue("c", Exchange("crash", type="fanout"), channel=channel).declare()  # the dead binder's lock is gone
+        assert sorted(b.queue for b in channel.get_table("crash")) == ["a", "c"]
+
+
 @pytest.fixture
 def settings(tmp_path) -> Settings:
     s = Settings(data_dir=tmp_path / "data", stale_after_s=5.0)

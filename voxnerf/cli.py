@@ -9,11 +9,15 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from voxnerf.camera_rules import LENS_KEYS, CameraError, Intrinsics, resolve_intrinsics, validate_pose
 from voxnerf.errors import RunError, VoxNeRFError
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -568,6 +572,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def validation_message(exc: ValidationError) -> str:
+    """One line for the first field a pydantic ``ValidationError`` names: its path without pydantic's tags for
+    the branches of a union ('constrained-float', "literal['auto']"), and what each branch would have taken."""
+    errors = exc.errors()
+    path = _field_path(errors[0]["loc"])
+    messages = dict.fromkeys(e["msg"] for e in errors if _field_path(e["loc"]) == path)
+    return f"{path}: " + ", or ".join(m if i == 0 else m[:1].lower() + m[1:] for i, m in enumerate(messages))
+
+
+def _field_path(loc: tuple) -> str:
+    """``loc`` as a dotted path of field names and list indices; a union branch's tag is neither."""
+    return ".".join(str(part) for part in loc if isinstance(part, int) or str(part).isidentifier())
+
+
 def main(argv: list[str] | None = None) -> int:
     from pydantic import ValidationError
 
@@ -575,8 +593,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        print(f"voxnerf: error: {'.'.join(map(str, first['loc']))}: {first['msg']}", file=sys.stderr)
+        print(f"voxnerf: error: {validation_message(exc)}", file=sys.stderr)
         return 2
     except VoxNeRFError as exc:
         print(f"voxnerf: error: {exc}", file=sys.stderr)

@@ -8,8 +8,9 @@ it by renaming it into a ``claimed`` folder beside the queue: one rename, one wi
 binds a queue to a fanout exchange by testing whether the exchange's file exists and then truncating it
 (processes that bind at the same moment, such as the workers of ``voxnerf serve``, lose each other's bindings
 or leave the file unreadable, and a worker whose binding is lost never answers ``/healthz``). Here the file is
-read, changed and rewritten under one exclusive lock, and an empty file is an empty table. Message names,
-ordering and every other behaviour stay kombu's.
+read and changed under one exclusive lock (a ``.lock`` file beside it) and the new table is renamed over the
+old one, so a reader, or a binder killed while writing, never leaves or sees part of a table; an empty file is
+an empty table. Message names, ordering and every other behaviour stay kombu's.
 """
 
 from __future__ import annotations
@@ -18,12 +19,15 @@ import contextlib
 import fcntl
 import os
 import uuid
+from pathlib import Path
 from queue import Empty
 from time import monotonic
 
 from kombu.transport import filesystem, virtual
 from kombu.utils.encoding import bytes_to_str, str_to_bytes
 from kombu.utils.json import dumps, loads
+
+from voxnerf.image_io import write_atomic
 
 Binding = filesystem.exchange_queue_t  # (routing_key, pattern, queue) of a queue bound to an exchange
 
@@ -71,11 +75,7 @@ class Channel(filesystem.Channel):
     def get_table(self, exchange) -> list[Binding]:
         path = self._exchange_file(exchange)
         try:
-            with open(path, "rb") as f:
-                fcntl.flock(f, fcntl.LOCK_SH)  # released by close
-                return _parse_table(f.read())
-        except FileNotFoundError:
-            return []
+            return _read_table(path)
         except OSError as exc:
             raise filesystem.ChannelError(f"Cannot open {path}") from exc
 
@@ -89,19 +89,18 @@ class Channel(filesystem.Channel):
         self._edit_table(exchange, lambda table: [b for b in table if b != binding])
 
     def _edit_table(self, exchange, edit) -> None:
-        """Replace the bindings of ``exchange`` by ``edit(bindings)``: read, edit and rewrite under one
-        exclusive lock, so no other process's change between the read and the write is lost."""
+        """Replace the bindings of ``exchange`` by ``edit(bindings)``: read and edit under one exclusive lock, so
+        no other process's change between the read and the write is lost, and write the new table whole
+        (:func:`~voxnerf.image_io.write_atomic`: a temporary file renamed over the old one)."""
         path = self._exchange_file(exchange)
         self.control_folder.mkdir(parents=True, exist_ok=True)
         try:
-            with open(os.open(path, os.O_RDWR | os.O_CREAT, 0o644), "r+b") as f:  # never truncated unlocked
-                fcntl.flock(f, fcntl.LOCK_EX)  # released by close
-                table = _parse_table(f.read())
+            with open(f"{path}.lock", "ab") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)  # released by close
+                table = _read_table(path)
                 edited = edit(table)
                 if edited != table:
-                    f.seek(0)
-                    f.write(str_to_bytes(dumps(edited)))
-                    f.truncate()
+                    write_atomic(path, str_to_bytes(dumps(edited)))
         except OSError as exc:
             raise filesystem.ChannelError(f"Cannot open {path}") from exc
 
@@ -111,8 +110,12 @@ def _binding(routing_key, pattern, queue) -> Binding:
     return Binding(routing_key or "", pattern or "", queue or "")
 
 
-def _parse_table(data: bytes) -> list[Binding]:
-    """The bindings stored in an exchange file; an empty file (created, not yet written) holds none."""
+def _read_table(path) -> list[Binding]:
+    """The bindings stored in the exchange file ``path``; a missing or empty file holds none."""
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        return []
     return [Binding(*entry) for entry in loads(bytes_to_str(data))] if data.strip() else []
 
 
