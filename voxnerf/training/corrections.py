@@ -5,10 +5,10 @@ path, and auto-exposure and white balance change from frame to frame. Per-image 
 (:mod:`voxnerf.appearance`) and pose refinement (:mod:`voxnerf.pose_refinement`) learn them. A synthetic scene
 (rendered images with exact poses, transforms.json ``"synthetic": true``) has no pose error, and refining its
 poses only moves what was right. ``auto`` follows the tuning suite (docs/benchmarks.md): the pair paid on the
-real scan, and on the synthetic rooms it cost at the shortest budget measured (the capture-like rooms with
-exposure drift included) and was even at longer ones. So ``auto`` turns both on for a captured scan and leaves
-them out for a synthetic one; a resumed run keeps what its checkpoint
-learnt, and a value other than ``auto`` is used as given.
+real scan, and on the synthetic rooms it cost: on two of them at 120 s, and on the mean of all six, on both
+splits, at 300 s (the capture-like rooms with exposure drift included). So ``auto`` turns both on for a
+captured scan and leaves them out for a synthetic one; a resumed run keeps what its checkpoint learnt, and a
+value other than ``auto`` is used as given.
 """
 
 from __future__ import annotations
