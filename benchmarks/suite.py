@@ -100,6 +100,7 @@ CONFIGS: dict[str, dict] = {
     "weight-decay-3e-7": {"field_weight_decay": 3e-7},
     "weight-decay-1e-6": {"field_weight_decay": 1e-6},
     "weight-decay-1e-5": {"field_weight_decay": 1e-5},
+    "depth-weight-1": {"lambda_depth": 1.0},
     "no-depth-loss": {"depth_loss": False},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},

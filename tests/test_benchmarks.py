@@ -404,6 +404,16 @@ def test_suite_refuses_unknown_configs(capsys) -> None:
     assert "unknown configs ['warp-drive']" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("name", sorted(suite.CONFIGS))
+def test_every_suite_row_is_a_valid_training_config(name: str) -> None:
+    from voxnerf.config import TrainConfig
+
+    overrides = suite.CONFIGS[name]
+    cfg = TrainConfig(**overrides)  # a misspelt field or a refused value raises
+    kept = cfg.model_dump(mode="json", include=set(overrides))  # JSON, as `--set` passes them (tuples: lists)
+    assert kept == json.loads(json.dumps(overrides))
+
+
 def test_pose_views_scores_held_out_views_at_given_and_moved_poses(room: Path, tmp_path: Path, capsys) -> None:
     from voxnerf.config import TrainConfig
     from voxnerf.training.run import train
