@@ -41,7 +41,7 @@ def weight_decay_stage(cfg: TrainConfig, scene: Scene) -> WeightDecayStage:
     """Resolve ``auto`` in ``cfg.field_weight_decay`` from the noise of ``scene``'s (loaded) training images."""
     t0 = time.perf_counter()
     if cfg.field_weight_decay == "auto":
-        step = -(-len(scene.train_indices) // NOISE_IMAGES)  # ceil: at most NOISE_IMAGES of them
+        step = max(1, -(-len(scene.train_indices) // NOISE_IMAGES))  # ceil: at most NOISE_IMAGES of them
         images = [scene.images[i] for i in scene.train_indices[::step] if scene.images and scene.images[i] is not None]
         sigma = images_noise_sigma(images)
         clean = sigma < NOISE_FLOOR
