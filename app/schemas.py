@@ -154,6 +154,7 @@ INTERNAL_TRAIN_FIELDS = frozenset(
         "occgrid_resolution",
         "occgrid_update_every",
         "occgrid_seed",
+        "octree_carving",
         "lr_schedule",
         "lr_final",
         "sh_bands",

@@ -6,7 +6,10 @@ occupancy grid after training: seeded from the prior or learnt from density alon
 split's views without jitter, and compare each sample's midpoint with the true surface along its ray (the
 view's depth map). Prints and writes (``--out``) a table: per configuration, the share of samples within
 2 / 5 / 10 cm of the surface (in scene units x 100, i.e. centimetres for scenes in metres), the share of rays
-with at least one sample within 5 cm, and the median distance of a ray's closest sample.
+with at least one sample within 5 cm, and the median distance of a ray's closest sample; for the voxnerf
+sampler also the share of rays that stop short (their octree first hit more than the importance window before
+the true surface, so the importance samples miss it) and those rays' share of the squared colour error of the
+run's own render (the fast path).
 
     .venv/bin/python benchmarks/sample_placement.py --runs OUT/runs --scene studio --scene-dir SCENES/studio \\
         --configs defaults,occgrid-seeded,occgrid-density --split extrapolation --out OUT/placement-studio.md
@@ -23,7 +26,8 @@ import torch
 from suite import measure_runs, print_table
 
 from voxnerf.cameras import image_rays
-from voxnerf.render import load_model
+from voxnerf.render import load_model, render_normalized
+from voxnerf.samplers import VoxNeRFSampler
 from voxnerf.scene import load_scene, read_depth_map
 from voxnerf.training.evals import eval_views_of
 
@@ -48,8 +52,8 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
     indices = scene.splits[split][:max_views]
     sampler = model.sampler()
     near_counts = {band: 0 for band in BANDS_M}
-    n_samples = rays_near = n_rays = 0
-    closest_all = []
+    n_samples = rays_near = n_rays = n_short = 0
+    closest_all, error, short_error = [], 0.0, 0.0
     for view, index in zip(views, indices, strict=True):
         origins, dirs, z_per_t = image_rays(view.c2w, view.intrinsics)
         z_true = torch.from_numpy(true_ray_distance(scene, index, view.intrinsics.height, view.intrinsics.width))
@@ -57,6 +61,13 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
         ok = torch.isfinite(t_true)
         rays = model.ray_bundle(origins[ok], dirs[ok])
         starts, ends = sampler(rays, False)
+        if isinstance(sampler, VoxNeRFSampler):
+            z, hit = sampler.first_hits(rays)
+            short = hit & (z < t_true[ok] - sampler.half_window)
+            rgb = render_normalized(model, view.c2w, view.intrinsics, ("rgb",))["rgb"].clamp(0, 1).reshape(-1, 3)
+            squared = ((rgb - view.image.float().reshape(-1, 3) / 255.0) ** 2).mean(-1)[ok]
+            n_short, error, short_error = n_short + int(short.sum()), error + float(squared.sum()), \
+                short_error + float(squared[short].sum())
         distance_m = (0.5 * (starts + ends) - t_true[ok][:, None]).abs() / model.transform.scale
         for band in BANDS_M:
             near_counts[band] += int((distance_m <= band).sum())
@@ -68,6 +79,9 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
     result = {f"within {band * 100:g} cm": near_counts[band] / n_samples for band in BANDS_M}
     result["rays with a sample within 5 cm"] = rays_near / n_rays
     result["median closest sample (cm)"] = float(torch.cat(closest_all).median()) * 100
+    voxnerf = isinstance(sampler, VoxNeRFSampler)
+    result["rays stopping short"] = n_short / n_rays if voxnerf else None
+    result["their share of the colour error"] = short_error / error if voxnerf and error > 0 else None
     return result
 
 
@@ -89,9 +103,14 @@ def main(argv: list[str] | None = None) -> int:
     keys = list(rows[0][1])
     text = (f"**{args.scene}, {args.split} views**: samples of each run's own sampler against the true surface\n\n"
             f"| config | {' | '.join(keys)} |\n| --- |" + " --- |" * len(keys) + "\n"
-            + "\n".join(f"| {c} | " + " | ".join(f"{r[k]:.1%}" if "cm)" not in k else f"{r[k]:.1f}" for k in keys)
-                        + " |" for c, r in rows))
+            + "\n".join(f"| {c} | " + " | ".join(_cell(k, r[k]) for k in keys) + " |" for c, r in rows))
     return print_table(text, args.out)
+
+
+def _cell(key: str, value: float | None) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.1f}" if "cm)" in key else f"{value:.1%}"
 
 
 if __name__ == "__main__":

@@ -87,7 +87,9 @@ CONFIGS: dict[str, dict] = {
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "no-weight-decay": NO_DECAY,
     "no-corrections": NO_CORRECTIONS | NO_DECAY,
-    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0]} | NO_CORRECTIONS | NO_DECAY,
+    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0], "octree_carving": False}
+    | NO_CORRECTIONS | NO_DECAY,
+    "no-carving": {"octree_carving": False},
     "background-mean": {"train_background": "fixed", "background": "training_mean"},
     "background-gray": {"train_background": "fixed", "background": [0.5, 0.5, 0.5]},
     "render-black": {"background": [0.0, 0.0, 0.0]},

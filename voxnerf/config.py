@@ -186,6 +186,12 @@ class TrainConfig(BaseModel):
         description="sampler octree leaf: 'sigma' (the paper) or, for point-cloud priors, the smallest multiple "
         "of sigma (1-3) that the training rays do not slip through (mesh priors always use sigma)",
     )
+    octree_carving: bool = Field(
+        default=True,
+        description="remove the sampler octree's leaves that the training frames' sensor depth shows empty (rays "
+                    "cross them well before their measured depth and no measured point lies in them): outliers and "
+                    "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.octree_carving)",
+    )
     occgrid_seed: bool = Field(
         default=True,
         description="start the occupancy grid from the prior's cells; False starts it all occupied and lets it "

@@ -221,6 +221,18 @@ class SparseVoxelOctree:
             "traversal_table_bytes": self._tables.nbytes(),
         }
 
+    def keep_leaves(self, keep: Tensor) -> SparseVoxelOctree:
+        """The octree of the leaves where ``keep`` [L] (bool, order of ``codes[-1]``) is True, on the same root and
+        leaf grid (inner nodes rebuilt from the kept leaves). Raises ValueError when it keeps none."""
+        if keep.shape != self.codes[-1].shape or keep.dtype != torch.bool:
+            raise ValueError(f"keep must be a bool tensor of shape {tuple(self.codes[-1].shape)}")
+        if not bool(keep.any()):
+            raise ValueError("keep_leaves would leave the octree empty")
+        codes = [self.codes[-1][keep.to(self.device)]]
+        for _ in range(self.levels):
+            codes.append(torch.unique_consecutive(codes[-1] >> 3))
+        return SparseVoxelOctree(codes[::-1], self.origin, self.leaf_size, self.levels, self.leaf_size_requested)
+
     def leaf_ijk(self, points: Tensor) -> Tensor:
         """Integer leaf coordinates [N, 3] (int64, may lie outside [0, 2**levels)) of points [N, 3]."""
         origin = self.origin.to(points.device)

@@ -200,7 +200,8 @@ def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Set
 
 def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: stages.ModelStage,
                      pixels: TrainingPixels) -> Setup:
-    """Stages octree, pseudo_depth, depth_target, first_hit_cache (the per-pixel caches land in ``pixels``)."""
+    """Stages octree, pseudo_depth, depth_target, octree_carving, first_hit_cache (the per-pixel caches land in
+    ``pixels``)."""
     cfg, report, events, iteration = run.cfg, run.report, run.events, built.iteration
     tree = stages.octree_stage(cfg, built.prior_n, pixels, built.model, run.device)
     if tree.octree is not None:
@@ -220,15 +221,28 @@ def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: st
         report.depth = target.summary
     events.stage(target.record, iteration)
     run.stop_point()
-    hits = stages.first_hit_stage(tree.octree, pixels, built.model, cfg.setup_cache)
+    octree = _carve(run, built, pixels, target, tree.octree, iteration)
+    hits = stages.first_hit_stage(octree, pixels, built.model, cfg.setup_cache)
     pixels.hit_t, pixels.hit = hits.hit_t, hits.hit
     events.stage(hits.record, iteration)
     run.stop_point()
     use_depth = target.target_t is not None
-    extra = stages.prior_rays_stage(cfg, built.prior_n, use_depth, tree.octree, pixels, built.model, run.device)
+    extra = stages.prior_rays_stage(cfg, built.prior_n, use_depth, octree, pixels, built.model, run.device)
     events.stage(extra.record, iteration)
     run.stop_point()
-    return Setup(scene, found.prior, built, pixels, tree.octree, use_depth, target.beta, extra.bank)
+    return Setup(scene, found.prior, built, pixels, octree, use_depth, target.beta, extra.bank)
+
+
+def _carve(run: Run, built: stages.ModelStage, pixels: TrainingPixels, target: stages.DepthTargetStage,
+           octree: SparseVoxelOctree | None, iteration: int) -> SparseVoxelOctree | None:
+    """Stage octree_carving: the sampler octree less the leaves the sensor depth shows empty (the model's too)."""
+    carved = stages.carving_stage(run.cfg, octree, pixels, target, built.transform.scale)
+    if carved.octree is not None:
+        octree = built.model.octree = carved.octree
+        run.report.octree = octree.summary()
+    run.events.stage(carved.record, iteration)
+    run.stop_point()
+    return octree
 
 
 def _patches(cfg: TrainConfig, setup: Setup) -> tuple[bool, int, int]:

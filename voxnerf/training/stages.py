@@ -25,6 +25,7 @@ from voxnerf.files import FUSED_PRIOR, TRANSFORMS
 from voxnerf.image_io import write_atomic
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree, coverage_octree
+from voxnerf.octree_carving import carve_free_space
 from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
@@ -423,7 +424,8 @@ class DepthTargetStage:
     """The depth loss's target per training pixel and its log-Huber beta.
 
     ``target_t`` [N, H, W] normalised ray distances (NaN where none); ``beta_scale`` [N, H, W] each pixel's beta
-    over ``beta`` (None: ``beta`` everywhere); ``beta`` in scene units; ``summary`` for the report.
+    over ``beta`` (None: ``beta`` everywhere); ``beta`` in scene units; ``summary`` for the report; ``sensor_t``
+    [N, H, W] the sensor's ray distances alone (NaN where it measured nothing; None without sensor depth).
     """
 
     record: StageRecord
@@ -431,6 +433,7 @@ class DepthTargetStage:
     beta_scale: torch.Tensor | None = None
     beta: float | None = None
     summary: dict | None = None
+    sensor_t: torch.Tensor | None = None
 
 
 BETA_SCALE_RANGE = (0.1, 10.0)  # a pixel's beta stays within these factors of the run's
@@ -471,14 +474,73 @@ def depth_target_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | No
         rule = "given (depth_beta)" if cfg.depth_beta else "no surface to measure the depth noise against"
         summary |= {"beta": beta, "beta_rule": rule}
         return DepthTargetStage(_record("depth_target", True, text + f"beta {beta:.4g}: {rule}", t0), target,
-                                None, beta, summary)
+                                None, beta, summary, sensor_t)
     base_sigma = base_sigma or noise.at_median
     beta = DEPTH_BETA_PER_SIGMA * base_sigma
     beta_scale = torch.where(sensor_ok, (noise.s0 + noise.s2 * z * z) / base_sigma, torch.ones_like(z))
     summary |= {"noise": noise.as_dict(), "beta": beta, "beta_rule": f"{DEPTH_BETA_PER_SIGMA:g} x sigma(z)"}
     text += f"beta {DEPTH_BETA_PER_SIGMA:g} x sigma(z), {noise.describe()}"
     return DepthTargetStage(_record("depth_target", True, text, t0), target,
-                            beta_scale.clamp(*BETA_SCALE_RANGE), beta, summary)
+                            beta_scale.clamp(*BETA_SCALE_RANGE), beta, summary, sensor_t)
+
+
+@dataclass
+class CarvingStage:
+    record: StageRecord
+    octree: SparseVoxelOctree | None  # the carved octree; None where the stage did not run
+
+
+def carving_stage(cfg: TrainConfig, octree: SparseVoxelOctree | None, pixels: TrainingPixels,
+                  target: DepthTargetStage, scale: float) -> CarvingStage:
+    """The sampler octree less the leaves that the training frames' sensor depth shows empty
+    (:mod:`voxnerf.octree_carving`): each measured ray crosses empty space up to ``CARVE_MARGIN_LEAVES`` leaves
+    plus ``CARVE_MARGIN_SIGMAS`` times its depth noise (``beta / DEPTH_BETA_PER_SIGMA``, per pixel where the
+    noise was measured) before its depth. ``scale``: the scene's normalisation (scene units -> normalised)."""
+    t0 = time.perf_counter()
+    measured = None if target.sensor_t is None else torch.isfinite(target.sensor_t).view(-1).nonzero().squeeze(1)
+    if octree is None or measured is None or not len(measured) or not cfg.octree_carving:
+        why = ("octree_carving false" if not cfg.octree_carving else "no octree" if octree is None
+               else "no sensor depth in use (the depth target is not the sensor's)" if measured is None
+               else "no training pixel has sensor depth")
+        return CarvingStage(_record("octree_carving", False, why, t0), None)
+    gen = torch.Generator(device=measured.device).manual_seed(0)
+    surface = _subset(measured, CARVE_SURFACE_RAYS, gen)
+    free = _subset(measured, CARVE_FREE_RAYS, gen)
+    sigma = torch.full((len(free),), target.beta * scale / DEPTH_BETA_PER_SIGMA, device=free.device)
+    if target.beta_scale is not None:
+        sigma = sigma * target.beta_scale.view(-1)[free]
+    points = torch.cat([o + t[:, None] * d for o, d, t in _measured_rays(pixels, target.sensor_t, surface)])
+    origins, dirs, t = (torch.cat(parts) for parts in zip(*_measured_rays(pixels, target.sensor_t, free),
+                                                            strict=True))
+    margin = CARVE_MARGIN_LEAVES * octree.leaf_size + CARVE_MARGIN_SIGMAS * sigma
+    carving = carve_free_space(octree, points, origins, dirs, t - margin)
+    why = (f"{carving.describe()}; free space ends {CARVE_MARGIN_LEAVES:g} leaves + {CARVE_MARGIN_SIGMAS:g} "
+           f"sigma(z) before each measured depth")
+    return CarvingStage(_record("octree_carving", True, why, t0), carving.octree)
+
+
+CARVE_MARGIN_LEAVES = 2.0
+CARVE_MARGIN_SIGMAS = 3.0
+CARVE_SURFACE_RAYS = 1 << 22  # measured pixels whose surface points protect their leaves
+CARVE_FREE_RAYS = 1 << 18  # measured pixels whose rays vote on empty space
+
+
+def _subset(indices: torch.Tensor, most: int, gen: torch.Generator) -> torch.Tensor:
+    """``indices`` itself, or ``most`` of them drawn without replacement (sorted)."""
+    if len(indices) <= most:
+        return indices
+    pick = torch.randperm(len(indices), generator=gen, device=indices.device)[:most]
+    return indices[pick.sort().values]
+
+
+def _measured_rays(pixels: TrainingPixels, sensor_t: torch.Tensor, flat: torch.Tensor, chunk: int = 262_144):
+    """(origins [R, 3], dirs [R, 3], t [R]) per chunk of the training pixels ``flat`` (flat indices)."""
+    n, h, w = pixels.shape
+    for i in range(0, len(flat), chunk):
+        f = flat[i : i + chunk]
+        img, rem = f // (h * w), f % (h * w)
+        origins, dirs = pixels.rays(img, rem // w, rem % w)
+        yield origins, dirs, sensor_t.view(-1)[f]
 
 
 def _depth_or_nan(scene: Scene, index: int, shape: tuple[int, int]) -> np.ndarray:
