@@ -190,7 +190,8 @@ class TrainConfig(BaseModel):
         default=True,
         description="remove the sampler octree's leaves that the training frames' sensor depth shows empty (rays "
                     "cross them well before their measured depth and no measured point lies in them): outliers and "
-                    "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.octree_carving)",
+                    "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.octree_carving; "
+                    "measured: docs/benchmarks.md, 'Ninth measurement')",
     )
     occgrid_seed: bool = Field(
         default=True,
