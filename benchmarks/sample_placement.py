@@ -8,8 +8,9 @@ view's depth map). Prints and writes (``--out``) a table: per configuration, the
 2 / 5 / 10 cm of the surface (in scene units x 100, i.e. centimetres for scenes in metres), the share of rays
 with at least one sample within 5 cm, and the median distance of a ray's closest sample; for the voxnerf
 sampler also the share of rays that stop short (their octree first hit more than the importance window before
-the true surface, so the importance samples miss it) and those rays' share of the squared colour error of the
-run's own render (the fast path).
+the true surface, so the importance samples miss it), the share of rays that pass it (no first hit, or one more
+than the window beyond the surface: the octree lacks the leaves there, as where carving removed a true surface),
+and each group's share of the squared colour error of the run's own render (the fast path).
 
     .venv/bin/python benchmarks/sample_placement.py --runs OUT/runs --scene studio --scene-dir SCENES/studio \\
         --configs defaults,occgrid-seeded,occgrid-density --split extrapolation --out OUT/placement-studio.md
@@ -52,8 +53,8 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
     indices = scene.splits[split][:max_views]
     sampler = model.sampler()
     near_counts = {band: 0 for band in BANDS_M}
-    n_samples = rays_near = n_rays = n_short = 0
-    closest_all, error, short_error = [], 0.0, 0.0
+    n_samples = rays_near = n_rays = n_short = n_past = 0
+    closest_all, error, short_error, past_error = [], 0.0, 0.0, 0.0
     for view, index in zip(views, indices, strict=True):
         origins, dirs, z_per_t = image_rays(view.c2w, view.intrinsics)
         z_true = torch.from_numpy(true_ray_distance(scene, index, view.intrinsics.height, view.intrinsics.width))
@@ -64,10 +65,13 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
         if isinstance(sampler, VoxNeRFSampler):
             z, hit = sampler.first_hits(rays)
             short = hit & (z < t_true[ok] - sampler.half_window)
+            past = ~hit | (z > t_true[ok] + sampler.half_window)
             rgb = render_normalized(model, view.c2w, view.intrinsics, ("rgb",))["rgb"].clamp(0, 1).reshape(-1, 3)
             squared = ((rgb - view.image.float().reshape(-1, 3) / 255.0) ** 2).mean(-1)[ok]
-            n_short, error, short_error = n_short + int(short.sum()), error + float(squared.sum()), \
-                short_error + float(squared[short].sum())
+            n_short, n_past = n_short + int(short.sum()), n_past + int(past.sum())
+            error += float(squared.sum())
+            short_error += float(squared[short].sum())
+            past_error += float(squared[past].sum())
         distance_m = (0.5 * (starts + ends) - t_true[ok][:, None]).abs() / model.transform.scale
         for band in BANDS_M:
             near_counts[band] += int((distance_m <= band).sum())
@@ -82,6 +86,8 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
     voxnerf = isinstance(sampler, VoxNeRFSampler)
     result["rays stopping short"] = n_short / n_rays if voxnerf else None
     result["their share of the colour error"] = short_error / error if voxnerf and error > 0 else None
+    result["rays passing their surface"] = n_past / n_rays if voxnerf else None
+    result["their share of the error"] = past_error / error if voxnerf and error > 0 else None
     return result
 
 

@@ -370,8 +370,10 @@ def test_suite_quick_runs_every_config_on_every_room_and_reuses_finished_runs(tm
                                   "--max-views", "2", "--out", str(placement_table)]) == 0
     rows = [line for line in placement_table.read_text().splitlines() if line.startswith("| d")]
     assert [r.split(" | ")[0] for r in rows] == ["| defaults", "| distortion"] and "%" in rows[0]
-    assert "| rays stopping short | their share of the colour error |" in placement_table.read_text()
-    assert rows[0].split(" | ")[-2].endswith("%")  # the voxnerf sampler's runs say how many rays stop short
+    assert ("| rays stopping short | their share of the colour error | rays passing their surface | their share "
+            "of the error |") in placement_table.read_text()
+    stop_short, _, passing, _ = rows[0].split(" | ")[-4:]
+    assert stop_short.endswith("%") and passing.endswith("%")  # voxnerf sampler's runs: where first hits fall
     geometry_table = out / "geometry.md"
     assert suite_geometry.main(["--runs", str(out / "runs"), "--scene", "quick_plain", "--scene-dir",
                                 str(out / "scenes" / "quick_plain"), "--configs", "defaults,no-such-config",

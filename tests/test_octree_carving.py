@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from voxnerf.octree import SparseVoxelOctree
-from voxnerf.octree_carving import MIN_FREE_VOTES, carve_free_space
+from voxnerf.octree_carving import MIN_FREE_VOTES, carve_free_space, remove_empty
 
 LEAF = 0.05
 
@@ -155,6 +155,21 @@ def test_misshapen_rays_are_refused():
         carve_free_space(tree, origins, origins, dirs[:, :2], depth)
     with pytest.raises(ValueError, match="free_until"):
         carve_free_space(tree, origins, origins, dirs, depth[:-1])
+
+
+def test_remove_empty_refuses_a_mask_of_another_shape_and_keeps_an_octree_it_would_empty():
+    tree = SparseVoxelOctree.from_points(_wall_and_outliers()[0], LEAF)
+    n = tree.codes[-1].numel()
+    with pytest.raises(ValueError, match="empty must be a bool tensor"):
+        remove_empty(tree, torch.ones(n + 1, dtype=torch.bool), 0, 0)
+    with pytest.raises(ValueError, match="empty must be a bool tensor"):
+        remove_empty(tree, torch.ones(n), 0, 0)
+    whole = remove_empty(tree, torch.ones(n, dtype=torch.bool), 5, 7)
+    assert whole.octree is tree and whole.carved == 0 and (whole.surface_leaves, whole.rays) == (5, 7)
+    first = torch.zeros(n, dtype=torch.bool)
+    first[0] = True
+    one = remove_empty(tree, first, 0, 0)
+    assert one.carved == 1 and one.octree.codes[-1].numel() == n - 1
 
 
 # --- the octree_carving stage on a rendered room (noisy point-cloud prior with outliers, exact depth maps) ------

@@ -1,4 +1,4 @@
-"""The set-up cache (voxnerf/training/setup_cache.py): keys over exact inputs, loads instead of casting, recasts
+"""The set-up cache (voxnerf/training/setup_cache.py): keys over exact inputs, loads instead of computing, recasts
 what it cannot read, evicts the least recently used; and two runs of one scene, the second loading its casts."""
 
 from __future__ import annotations
@@ -98,6 +98,29 @@ def test_an_entry_it_cannot_use_is_cast_again_and_rewritten(cache, damage):
     torch.testing.assert_close(again, result, equal_nan=True)
 
 
+@pytest.mark.parametrize("stored", ["refused", "not_a_dict", "not_tensors"])
+def test_an_entry_of_tensors_its_check_refuses_is_computed_again(cache, stored):
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"mask": torch.tensor([True, False]), "counts": torch.tensor([3, 4])}
+
+    def fits(entry):
+        return entry["mask"].shape == (2,) and entry["mask"].dtype == torch.bool
+
+    first, loaded = setup_cache.cached("carve", ["a"], CPU, compute, fits)
+    again, loaded_again = setup_cache.cached("carve", ["a"], CPU, compute, fits)
+    assert (loaded, loaded_again, len(calls)) == (False, True, 1)
+    assert all(torch.equal(again[key], first[key]) for key in first)
+    (path,) = cache.glob("*.pt")
+    bad = {"refused": {"mask": torch.ones(3, dtype=torch.bool), "counts": torch.tensor([3, 4])},
+           "not_a_dict": [torch.ones(2)], "not_tensors": {"mask": [True, False], "counts": 3}}[stored]
+    torch.save(bad, path)
+    result, loaded = setup_cache.cached("carve", ["a"], CPU, compute, fits)
+    assert not loaded and len(calls) == 2 and torch.equal(result["mask"], first["mask"])
+
+
 def test_an_unwritable_cache_is_no_error(monkeypatch, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
@@ -122,9 +145,10 @@ def test_a_second_run_of_a_scene_loads_its_casts_and_trains_alike(cache, tmp_pat
     reports = [train(room, tmp_path / f"run{i}", micro_config(final_eval=False), progress_bar=False)
                for i in range(2)]
     whys = [{s.name: s.why for s in r.stages} for r in reports]
-    for stage in ("pseudo_depth", "first_hit_cache"):
+    for stage in ("pseudo_depth", "octree_carving", "first_hit_cache"):
         assert FROM_CACHE not in whys[0][stage] and whys[1][stage] == whys[0][stage] + FROM_CACHE, stage
-    assert len(list(cache.glob("*.pt"))) == 2
+    assert len(list(cache.glob("*.pt"))) == 3
+    assert reports[1].octree == reports[0].octree  # the carving loaded removes the same leaves
     fields = [torch.load(tmp_path / f"run{i}" / "checkpoint.pt", weights_only=True)["model"]["field"]
               for i in range(2)]
     for name, value in fields[0].items():

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.training.pixels import TrainingPixels, per_pixel, sample_batch, training_pixels
+from voxnerf.training.pixels import TrainingPixels, per_pixel, rays_in_chunks, sample_batch, training_pixels
 
 
 def _pixels(n: int = 3, h: int = 6, w: int = 7) -> TrainingPixels:
@@ -66,6 +66,21 @@ def test_per_pixel_maps_every_pixel_in_chunks_with_nan_where_invalid(chunk):
     flat = torch.arange(24).view(2, 3, 4)
     assert torch.equal(ok, flat % 2 == 0)
     assert torch.equal(t[ok], flat[ok].float()) and torch.isnan(t[~ok]).all()
+
+
+@pytest.mark.parametrize("chunk", [3, 1000])
+def test_rays_in_chunks_are_the_rays_of_the_pixels_asked_for(chunk):
+    pixels = _pixels(n=2, h=3, w=4)
+    pixels.c2w[1, :3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    flat = torch.tensor([23, 0, 5, 12, 13, 7, 19])  # any order, across images
+    parts = list(rays_in_chunks(pixels, flat, chunk))
+    assert len(parts) == -(-len(flat) // chunk)
+    f, img, origins, dirs = (torch.cat(column) for column in zip(*parts, strict=True))
+    assert torch.equal(f, flat) and torch.equal(img, flat // 12)
+    want = pixels.rays(flat // 12, flat % 12 // 4, flat % 4)
+    torch.testing.assert_close(origins, want[0])
+    torch.testing.assert_close(dirs, want[1])
+    assert not list(rays_in_chunks(pixels, torch.zeros(0, dtype=torch.int64), chunk))
 
 
 def test_training_images_of_different_sizes_are_refused():

@@ -29,13 +29,15 @@ _TINY = 1e-30
 @dataclass(frozen=True)
 class Carving:
     """The carved octree and what was done: leaves before, leaves removed, leaves holding a measured surface
-    point, and the rays that voted on free space."""
+    point, the rays that voted on free space, and which leaves of the octree given were shown empty (``empty``
+    bool [leaves]; all removed unless that would remove every leaf)."""
 
     octree: SparseVoxelOctree
     leaves: int
     carved: int
     surface_leaves: int
     rays: int
+    empty: Tensor
 
     def describe(self) -> str:
         return (f"carved {self.carved} of {self.leaves} leaves ({self.carved / max(self.leaves, 1):.1%}) that at "
@@ -63,13 +65,20 @@ def carve_free_space(octree: SparseVoxelOctree, surface_points: Tensor, origins:
         raise ValueError(f"origins and dirs must both be [R, 3], got {tuple(origins.shape)}, {tuple(dirs.shape)}")
     if free_until.shape != origins.shape[:1]:
         raise ValueError(f"free_until must be [R] = [{origins.shape[0]}], got {tuple(free_until.shape)}")
-    n_leaves = octree.codes[-1].numel()
     surface = _leaves_holding(octree, surface_points)
     votes = _free_votes(octree, origins, dirs, free_until)
-    carve = (votes >= min_votes) & ~surface
-    carved = int(carve.sum())
-    tree = octree if carved in (0, n_leaves) else octree.keep_leaves(~carve)
-    return Carving(tree, n_leaves, carved if tree is not octree else 0, int(surface.sum()), int(origins.shape[0]))
+    return remove_empty(octree, (votes >= min_votes) & ~surface, int(surface.sum()), int(origins.shape[0]))
+
+
+def remove_empty(octree: SparseVoxelOctree, empty: Tensor, surface_leaves: int, rays: int) -> Carving:
+    """The :class:`Carving` of ``octree`` that removes the leaves ``empty`` (bool [L], order of ``codes[-1]``),
+    unless that would remove every leaf; ``surface_leaves`` and ``rays`` are what the vote saw."""
+    n_leaves = octree.codes[-1].numel()
+    if empty.shape != (n_leaves,) or empty.dtype != torch.bool:
+        raise ValueError(f"empty must be a bool tensor of shape ({n_leaves},), got {empty.dtype} {tuple(empty.shape)}")
+    carved = int(empty.sum())
+    tree = octree if carved in (0, n_leaves) else octree.keep_leaves(~empty)
+    return Carving(tree, n_leaves, carved if tree is not octree else 0, surface_leaves, rays, empty)
 
 
 def _leaves_holding(octree: SparseVoxelOctree, points: Tensor) -> Tensor:

@@ -116,15 +116,22 @@ def per_pixel(
     device = pixels.images.device
     t_all = torch.empty(n * h * w, device=device)
     ok_all = torch.empty(n * h * w, dtype=torch.bool, device=device)
-    flat = torch.arange(n * h * w, device=device)
-    for i in range(0, n * h * w, chunk):
+    for f, _, origins, dirs in rays_in_chunks(pixels, torch.arange(n * h * w, device=device), chunk):
+        t, ok = fn(model.ray_bundle(origins, dirs), f)
+        t_all[f] = torch.where(ok, t, torch.full_like(t, float("nan")))
+        ok_all[f] = ok
+    return t_all.view(n, h, w), ok_all.view(n, h, w)
+
+
+def rays_in_chunks(pixels: TrainingPixels, flat: torch.Tensor, chunk: int = 262_144):
+    """Rays of the training pixels ``flat`` (int64 [P], flat indices into [N, H, W]), ``chunk`` at a time:
+    yields (flat indices [R], image indices [R], origins [R, 3], unit dirs [R, 3]), normalised units."""
+    n, h, w = pixels.shape
+    for i in range(0, len(flat), chunk):
         f = flat[i : i + chunk]
         img, rem = f // (h * w), f % (h * w)
         origins, dirs = pixels.rays(img, rem // w, rem % w)
-        t, ok = fn(model.ray_bundle(origins, dirs), f)
-        t_all[i : i + chunk] = torch.where(ok, t, torch.full_like(t, float("nan")))
-        ok_all[i : i + chunk] = ok
-    return t_all.view(n, h, w), ok_all.view(n, h, w)
+        yield f, img, origins, dirs
 
 
 def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, gen: torch.Generator) -> PixelIndex:
@@ -154,11 +161,7 @@ def sensor_ray_distance(pixels: TrainingPixels, z: torch.Tensor, scale: float, c
     n, h, w = pixels.shape
     z_flat = z.reshape(-1)
     t_all = torch.empty(n * h * w, device=z.device)
-    flat = torch.arange(n * h * w, device=z.device)
-    for i in range(0, n * h * w, chunk):
-        f = flat[i : i + chunk]
-        img, rem = f // (h * w), f % (h * w)
-        _, dirs = pixels.rays(img, rem // w, rem % w)
+    for f, img, _, dirs in rays_in_chunks(pixels, torch.arange(n * h * w, device=z.device), chunk):
         cos = (dirs * -pixels.c2w[img, :3, 2]).sum(-1) / torch.linalg.vector_norm(dirs, dim=-1)
-        t_all[i : i + chunk] = z_flat[f] * scale / cos.clamp_min(1e-6)
+        t_all[f] = z_flat[f] * scale / cos.clamp_min(1e-6)
     return t_all.view(n, h, w)

@@ -1,12 +1,13 @@
 """A cache of the set-up's per-pixel ray casts, shared by the runs of one scene.
 
-The pseudo-depth and first-hit stages cast a ray through every training pixel (seconds on a real scan). A second
-run on the same scene with the same prior (a re-run, the next configuration of a sweep) loads their results
-instead. The key is a hash of everything a cast reads, not of file names or dates:
+The pseudo-depth and first-hit stages cast a ray through every training pixel, and the octree carving traces
+millions of measured rays (seconds on a real scan). A second run on the same scene with the same prior (a re-run,
+the next configuration of a sweep) loads their results instead. The key is a hash of everything a stage reads,
+not of file names or dates:
 
 - the training rays: poses, intrinsics, lens, image size (:class:`voxnerf.training.pixels.TrainingPixels`), the
   scene box;
-- what the rays are cast against (the prior's points and mesh, the octree) and any hint;
+- what the rays are cast against (the prior's points and mesh, the octree), any hint, the measured depths;
 - the engine's own source (every ``.py`` and ``.c`` file of the package), torch's version and the device type:
   a code change misses instead of loading a result the new code would not give.
 
@@ -33,6 +34,7 @@ from voxnerf.image_io import write_atomic
 
 MAX_BYTES = 2 * 1024**3
 PerPixel = tuple[torch.Tensor, torch.Tensor]  # t float32 [N, H, W] (NaN where invalid), ok bool [N, H, W]
+Entry = dict[str, torch.Tensor]  # one stage's result, by name
 
 
 def cache_dir() -> Path:
@@ -80,40 +82,53 @@ def _update(h, item) -> None:
         raise TypeError(f"cannot key the set-up cache on a {type(item).__name__}")
 
 
-def cached_per_pixel(name: str, inputs: Iterable, shape: tuple[int, int, int], device: torch.device,
-                     compute: Callable[[], PerPixel], enabled: bool = True) -> tuple[PerPixel, bool]:
-    """``compute()``'s (t, ok), or the same loaded from the cache -> ((t, ok) on ``device``, whether loaded).
-
-    ``shape`` is (N, H, W) of both; an entry of another shape or dtype counts as missing."""
+def cached(name: str, inputs: Iterable, device: torch.device, compute: Callable[[], Entry],
+           fits: Callable[[Entry], bool], enabled: bool = True) -> tuple[Entry, bool]:
+    """``compute()``'s tensors (by name), or the same loaded from the cache -> (tensors on ``device``, whether
+    loaded). An entry that ``fits`` refuses (or that is not a dict of tensors) counts as missing."""
     if not enabled:
         return compute(), False
     path = cache_dir() / f"{cache_key(name, inputs, device)}.pt"
-    loaded = _load(path, shape)
+    loaded = _load(path, fits)
     if loaded is not None:
-        return (loaded[0].to(device), loaded[1].to(device)), True
-    t, ok = compute()
-    _store(path, t, ok)
-    return (t, ok), False
+        return {key: value.to(device) for key, value in loaded.items()}, True
+    entry = compute()
+    _store(path, entry)
+    return entry, False
 
 
-def _load(path: Path, shape: tuple[int, int, int]) -> PerPixel | None:
+def cached_per_pixel(name: str, inputs: Iterable, shape: tuple[int, int, int], device: torch.device,
+                     compute: Callable[[], PerPixel], enabled: bool = True) -> tuple[PerPixel, bool]:
+    """:func:`cached` for a per-pixel cast: (t, ok) -> ((t, ok) on ``device``, whether loaded).
+
+    ``shape`` is (N, H, W) of both; an entry of another shape or dtype counts as missing."""
+
+    def fits(entry: Entry) -> bool:
+        t, ok = entry.get("t"), entry.get("ok")
+        return (isinstance(t, torch.Tensor) and isinstance(ok, torch.Tensor) and tuple(t.shape) == tuple(ok.shape)
+                == tuple(shape) and t.dtype == torch.float32 and ok.dtype == torch.bool)
+
+    entry, loaded = cached(name, inputs, device, lambda: dict(zip(("t", "ok"), compute(), strict=True)), fits,
+                           enabled)
+    return (entry["t"], entry["ok"]), loaded
+
+
+def _load(path: Path, fits: Callable[[Entry], bool]) -> Entry | None:
     try:
         entry = torch.load(path, map_location="cpu", weights_only=True)
-        t, ok = entry["t"], entry["ok"]
-    except Exception:  # absent, truncated or not ours (torch.load raises many kinds): cast again
+    except Exception:  # absent, truncated or not ours (torch.load raises many kinds): compute again
         return None
-    if not (isinstance(t, torch.Tensor) and isinstance(ok, torch.Tensor) and tuple(t.shape) == tuple(ok.shape)
-            == tuple(shape) and t.dtype == torch.float32 and ok.dtype == torch.bool):
+    if not (isinstance(entry, dict) and all(isinstance(v, torch.Tensor) for v in entry.values()) and fits(entry)):
         return None
     with contextlib.suppress(OSError):
         os.utime(path)  # recently used: evicted last
-    return t, ok
+    return entry
 
 
-def _store(path: Path, t: torch.Tensor, ok: torch.Tensor) -> None:
+def _store(path: Path, entry: Entry) -> None:
     """Write the entry (atomically) and evict; a cache that cannot be written is no error."""
     buffer = io.BytesIO()
-    torch.save({"t": t.detach().cpu(), "ok": ok.detach().cpu()}, buffer)
+    torch.save({key: value.detach().cpu() for key, value in entry.items()}, buffer)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         write_atomic(path, buffer.getvalue())

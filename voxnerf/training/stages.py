@@ -25,13 +25,13 @@ from voxnerf.files import FUSED_PRIOR, TRANSFORMS
 from voxnerf.image_io import write_atomic
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree, coverage_octree
-from voxnerf.octree_carving import carve_free_space
+from voxnerf.octree_carving import Carving, carve_free_space, remove_empty
 from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
 from voxnerf.scene import Scene, SceneTransform, load_scene, read_depth_map
 from voxnerf.training import setup_cache
-from voxnerf.training.pixels import TrainingPixels, per_pixel, sensor_ray_distance
+from voxnerf.training.pixels import TrainingPixels, per_pixel, rays_in_chunks, sensor_ray_distance
 from voxnerf.training.prior_rays import PriorRayBank, bank_size, prior_ray_bank, seen_by
 from voxnerf.training.records import EvalRecord, StageRecord
 from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, PAPER_BETA, LossFn
@@ -328,10 +328,16 @@ FROM_CACHE = "; loaded from the set-up cache"
 
 
 def pixel_rays_key(pixels: TrainingPixels, model: VoxNeRFModel) -> list:
-    """What fixes the rays of every training pixel (:func:`per_pixel`), for :mod:`setup_cache` keys."""
+    """What fixes the rays of every training pixel and their near / far bounds (:func:`per_pixel`), for
+    :mod:`setup_cache` keys."""
+    return [*training_rays_key(pixels), model.aabb]
+
+
+def training_rays_key(pixels: TrainingPixels) -> list:
+    """What fixes the rays of every training pixel (:meth:`TrainingPixels.rays`), for :mod:`setup_cache` keys."""
     lens = None if pixels.lens is None else (pixels.lens.coeffs, pixels.lens.codes)
     table = None if pixels.directions is None else (pixels.directions.dirs, pixels.directions.camera)
-    return [pixels.shape, pixels.c2w, pixels.intr, lens, table, model.aabb]
+    return [pixels.shape, pixels.c2w, pixels.intr, lens, table]
 
 
 def prior_key(prior_n: GeometryPrior) -> list:
@@ -503,20 +509,41 @@ def carving_stage(cfg: TrainConfig, octree: SparseVoxelOctree | None, pixels: Tr
                else "no sensor depth in use (the depth target is not the sensor's)" if measured is None
                else "no training pixel has sensor depth")
         return CarvingStage(_record("octree_carving", False, why, t0), None)
+    inputs = [*training_rays_key(pixels), octree_key(octree), target.sensor_t, target.beta, target.beta_scale,
+              float(scale)]
+
+    def carve() -> setup_cache.Entry:
+        carving = _carve_by_sensor_depth(octree, pixels, target, measured, scale)
+        return {"empty": carving.empty, "votes": torch.tensor([carving.surface_leaves, carving.rays])}
+
+    def fits(entry: setup_cache.Entry) -> bool:
+        empty, votes = entry.get("empty"), entry.get("votes")
+        return (empty is not None and votes is not None and empty.dtype == torch.bool
+                and tuple(empty.shape) == tuple(octree.codes[-1].shape) and tuple(votes.shape) == (2,))
+
+    entry, loaded = setup_cache.cached("octree_carving", inputs, octree.device, carve, fits, cfg.setup_cache)
+    carving = remove_empty(octree, entry["empty"], *(int(v) for v in entry["votes"]))
+    why = (f"{carving.describe()}; free space ends {CARVE_MARGIN_LEAVES:g} leaves + {CARVE_MARGIN_SIGMAS:g} "
+           f"sigma(z) before each measured depth{FROM_CACHE if loaded else ''}")
+    return CarvingStage(_record("octree_carving", True, why, t0), carving.octree)
+
+
+def _carve_by_sensor_depth(octree: SparseVoxelOctree, pixels: TrainingPixels, target: DepthTargetStage,
+                           measured: torch.Tensor, scale: float) -> Carving:
+    """:func:`carve_free_space` with the measured training pixels ``measured`` (flat indices, int64 [M]): the
+    surface points of up to ``CARVE_SURFACE_RAYS`` of them, the free-space votes of up to ``CARVE_FREE_RAYS``."""
     gen = torch.Generator(device=measured.device).manual_seed(0)
     surface = _subset(measured, CARVE_SURFACE_RAYS, gen)
     free = _subset(measured, CARVE_FREE_RAYS, gen)
     sigma = torch.full((len(free),), target.beta * scale / DEPTH_BETA_PER_SIGMA, device=free.device)
     if target.beta_scale is not None:
         sigma = sigma * target.beta_scale.view(-1)[free]
-    points = torch.cat([o + t[:, None] * d for o, d, t in _measured_rays(pixels, target.sensor_t, surface)])
-    origins, dirs, t = (torch.cat(parts) for parts in zip(*_measured_rays(pixels, target.sensor_t, free),
-                                                            strict=True))
+    sensor_t = target.sensor_t.view(-1)
+    points = torch.cat([o + sensor_t[f, None] * d for f, _, o, d in rays_in_chunks(pixels, surface)])
+    free_rays = list(rays_in_chunks(pixels, free))
+    origins, dirs = torch.cat([o for _, _, o, _ in free_rays]), torch.cat([d for *_, d in free_rays])
     margin = CARVE_MARGIN_LEAVES * octree.leaf_size + CARVE_MARGIN_SIGMAS * sigma
-    carving = carve_free_space(octree, points, origins, dirs, t - margin)
-    why = (f"{carving.describe()}; free space ends {CARVE_MARGIN_LEAVES:g} leaves + {CARVE_MARGIN_SIGMAS:g} "
-           f"sigma(z) before each measured depth")
-    return CarvingStage(_record("octree_carving", True, why, t0), carving.octree)
+    return carve_free_space(octree, points, origins, dirs, sensor_t[free] - margin)
 
 
 CARVE_MARGIN_LEAVES = 2.0
@@ -531,16 +558,6 @@ def _subset(indices: torch.Tensor, most: int, gen: torch.Generator) -> torch.Ten
         return indices
     pick = torch.randperm(len(indices), generator=gen, device=indices.device)[:most]
     return indices[pick.sort().values]
-
-
-def _measured_rays(pixels: TrainingPixels, sensor_t: torch.Tensor, flat: torch.Tensor, chunk: int = 262_144):
-    """(origins [R, 3], dirs [R, 3], t [R]) per chunk of the training pixels ``flat`` (flat indices)."""
-    n, h, w = pixels.shape
-    for i in range(0, len(flat), chunk):
-        f = flat[i : i + chunk]
-        img, rem = f // (h * w), f % (h * w)
-        origins, dirs = pixels.rays(img, rem // w, rem % w)
-        yield origins, dirs, sensor_t.view(-1)[f]
 
 
 def _depth_or_nan(scene: Scene, index: int, shape: tuple[int, int]) -> np.ndarray:
