@@ -29,15 +29,13 @@ _TINY = 1e-30
 @dataclass(frozen=True)
 class Carving:
     """The carved octree and what was done: leaves before, leaves removed, leaves holding a measured surface
-    point, the rays that voted on free space, and which leaves of the octree given were shown empty (``empty``
-    bool [leaves]; all removed unless that would remove every leaf)."""
+    point, and the rays that voted on free space."""
 
     octree: SparseVoxelOctree
     leaves: int
     carved: int
     surface_leaves: int
     rays: int
-    empty: Tensor
 
     def describe(self) -> str:
         return (f"carved {self.carved} of {self.leaves} leaves ({self.carved / max(self.leaves, 1):.1%}) that at "
@@ -47,7 +45,20 @@ class Carving:
 
 def carve_free_space(octree: SparseVoxelOctree, surface_points: Tensor, origins: Tensor, dirs: Tensor,
                      free_until: Tensor, min_votes: int = MIN_FREE_VOTES) -> Carving:
-    """Remove the leaves that measured rays show empty.
+    """Remove the leaves that measured rays show empty (:func:`empty_leaves`, then :func:`remove_empty`).
+
+    Returns:
+        :class:`Carving`; its octree is ``octree`` itself when nothing is carved, or when carving would remove
+        every leaf.
+    """
+    empty, surface_leaves = empty_leaves(octree, surface_points, origins, dirs, free_until, min_votes)
+    return remove_empty(octree, empty, surface_leaves, int(origins.shape[0]))
+
+
+def empty_leaves(octree: SparseVoxelOctree, surface_points: Tensor, origins: Tensor, dirs: Tensor,
+                 free_until: Tensor, min_votes: int = MIN_FREE_VOTES) -> tuple[Tensor, int]:
+    """The leaves that measured rays show empty -> (bool [L], order of ``codes[-1]``; how many leaves hold a
+    surface point).
 
     Args:
         surface_points: [P, 3] float32, measured surface points (a depth map's pixels back-projected); the leaves
@@ -57,9 +68,6 @@ def carve_free_space(octree: SparseVoxelOctree, surface_points: Tensor, origins:
             margin for the measurement's noise and the leaf size); non-finite or non-positive: the ray votes
             nothing. A ray votes for every occupied leaf it enters before then, once each.
         min_votes: distinct rays that must cross a leaf for it to be carved.
-    Returns:
-        :class:`Carving`; its octree is ``octree`` itself when nothing is carved, or when carving would remove
-        every leaf.
     """
     if origins.shape != dirs.shape or origins.dim() != 2 or origins.shape[1] != 3:
         raise ValueError(f"origins and dirs must both be [R, 3], got {tuple(origins.shape)}, {tuple(dirs.shape)}")
@@ -67,7 +75,7 @@ def carve_free_space(octree: SparseVoxelOctree, surface_points: Tensor, origins:
         raise ValueError(f"free_until must be [R] = [{origins.shape[0]}], got {tuple(free_until.shape)}")
     surface = _leaves_holding(octree, surface_points)
     votes = _free_votes(octree, origins, dirs, free_until)
-    return remove_empty(octree, (votes >= min_votes) & ~surface, int(surface.sum()), int(origins.shape[0]))
+    return (votes >= min_votes) & ~surface, int(surface.sum())
 
 
 def remove_empty(octree: SparseVoxelOctree, empty: Tensor, surface_leaves: int, rays: int) -> Carving:
@@ -78,7 +86,7 @@ def remove_empty(octree: SparseVoxelOctree, empty: Tensor, surface_leaves: int, 
         raise ValueError(f"empty must be a bool tensor of shape ({n_leaves},), got {empty.dtype} {tuple(empty.shape)}")
     carved = int(empty.sum())
     tree = octree if carved in (0, n_leaves) else octree.keep_leaves(~empty)
-    return Carving(tree, n_leaves, carved if tree is not octree else 0, surface_leaves, rays, empty)
+    return Carving(tree, n_leaves, carved if tree is not octree else 0, surface_leaves, rays)
 
 
 def _leaves_holding(octree: SparseVoxelOctree, points: Tensor) -> Tensor:

@@ -25,7 +25,7 @@ from voxnerf.files import FUSED_PRIOR, TRANSFORMS
 from voxnerf.image_io import write_atomic
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree, coverage_octree
-from voxnerf.octree_carving import Carving, carve_free_space, remove_empty
+from voxnerf.octree_carving import empty_leaves, remove_empty
 from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
 from voxnerf.pseudo_depth import PriorDepthRenderer
@@ -513,8 +513,8 @@ def carving_stage(cfg: TrainConfig, octree: SparseVoxelOctree | None, pixels: Tr
               float(scale)]
 
     def carve() -> setup_cache.Entry:
-        carving = _carve_by_sensor_depth(octree, pixels, target, measured, scale)
-        return {"empty": carving.empty, "votes": torch.tensor([carving.surface_leaves, carving.rays])}
+        empty, surface_leaves, rays = _empty_by_sensor_depth(octree, pixels, target, measured, scale)
+        return {"empty": empty, "votes": torch.tensor([surface_leaves, rays])}
 
     def fits(entry: setup_cache.Entry) -> bool:
         empty, votes = entry.get("empty"), entry.get("votes")
@@ -528,10 +528,11 @@ def carving_stage(cfg: TrainConfig, octree: SparseVoxelOctree | None, pixels: Tr
     return CarvingStage(_record("octree_carving", True, why, t0), carving.octree)
 
 
-def _carve_by_sensor_depth(octree: SparseVoxelOctree, pixels: TrainingPixels, target: DepthTargetStage,
-                           measured: torch.Tensor, scale: float) -> Carving:
-    """:func:`carve_free_space` with the measured training pixels ``measured`` (flat indices, int64 [M]): the
-    surface points of up to ``CARVE_SURFACE_RAYS`` of them, the free-space votes of up to ``CARVE_FREE_RAYS``."""
+def _empty_by_sensor_depth(octree: SparseVoxelOctree, pixels: TrainingPixels, target: DepthTargetStage,
+                           measured: torch.Tensor, scale: float) -> tuple[torch.Tensor, int, int]:
+    """:func:`empty_leaves` with the measured training pixels ``measured`` (flat indices, int64 [M]): the
+    surface points of up to ``CARVE_SURFACE_RAYS`` of them, the free-space votes of up to ``CARVE_FREE_RAYS``
+    -> (empty leaves bool [L], leaves holding a surface point, rays that voted)."""
     gen = torch.Generator(device=measured.device).manual_seed(0)
     surface = _subset(measured, CARVE_SURFACE_RAYS, gen)
     free = _subset(measured, CARVE_FREE_RAYS, gen)
@@ -543,7 +544,8 @@ def _carve_by_sensor_depth(octree: SparseVoxelOctree, pixels: TrainingPixels, ta
     free_rays = list(rays_in_chunks(pixels, free))
     origins, dirs = torch.cat([o for _, _, o, _ in free_rays]), torch.cat([d for *_, d in free_rays])
     margin = CARVE_MARGIN_LEAVES * octree.leaf_size + CARVE_MARGIN_SIGMAS * sigma
-    return carve_free_space(octree, points, origins, dirs, sensor_t[free] - margin)
+    empty, surface_leaves = empty_leaves(octree, points, origins, dirs, sensor_t[free] - margin)
+    return empty, surface_leaves, len(free)
 
 
 CARVE_MARGIN_LEAVES = 2.0
