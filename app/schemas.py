@@ -116,6 +116,7 @@ JOB_OPTION_FIELDS = (
     "depth_source",
     "pose_refinement",
     "appearance",
+    "focal_scale",
     "downscale",
     "seed",
     "compile",

@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from voxnerf.files import CHECKPOINT  # noqa: E402
 from voxnerf.model import VoxNeRFModel  # noqa: E402
-from voxnerf.render import render_normalized  # noqa: E402
+from voxnerf.render import render_normalized, scene_as_trained  # noqa: E402
 from voxnerf.scene import load_scene  # noqa: E402
 from voxnerf.training.checkpoint import load_checkpoint  # noqa: E402
 from voxnerf.training.evals import eval_views_of  # noqa: E402
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     if model.pose_refinement is None:
         print(f"{args.run}: the run did not refine its poses (pose_refinement none)", file=sys.stderr)
         return 2
-    scene = load_scene(args.scene, downscale=args.downscale)
+    scene = scene_as_trained(load_scene(args.scene, downscale=args.downscale), model)
     results = compare(model, eval_views_of(scene, model.transform), args.every)
     for split, r in results.items():
         print(f"{split}: {r['views']} views, PSNR at the given poses {r['given']:.2f} dB, "

@@ -27,20 +27,18 @@ import torch
 from suite import measure_runs, print_table
 
 from voxnerf.cameras import image_rays
-from voxnerf.render import load_model, render_normalized
+from voxnerf.render import load_model, render_normalized, scene_as_trained
 from voxnerf.samplers import VoxNeRFSampler
-from voxnerf.scene import load_scene, read_depth_map
+from voxnerf.scene import depth_on_image, load_scene
 from voxnerf.training.evals import eval_views_of
 
 BANDS_M = (0.02, 0.05, 0.10)
 
 
-def true_ray_distance(scene, index: int, height: int, width: int) -> np.ndarray:
-    """[H * W] z-depth (scene units) of frame ``index`` resampled (nearest) to H x W, NaN where invalid."""
-    depth, _ = read_depth_map(scene.frames[index], scene.depth_unit_scale, scene.depth_max)
-    rows = (np.arange(height) * depth.shape[0] / height).astype(int)
-    cols = (np.arange(width) * depth.shape[1] / width).astype(int)
-    return depth[rows][:, cols].reshape(-1)
+def true_ray_distance(scene, index: int) -> np.ndarray:
+    """[H * W] z-depth (scene units) of frame ``index`` on its image's pixels at the scene's downscale (registered
+    through the depth camera, as training registers it), NaN where invalid."""
+    return depth_on_image(scene.frames[index], scene.depth_unit_scale, scene.downscale, scene.depth_max).reshape(-1)
 
 
 @torch.no_grad()
@@ -48,7 +46,7 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
     """Shares of samples / rays near the true surface for the run's own sampler on ``split``'s views."""
     trained = load_model(run, "cpu")
     model = trained.model
-    scene = load_scene(scene_dir, downscale=downscale)
+    scene = scene_as_trained(load_scene(scene_dir, downscale=downscale), trained.model)
     views = eval_views_of(scene, model.transform, [split])[split][:max_views]
     indices = scene.splits[split][:max_views]
     sampler = model.sampler()
@@ -57,7 +55,7 @@ def placement(run: Path, scene_dir: Path, split: str, downscale: int, max_views:
     closest_all, error, short_error, past_error = [], 0.0, 0.0, 0.0
     for view, index in zip(views, indices, strict=True):
         origins, dirs, z_per_t = image_rays(view.c2w, view.intrinsics)
-        z_true = torch.from_numpy(true_ray_distance(scene, index, view.intrinsics.height, view.intrinsics.width))
+        z_true = torch.from_numpy(true_ray_distance(scene, index))
         t_true = z_true.float() * model.transform.scale / z_per_t  # normalised ray distance
         ok = torch.isfinite(t_true)
         rays = model.ray_bundle(origins[ok], dirs[ok])

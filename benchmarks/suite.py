@@ -2,10 +2,12 @@
 
 The suite is the synthetic rooms of :mod:`voxnerf.synthetic.suite` (varied layouts, sizes, fields of view,
 lighting and priors, some rendered like captures) plus, with ``--redkitchen``, the real 7-Scenes kitchen at
-``--downscale 2``. Every (scene, configuration) pair is one ``voxnerf train`` command with ``--max-seconds
-BUDGET`` (set-up, compilation and the final evaluation included), run alone, one after the other; a run whose
-report already holds the same command is reused, so rows can be added over several invocations and the table
-always covers every run under ``--out``.
+``--downscale 2`` (``--scenes redkitchen`` runs it alone). Every (scene, configuration) pair is one ``voxnerf
+train`` command with ``--max-seconds BUDGET`` (set-up, compilation and the final evaluation included), run alone,
+one after the other, scene by scene: a scene's configurations run back to back, so the runs compared on a scene
+are minutes apart on a machine whose speed drifts over hours. A run whose report already holds the same command
+is reused, so rows can be added over several invocations and the table always covers every run under
+``--out``.
 
 Each run's report gives, for every evaluation split: PSNR / SSIM / LPIPS over all views, and the same by the
 half-image protocol (a colour gain and bias per channel fitted on each view's left half, scored on its right:
@@ -256,8 +258,8 @@ def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
     return rows
 
 
-SET_UP_STAGES = ("load_scene", "corrections", "weight_decay", "prior", "hash_kernel", "octree", "pseudo_depth",
-                 "depth_target", "first_hit_cache")
+SET_UP_STAGES = ("load_scene", "corrections", "weight_decay", "prior", "focal", "hash_kernel", "octree",
+                 "pseudo_depth", "depth_target", "first_hit_cache")
 
 
 def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:
@@ -337,7 +339,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--suite-dir", type=Path, help="where the suite's scenes are made (default OUT/scenes)")
-    p.add_argument("--scenes", help="comma-separated suite scene names (default: all)")
+    p.add_argument("--scenes", help="comma-separated suite scene names (default: all); 'redkitchen' among them "
+                   "stands for the --redkitchen scene (alone: no synthetic room)")
     p.add_argument("--redkitchen", type=Path, help="the 7-Scenes redkitchen scene directory, added to the suite")
     p.add_argument("--configs", default=",".join(CONFIGS), help=f"comma-separated, from {', '.join(CONFIGS)}")
     p.add_argument("--budget", type=float, default=300.0, help="--max-seconds of every run")
@@ -350,6 +353,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
     if unknown:
         p.error(f"unknown configs {unknown}; known: {', '.join(CONFIGS)}")
+    if REDKITCHEN in (args.scenes or "").split(",") and args.redkitchen is None:
+        p.error("--scenes names redkitchen: give its scene directory with --redkitchen")
     return args
 
 
@@ -358,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
 
     args = parse_args(argv)
     specs = QUICK_SUITE if args.quick else SUITE
-    names = args.scenes.split(",") if args.scenes else list(specs)
+    names = [n for n in args.scenes.split(",") if n != REDKITCHEN] if args.scenes else list(specs)
     configs = list(QUICK_CONFIGS) if args.quick and args.configs == ",".join(CONFIGS) else args.configs.split(",")
     scene_dirs = ({name: None for name in names} if args.table_only
                   else make_suite(args.suite_dir or args.out / "scenes", names=names, suite=specs))
@@ -366,8 +371,8 @@ def main(argv: list[str] | None = None) -> int:
         scene_dirs[REDKITCHEN] = args.redkitchen
     eval_at = [float(t) for t in args.eval_at.split(",") if t]
     extra = list(QUICK_TRAIN_ARGS) if args.quick else []
-    for config in [] if args.table_only else configs:
-        for scene, scene_dir in scene_dirs.items():
+    for scene, scene_dir in [] if args.table_only else scene_dirs.items():
+        for config in configs:  # a scene's configurations back to back: compared runs minutes apart
             print(f"{config} on {scene} ...", flush=True)
             run_one(scene, Path(scene_dir), config, args.out / "runs" / scene / config, args.budget, eval_at, extra)
     results = [json.loads(p.read_text()) for p in sorted((args.out / "runs").glob("*/*/suite-run.json"))]

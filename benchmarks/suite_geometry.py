@@ -27,7 +27,7 @@ from suite import measure_runs, print_table
 
 from voxnerf.depth_fusion import DepthView, backproject
 from voxnerf.export import distances_to_mesh, export_geometry
-from voxnerf.render import load_model, render_normalized
+from voxnerf.render import load_model, render_normalized, scene_as_trained
 from voxnerf.scene import load_scene
 from voxnerf.training.evals import eval_views_of
 
@@ -51,7 +51,7 @@ def seen_surface(scene, stride: int) -> np.ndarray:
 
 def geometry(run: Path, scene_dir: Path, voxel: float, max_views: int) -> dict[str, float]:
     trained = load_model(run, "cpu")
-    scene = load_scene(scene_dir, downscale=int(trained.model.config.downscale))
+    scene = scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.downscale)), trained.model)
     truth = trimesh.load(scene_dir / "gt_mesh.ply", process=False)
     with tempfile.TemporaryDirectory() as tmp:
         export_geometry(trained, Path(tmp) / "mesh.ply", "mesh", scene=scene, voxel_size=voxel)

@@ -402,6 +402,36 @@ def test_suite_geometry_needs_a_true_mesh(tmp_path: Path, capsys) -> None:
     assert "gt_mesh.ply: no true mesh" in capsys.readouterr().err
 
 
+def test_suite_runs_scene_by_scene_and_redkitchen_by_name(tmp_path: Path, monkeypatch) -> None:
+    calls = []
+
+    def fake_run_one(scene, scene_dir, config, run, budget, eval_at, extra):
+        calls.append((scene, config))
+        metrics = {s: {"psnr": 20.0, "ssim": 0.5} for s in ("interpolation", "extrapolation")}
+        run.mkdir(parents=True)
+        (run / "suite-run.json").write_text(json.dumps({"scene": scene, "config": config, "command": "c",
+                                                        "report": {"metrics": metrics, "iteration": 1}}))
+
+    monkeypatch.setattr(suite, "run_one", fake_run_one)
+    kitchen = tmp_path / "kitchen"
+    out = tmp_path / "out"
+    argv = ["--quick", "--out", str(out), "--redkitchen", str(kitchen), "--configs", "previous-defaults,defaults"]
+    assert suite.main([*argv, "--scenes", "quick_plain,redkitchen"]) == 0
+    assert calls == [("quick_plain", "previous-defaults"), ("quick_plain", "defaults"),
+                     ("redkitchen", "previous-defaults"), ("redkitchen", "defaults")]  # a scene's runs together
+    calls.clear()
+    assert suite.main([*argv, "--out", str(tmp_path / "alone"), "--scenes", "redkitchen"]) == 0
+    assert calls == [("redkitchen", "previous-defaults"), ("redkitchen", "defaults")]  # no synthetic room
+    results = json.loads((tmp_path / "alone" / "results.json").read_text())["results"]
+    assert {r["scene"] for r in results} == {"redkitchen"}
+
+
+def test_suite_needs_the_redkitchen_directory_when_its_scenes_name_it(capsys) -> None:
+    with pytest.raises(SystemExit):
+        suite.main(["--out", "/nonexistent", "--scenes", "studio,redkitchen"])
+    assert "--scenes names redkitchen: give its scene directory with --redkitchen" in capsys.readouterr().err
+
+
 def test_suite_refuses_unknown_configs(capsys) -> None:
     with pytest.raises(SystemExit):
         suite.main(["--out", "/nonexistent", "--configs", "defaults,warp-drive"])

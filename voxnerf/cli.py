@@ -20,6 +20,16 @@ if TYPE_CHECKING:
     from pydantic import ValidationError
 
 
+def _focal_scale(text: str) -> str | float:
+    """``--focal-scale``: ``auto`` or a number (TrainConfig checks its range)."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected auto or a number, got {text!r}") from None
+
+
 def _train(args: argparse.Namespace) -> int:
     from voxnerf.config import TrainConfig
     from voxnerf.training.run import train
@@ -27,7 +37,7 @@ def _train(args: argparse.Namespace) -> int:
     values = dict(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
         depth_loss=not args.no_depth_loss, depth_source=args.depth_source, downscale=args.downscale,
-        pose_refinement=args.pose_refinement, appearance=args.appearance,
+        pose_refinement=args.pose_refinement, appearance=args.appearance, focal_scale=args.focal_scale,
         device=args.device, seed=args.seed,
         compile=not args.no_compile, hash_kernel=not args.no_hash_kernel, eval_at=args.eval_at or [],
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
@@ -39,7 +49,7 @@ def _train(args: argparse.Namespace) -> int:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
     report = train(args.scene, args.out, config, resume=not args.restart)
     for stage in report.stages:
-        if stage.name in ("corrections", "weight_decay", "prior", "depth_target", "octree_carving"):
+        if stage.name in ("corrections", "weight_decay", "prior", "focal", "depth_target", "octree_carving"):
             print(f"{stage.name}: {stage.why}")
     for warning in report.warnings:
         print(f"warning: {warning}")
@@ -57,7 +67,7 @@ def _metrics_line(split: str, m: dict) -> str:
 
 def _eval(args: argparse.Namespace) -> int:
     from voxnerf.evaluation import evaluate_views
-    from voxnerf.render import load_model
+    from voxnerf.render import load_model, scene_as_trained
     from voxnerf.scene import load_scene
     from voxnerf.training.evals import eval_views_of
 
@@ -65,7 +75,7 @@ def _eval(args: argparse.Namespace) -> int:
     scene_dir = args.scene or trained.scene_dir
     if not scene_dir:
         raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
-    scene = load_scene(scene_dir, downscale=trained.model.config.downscale)
+    scene = scene_as_trained(load_scene(scene_dir, downscale=trained.model.config.downscale), trained.model)
     split = args.split or ("test" if scene.splits.get("test") else next(iter(scene.eval_split_names), None))
     if split not in scene.splits or split == "train" and not args.split:
         raise RunError(f"{scene_dir}: no evaluation split {split!r} (have {sorted(scene.splits)})")
@@ -188,13 +198,14 @@ def _render_image(args: argparse.Namespace, mode: str) -> int:
 
 
 def _run_scene(args: argparse.Namespace, trained):
-    """The scene the run trained on (``--scene`` overrides), loaded without its images."""
+    """The scene the run trained on (``--scene`` overrides), loaded without its images, its cameras as trained."""
+    from voxnerf.render import scene_as_trained
     from voxnerf.scene import load_scene
 
     scene_dir = args.scene or trained.scene_dir
     if not scene_dir:
         raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
-    return load_scene(scene_dir, load_images=False)
+    return scene_as_trained(load_scene(scene_dir, load_images=False), trained.model)
 
 
 def _find_frame(scene, name: str):
@@ -298,7 +309,7 @@ def _render_camera_path(args: argparse.Namespace, mode: str) -> int:
 
 def _export(args: argparse.Namespace) -> int:
     from voxnerf.export import export_geometry
-    from voxnerf.render import load_model
+    from voxnerf.render import load_model, scene_as_trained
     from voxnerf.scene import load_scene
 
     targets = [(kind, path) for kind, path in (("mesh", args.mesh), ("pointcloud", args.pointcloud)) if path]
@@ -307,7 +318,8 @@ def _export(args: argparse.Namespace) -> int:
     trained = load_model(args.run, args.device)
     scene = None
     if args.scene:
-        scene = load_scene(args.scene, downscale=int(trained.model.config.downscale), load_images=False)
+        scene = scene_as_trained(load_scene(args.scene, downscale=int(trained.model.config.downscale),
+                                            load_images=False), trained.model)
     elif not trained.scene_dir:
         raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
     for kind, path in targets:
@@ -416,6 +428,10 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
                    help="affine: learn a colour gain and bias per training image (auto-exposure, white balance); "
                    "a rendered view takes its nearest training cameras' correction (docs/engine.md); auto: affine "
                    "unless transforms.json says the scene is synthetic")
+    p.add_argument("--focal-scale", type=_focal_scale, default="auto", metavar="auto|SCALE",
+                   help="the colour camera's focal lengths are the stated ones times SCALE (1: as stated); auto: "
+                   "measured on a captured scan with a mesh prior, from how well the training images agree through "
+                   "the prior (docs/engine.md)")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")

@@ -147,6 +147,14 @@ class TrainConfig(BaseModel):
         "rendered pose takes the corrections of its nearest training cameras; the refined poses go to "
         "refined_poses.json. 'auto': so3xr3 for a captured scan, none for a synthetic scene (exact poses)",
     )
+    focal_scale: Annotated[float, Field(ge=0.5, le=2.0)] | Literal["auto"] = Field(
+        default="auto",
+        description="the colour camera's focal lengths are the stated ones times this; 'auto': measured for a "
+        "captured scan with a mesh prior (the training images' agreement through the prior at scales of the stated "
+        "focal length, voxnerf/focal_check.py) and used when it clearly beats the stated one, 1 for a synthetic "
+        "scene; renders of the scene's own views use it, and the depth maps keep the stated camera "
+        "(docs/benchmarks.md, 'Eleventh measurement')",
+    )
     pose_lr: float = Field(
         default=8e-4, gt=0,
         description="learning rate of the pose corrections (on the steps that refine them, pose_every); chosen on "

@@ -37,7 +37,7 @@ from voxnerf.camera_rules import Intrinsics
 from voxnerf.depth_fusion import DepthView, FusionError, fuse_tsdf, point_map
 from voxnerf.errors import RunError
 from voxnerf.image_io import write_atomic
-from voxnerf.render import TrainedModel, render
+from voxnerf.render import TrainedModel, render, scene_as_trained
 from voxnerf.scene import Scene, load_scene
 
 EXPORT_KINDS = ("mesh", "pointcloud")
@@ -162,7 +162,8 @@ def _check_voxel(voxel: float, extent: float) -> None:
 def _scene_of(trained: TrainedModel) -> Scene:
     if not trained.scene_dir:
         raise ExportError("scene: the run does not record its scene directory; pass the scene (--scene DIR)")
-    return load_scene(trained.scene_dir, downscale=int(trained.model.config.downscale), load_images=False)
+    return scene_as_trained(load_scene(trained.scene_dir, downscale=int(trained.model.config.downscale),
+                                       load_images=False), trained.model)
 
 
 def box_extent(trained: TrainedModel) -> float:

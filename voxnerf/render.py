@@ -18,6 +18,7 @@ from voxnerf.files import CHECKPOINT
 from voxnerf.inference import FAST, render_rays_fast
 from voxnerf.model import VoxNeRFModel
 from voxnerf.outputs import OUTPUT_NAMES
+from voxnerf.scene import Scene, with_focal_scale
 from voxnerf.training.checkpoint import load_checkpoint
 
 OUTPUTS = OUTPUT_NAMES
@@ -64,6 +65,14 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
         raise RunError(f"{path}: unreadable checkpoint ({type(exc).__name__}: {why})") from None
     model.field.eval()
     return trained
+
+
+def scene_as_trained(scene: Scene, model: VoxNeRFModel) -> Scene:
+    """``scene`` seen through the cameras ``model`` trained with: the colour focal lengths times the run's
+    ``focal_scale`` (:mod:`voxnerf.training.focal`; 1 for a checkpoint from before it). Every caller that renders
+    or scores a scene's own views loads the scene through this."""
+    scale = model.config.focal_scale
+    return with_focal_scale(scene, scale if isinstance(scale, float) else 1.0)
 
 
 def _view_rays(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor, Tensor]:

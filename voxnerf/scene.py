@@ -44,7 +44,10 @@ DISTORTION_KEYS = COEFFICIENT_KEYS  # k1 k2 k3 k4 p1 p2, nerfstudio's (OpenCV's)
 SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
 DEFAULT_PRIOR_NAME = "prior.ply"
 MAX_IMAGE_SIDE = 65536  # pixels, for w and h
-__all__ = ["ROTATION_TOLERANCE", "Frame", "Scene", "SceneTransform", "inspect_scene", "load_scene"]
+__all__ = [
+    "ROTATION_TOLERANCE", "Frame", "Scene", "SceneTransform", "depth_on_image", "inspect_scene", "load_scene",
+    "with_focal_scale",
+]
 # Names of eval_splits: they become folder names of evaluation renders (``eval/<split>/``) and URL segments.
 SPLIT_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
 
@@ -60,6 +63,9 @@ class Frame:
     depth_path: Path | None = None
     depth_intrinsics: Intrinsics | None = None  # the depth camera's, when ``depth_intrinsics`` gives them
     camera_model: str = "PINHOLE (default)"  # the lens model (intrinsics.lens) and how it was decided
+    # the camera transforms.json states, when ``intrinsics`` is a corrected one (:func:`with_focal_scale`): a
+    # depth map without depth_intrinsics was measured through it
+    stated_intrinsics: Intrinsics | None = None
 
 
 @dataclass
@@ -489,7 +495,7 @@ def _load_pixels(scene: Scene) -> None:
                     for i, f in enumerate(scene.frames)]
     scene.depths = [
         None if f.depth_path is None or i not in train else
-        _read_depth_at(f, scene.depth_unit_scale, scene.downscale, scene.depth_max)
+        depth_on_image(f, scene.depth_unit_scale, scene.downscale, scene.depth_max)
         for i, f in enumerate(scene.frames)
     ]
 
@@ -528,6 +534,26 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
     return scene
 
 
+def with_focal_scale(scene: Scene, scale: float) -> Scene:
+    """``scene`` with every frame's colour focal lengths times ``scale`` (principal point, size and lens kept), as
+    a focal check measured them (:mod:`voxnerf.focal_check`); ``scene`` itself when ``scale`` is 1.
+
+    The depth maps keep the camera they were measured through (``depth_intrinsics``, else the stated colour
+    camera), so the loaded training depth is registered again to the corrected images.
+    """
+    if scale == 1.0:
+        return scene
+    frames = [replace(f, intrinsics=replace(f.intrinsics, fl_x=f.intrinsics.fl_x * scale,
+                                            fl_y=f.intrinsics.fl_y * scale),
+                      stated_intrinsics=f.stated_intrinsics or f.intrinsics) for f in scene.frames]
+    corrected = replace(scene, frames=frames, warnings=list(scene.warnings))
+    if scene.depths is not None:
+        corrected.depths = [None if d is None else depth_on_image(frames[i], scene.depth_unit_scale, scene.downscale,
+                                                                 scene.depth_max)
+                            for i, d in enumerate(scene.depths)]
+    return corrected
+
+
 def _downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
     """uint8 [H, W, 3] -> uint8 [H // f, W // f, 3] by area averaging."""
     if factor == 1:
@@ -553,7 +579,7 @@ def read_depth_map(frame: Frame, unit_scale: float, depth_max: float | None) -> 
     if depth_max is not None:
         depth[depth > depth_max] = np.nan
     h, w = depth.shape
-    colour, given = frame.intrinsics, frame.depth_intrinsics
+    colour, given = frame.stated_intrinsics or frame.intrinsics, frame.depth_intrinsics
     if given is not None:
         if (w, h) != (given.width, given.height):
             raise SceneError(frame.depth_path, f"depth map is {w}x{h} but depth_intrinsics say "
@@ -568,7 +594,7 @@ def read_depth_map(frame: Frame, unit_scale: float, depth_max: float | None) -> 
                              colour.cx * w / colour.width, colour.cy * h / colour.height, w, h, colour.lens)
 
 
-def _read_depth_at(frame: Frame, unit_scale: float, factor: int, depth_max: float | None = None) -> np.ndarray:
+def depth_on_image(frame: Frame, unit_scale: float, factor: int, depth_max: float | None = None) -> np.ndarray:
     """float32 [H // f, W // f] scene units on the image's pixel grid; NaN where invalid.
 
     A depth map on the image's own camera is area-averaged over its valid pixels (NaN for a block with none);

@@ -31,7 +31,7 @@ from voxnerf.camera_path import CameraPath, parse_nerfstudio
 from voxnerf.camera_rules import CameraError, resolve_intrinsics
 from voxnerf.errors import RunError, VoxNeRFError
 from voxnerf.export import export_geometry
-from voxnerf.render import TrainedModel
+from voxnerf.render import TrainedModel, scene_as_trained
 from voxnerf.scene import Scene, load_scene
 from voxnerf.video import render_path
 from worker.tasks import DeathNotingRequest, Lease, model_cache
@@ -67,7 +67,8 @@ def scene_of(settings: Settings, job, trained: TrainedModel) -> Scene:
     scene_dir = storage.ensure_scene(settings, job.scene_id)
     if not scene_dir.is_dir():
         raise RunError(f"scene {job.scene_id} of job {job.id} was deleted: its cameras are needed")
-    return load_scene(scene_dir, downscale=int(trained.model.config.downscale), load_images=False)
+    return scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.downscale), load_images=False),
+                            trained)
 
 
 def generated_path(settings: Settings, params: dict, trained: TrainedModel, scene: Scene) -> CameraPath:
@@ -89,7 +90,7 @@ def video_path(settings: Settings, params: dict, trained: TrainedModel, job) -> 
         return parse_nerfstudio(
             params["camera_path"], max_frames=settings.max_video_frames, max_pixels=settings.max_render_pixels
         )
-    return generated_path(settings, params, trained, scene_of(settings, job, trained))
+    return generated_path(settings, params, trained, scene_of(settings, job, trained.model))
 
 
 # ------------------------------------------------------------------------------------------------ making

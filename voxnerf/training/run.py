@@ -53,6 +53,7 @@ from voxnerf.training.callbacks import (
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
 from voxnerf.training.corrections import corrections_stage
 from voxnerf.training.evals import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
+from voxnerf.training.focal import focal_stage
 from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.pixels import TrainingPixels, training_pixels
 from voxnerf.training.prior_rays import PriorRayBank
@@ -167,7 +168,8 @@ def _stopped_in_set_up(run: Run, previous: dict | None) -> TrainReport:
 
 
 def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Setup:
-    """Stages load_scene, corrections, weight_decay, prior, hash_kernel, then the model (and the resumed state)."""
+    """Stages load_scene, corrections, weight_decay, prior, focal, hash_kernel, then the model (and the resumed
+    state)."""
     report, events = run.report, run.events
     loaded = stages.load_scene_stage(scene_dir, run.cfg)
     report.scene = loaded.scene.summary()
@@ -179,23 +181,37 @@ def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Set
     events.stage(corrections.record, 0)
     events.stage(decay.record, 0)
     run.stop_point()
+    found, scene = _prior_and_focal(run, loaded.scene)
+    cfg = run.cfg
+    events.stage(stages.hash_kernel_stage(cfg, run.device), 0)
+    run.stop_point()
+    built = stages.model_stage(cfg, scene, found.prior, run.device, previous)
+    if built.resumed:
+        report.history.extend(built.history)
+        report.resumed_from_iteration = built.iteration
+    pixels = training_pixels(scene, built.transform, run.device)
+    run.stop_point()
+    return _set_up_geometry(run, scene, found, built, pixels)
+
+
+def _prior_and_focal(run: Run, scene: Scene) -> tuple[stages.PriorStage, Scene]:
+    """Stages prior and focal: (the prior found or fused, the scene seen through the focal length the focal
+    stage settled on, which ``run.cfg`` and the report's config now hold)."""
+    report, events = run.report, run.events
     run.fence()  # the prior stage may write the fused prior into the run directory
-    found = stages.prior_stage(loaded.scene, cfg, run.dir)
+    found = stages.prior_stage(scene, run.cfg, run.dir)
     events.stage(found.record, 0)
     run.stop_point()
     if found.prior is not None:
         report.prior = found.prior.summary() | ({"fused": found.fused.summary()} if found.fused else {})
     if found.warning:
         report.warnings.append(found.warning)
-    events.stage(stages.hash_kernel_stage(cfg, run.device), 0)
+    focal = focal_stage(run.cfg, scene, found.prior)
+    run.cfg = focal.cfg  # the focal scale measured: renders of the scene's views use it too
+    report.config = focal.cfg.model_dump()
+    events.stage(focal.record, 0)
     run.stop_point()
-    built = stages.model_stage(cfg, loaded.scene, found.prior, run.device, previous)
-    if built.resumed:
-        report.history.extend(built.history)
-        report.resumed_from_iteration = built.iteration
-    pixels = training_pixels(loaded.scene, built.transform, run.device)
-    run.stop_point()
-    return _set_up_geometry(run, loaded.scene, found, built, pixels)
+    return found, focal.scene
 
 
 def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: stages.ModelStage,
