@@ -60,6 +60,8 @@ def _corrections(appearance: bool, pose_lr: float, pose_every: int, lambda_pose:
 NO_CORRECTIONS = {"appearance": "none", "pose_refinement": "none"}
 # The defaults before field_weight_decay became "auto" (a decay in proportion to the training images' noise).
 NO_DECAY = {"field_weight_decay": 0.0}
+# The defaults before focal_scale became "auto" (a captured scan's colour focal length checked against its prior).
+STATED_FOCAL = {"focal_scale": 1.0}
 
 CONFIGS: dict[str, dict] = {
     "defaults": {},
@@ -90,7 +92,8 @@ CONFIGS: dict[str, dict] = {
     "no-weight-decay": NO_DECAY,
     "no-corrections": NO_CORRECTIONS | NO_DECAY,
     "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0], "octree_carving": False}
-    | NO_CORRECTIONS | NO_DECAY,
+    | NO_CORRECTIONS | NO_DECAY | STATED_FOCAL,
+    "stated-focal": STATED_FOCAL,
     "no-carving": {"octree_carving": False},
     "background-mean": {"train_background": "fixed", "background": "training_mean"},
     "background-gray": {"train_background": "fixed", "background": [0.5, 0.5, 0.5]},
