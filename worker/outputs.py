@@ -68,7 +68,7 @@ def scene_of(settings: Settings, job, trained: TrainedModel) -> Scene:
     if not scene_dir.is_dir():
         raise RunError(f"scene {job.scene_id} of job {job.id} was deleted: its cameras are needed")
     return scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.downscale), load_images=False),
-                            trained)
+                            trained.model)
 
 
 def generated_path(settings: Settings, params: dict, trained: TrainedModel, scene: Scene) -> CameraPath:
@@ -90,7 +90,7 @@ def video_path(settings: Settings, params: dict, trained: TrainedModel, job) -> 
         return parse_nerfstudio(
             params["camera_path"], max_frames=settings.max_video_frames, max_pixels=settings.max_render_pixels
         )
-    return generated_path(settings, params, trained, scene_of(settings, job, trained.model))
+    return generated_path(settings, params, trained, scene_of(settings, job, trained))
 
 
 # ------------------------------------------------------------------------------------------------ making
