@@ -16,8 +16,9 @@ import trimesh
 from synthetic_fixtures import micro_config
 
 from voxnerf.config import TrainConfig
-from voxnerf.focal_check import MeshCaster, check_focal, image_pairs
+from voxnerf.focal_check import check_focal, image_pairs
 from voxnerf.prior import load_prior
+from voxnerf.pseudo_depth import MeshCaster
 from voxnerf.render import load_model, scene_as_trained
 from voxnerf.scene import depth_on_image, load_scene, read_depth_map, with_focal_scale
 from voxnerf.synthetic import RoomSpec, make_room_scene

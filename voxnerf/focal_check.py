@@ -13,7 +13,8 @@ absolute difference of the grey levels at the two ends, after one gain per pair 
 the least error over all pairs is the measured one. The geometry keeps the stated camera: the prior and the
 depth maps were measured through it, not through the colour camera.
 
-Everything here is in the scene's own units (poses and mesh alike); numpy and open3d only.
+Everything here is in the scene's own units (poses and mesh alike); the mesh is cast by
+:class:`voxnerf.pseudo_depth.MeshCaster`, as the prior's pseudo depth is.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import torch
 
 from voxnerf.camera_rules import Intrinsics
 from voxnerf.neighbours import nearest_cameras
+from voxnerf.pseudo_depth import MeshCaster
 
 COARSE_SCALES = tuple(np.round(np.arange(0.80, 1.2001, 0.04), 4))  # first pass, the stated focal among them
 FINE_STEP = 0.01  # second pass: every FINE_STEP within one coarse step of the coarse minimum
@@ -59,23 +61,6 @@ class FocalCheck:
     def interior(self) -> bool:
         """Whether the least error lies inside the scales tried (not at an end of the range)."""
         return min(COARSE_SCALES) < self.best < max(COARSE_SCALES)
-
-
-class MeshCaster:
-    """First hits of rays on a triangle mesh (open3d's ``RaycastingScene``)."""
-
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        import open3d as o3d  # imported where used: the API process never checks a focal length
-
-        self._o3d = o3d
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-                                  o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
-
-    def distance(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """[N] distance along each unit ray [N, 3] to its first hit (inf where it hits nothing)."""
-        rays = np.ascontiguousarray(np.concatenate([origins, dirs], axis=1), dtype=np.float32)
-        return self._scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
 
 
 def image_pairs(c2ws: np.ndarray, most: int = MAX_PAIRS) -> list[tuple[int, int]]:

@@ -8,6 +8,7 @@ biased towards the camera by half a leaf on average, and the depth loss would pu
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -18,24 +19,36 @@ from voxnerf.octree import SparseVoxelOctree
 from voxnerf.prior import GeometryPrior
 
 
+class MeshCaster:
+    """First hits of rays on a triangle mesh (open3d's ``RaycastingScene``)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        import open3d as o3d  # imported where used: only mesh priors are ray-cast with it
+
+        self._o3d = o3d
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+                                  o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
+
+    def distance(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """[N] distance along each ray [N, 3] to its first hit, in units of ``|dir|`` (inf where it hits
+        nothing)."""
+        rays = np.ascontiguousarray(np.concatenate([origins, dirs], axis=1), dtype=np.float32)
+        return self._scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
+
+
 class PriorDepthRenderer:
     """Distances to the prior along rays, in the units of the prior (the caller's normalised frame)."""
 
     def __init__(self, prior: GeometryPrior, svo: SparseVoxelOctree) -> None:
         """``prior`` and ``svo`` must be in the same frame as the rays later passed in."""
         self.svo = svo
-        self._scene = None
+        self._caster: MeshCaster | None = None
         self._leaf_means: Tensor | None = None
         if prior.kind != "mesh" or prior.mesh is None:
             self._leaf_means = svo.leaf_means(torch.from_numpy(prior.points).float().to(svo.device))
-        if prior.kind == "mesh" and prior.mesh is not None:
-            import open3d as o3d  # imported where used: only mesh priors are ray-cast with it
-
-            self._scene = o3d.t.geometry.RaycastingScene()
-            self._scene.add_triangles(
-                o3d.core.Tensor(np.ascontiguousarray(prior.mesh.vertices, dtype=np.float32)),
-                o3d.core.Tensor(np.ascontiguousarray(prior.mesh.faces, dtype=np.uint32)),
-            )
+        else:
+            self._caster = MeshCaster(np.asarray(prior.mesh.vertices), np.asarray(prior.mesh.faces))
 
     def ray_distance(
         self, origins: Tensor, dirs: Tensor, t_min: Tensor | float, t_max: Tensor | float
@@ -53,13 +66,10 @@ class PriorDepthRenderer:
         device = origins.device
         t_min = torch.as_tensor(t_min, dtype=torch.float32, device=device).expand(n)
         t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
-        if self._scene is None:
+        if self._caster is None:
             return self._point_cloud_distance(origins, dirs, t_min, t_max)
-        import open3d as o3d
-
-        rays = torch.cat([origins, dirs], dim=1).to(device="cpu", dtype=torch.float32).contiguous()
-        result = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays.numpy()))
-        t = torch.from_numpy(result["t_hit"].numpy()).to(device)
+        cpu = functools.partial(torch.Tensor.to, device="cpu", dtype=torch.float32)
+        t = torch.from_numpy(self._caster.distance(cpu(origins).numpy(), cpu(dirs).numpy())).to(device)
         valid = torch.isfinite(t) & (t >= t_min) & (t <= t_max)
         return torch.where(valid, t, t_max), valid
 

@@ -18,8 +18,9 @@ import torch
 
 from voxnerf.camera_rules import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.focal_check import FocalCheck, MeshCaster, check_focal
+from voxnerf.focal_check import FocalCheck, check_focal
 from voxnerf.prior import GeometryPrior
+from voxnerf.pseudo_depth import MeshCaster
 from voxnerf.scene import Scene, with_focal_scale
 from voxnerf.training import setup_cache
 from voxnerf.training.records import StageRecord
