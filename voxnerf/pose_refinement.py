@@ -69,8 +69,9 @@ class PoseRefinement(nn.Module):
         return moved_rays(self.corrections(), origins, dirs, image)
 
     def refined_c2w(self, c2w: Tensor) -> Tensor:
-        """[images, 4, 4] camera-to-world poses (normalised units) with the learnt corrections applied."""
-        return _moved(c2w, self.corrections().detach().to(c2w.dtype))
+        """[images, 4, 4] camera-to-world poses (normalised units, on any device) with the learnt corrections
+        applied, on ``c2w``'s device."""
+        return _moved(c2w, self.corrections().detach().to(c2w.device, c2w.dtype))
 
     def view_corrections(self, c2w: Tensor) -> Tensor:
         """[M, 6] corrections for poses ``c2w`` [M, 4, 4] (normalised units): those of the nearest training
