@@ -35,7 +35,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 import trimesh
 
 from voxnerf.cameras import Intrinsics
@@ -130,6 +129,7 @@ def load_ground_truth(scene_dir: Path) -> GroundTruth:
 
 def distance_to_surface(points: np.ndarray, mesh: trimesh.Trimesh) -> np.ndarray:
     """Unsigned distance float64 [N] (metres) of ``points`` [N, 3] to the surface of ``mesh``."""
+    import open3d as o3d  # imported where used: the suite imports this module on machines without open3d
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
@@ -172,6 +172,7 @@ def monosdf_prior(
     gt: GroundTruth, settings: PriorSettings, rng: np.random.Generator
 ) -> tuple[trimesh.Trimesh, dict]:
     """Implicit-surface-like mesh: GT subdivided, Taubin smoothed, vertex noise, spherical holes."""
+    import open3d as o3d  # imported where used: the suite imports this module on machines without open3d
     verts, faces = trimesh.remesh.subdivide_to_size(
         gt.mesh.vertices, gt.mesh.faces, settings.monosdf_max_edge
     )
@@ -256,6 +257,7 @@ def tsdf_prior(
     gt: GroundTruth, settings: PriorSettings, rng: np.random.Generator
 ) -> tuple[trimesh.Trimesh, dict]:
     """TSDF fusion (open3d ``VoxelBlockGrid``) of noisy training depth maps, meshed by marching cubes."""
+    import open3d as o3d  # imported where used: the suite imports this module on machines without open3d
     grid = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight"),
         attr_dtypes=(o3d.core.float32, o3d.core.float32),

@@ -111,6 +111,7 @@ CONFIGS: dict[str, dict] = {
     "no-depth-loss": {"depth_loss": False},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
+    "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine
 }
 """Configuration name -> TrainConfig fields (``voxnerf train --set``) over the defaults."""
 BASELINE = "defaults"

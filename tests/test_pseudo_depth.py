@@ -7,9 +7,10 @@ import pytest
 import torch
 import trimesh
 
+from voxnerf import pseudo_depth
 from voxnerf.octree import SparseVoxelOctree
 from voxnerf.prior import load_prior
-from voxnerf.pseudo_depth import PriorDepthRenderer
+from voxnerf.pseudo_depth import MeshCaster, PriorDepthRenderer
 
 
 def renderer_for(path, sigma: float) -> tuple[PriorDepthRenderer, SparseVoxelOctree]:
@@ -91,3 +92,43 @@ def test_mesh_hits_before_t_min_are_invalid(tmp_path, t_min):
     t, valid = renderer.ray_distance(torch.zeros(1, 3), torch.tensor([[1.0, 0.0, 0.0]]), t_min, 5.0)
     assert valid.item() is (t_min < 0.5)
     assert t.item() == pytest.approx(0.5 if t_min < 0.5 else 5.0)
+
+
+def _room_and_rays(n: int = 4000):
+    room = trimesh.util.concatenate([trimesh.creation.box(extents=[4.0, 3.0, 2.5]), trimesh.creation.icosphere(3, 0.4)])
+    rng = np.random.default_rng(1)
+    origins = rng.uniform(-1.5, 1.5, (n, 3)) * [1.0, 0.8, 0.6]
+    dirs = rng.normal(size=(n, 3)) * rng.uniform(0.5, 2.0, (n, 1))  # not unit: t is in units of |dir|
+    dirs[:50] = [0.0, 0.0, 1e-3]  # slow rays still hit
+    return room, origins, dirs
+
+
+def test_mesh_caster_backends_agree():
+    room, origins, dirs = _room_and_rays()
+    by_open3d = MeshCaster(room.vertices, room.faces, backend="open3d").distance(origins, dirs)
+    embree = MeshCaster(room.vertices, room.faces, backend="embree")
+    by_embree = embree.distance(origins, dirs)
+    assert embree.backend == "embree" and by_embree.dtype == np.float32 and by_embree.shape == (len(origins),)
+    assert np.array_equal(np.isfinite(by_open3d), np.isfinite(by_embree))
+    hit = np.isfinite(by_open3d)
+    assert hit.mean() > 0.9 and np.allclose(by_embree[hit], by_open3d[hit], rtol=1e-4, atol=1e-4)
+    outward = MeshCaster(room.vertices, room.faces, backend="embree").distance(np.array([[10.0, 0, 0]]),
+                                                                              np.array([[1.0, 0, 0]]))
+    assert np.isinf(outward).all()
+    assert embree.distance(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
+
+
+def test_mesh_caster_auto_takes_open3d_when_installed_else_embree(monkeypatch):
+    room, _, _ = _room_and_rays(1)
+    assert MeshCaster(room.vertices, room.faces).backend == "open3d"
+    monkeypatch.setattr(pseudo_depth, "_importable", lambda module: module != "open3d")
+    assert MeshCaster(room.vertices, room.faces).backend == "embree"
+
+
+def test_mesh_caster_refuses_without_a_backend_or_an_unknown_one(monkeypatch):
+    room, _, _ = _room_and_rays(1)
+    with pytest.raises(ValueError, match="unknown mesh caster backend 'optix'"):
+        MeshCaster(room.vertices, room.faces, backend="optix")
+    monkeypatch.setattr(pseudo_depth, "_importable", lambda module: False)
+    with pytest.raises(ImportError, match="needs open3d or embreex"):
+        MeshCaster(room.vertices, room.faces)

@@ -1,9 +1,10 @@
 """Pseudo ground-truth depth from the geometry prior: the distance along a ray to the prior's surface.
 
-A mesh prior is ray-cast exactly (open3d's Embree-backed ``RaycastingScene``). A point-cloud prior has no
-surface: the ray's first occupied octree leaf stands in for it, and the depth is where the ray passes the mean
-of that leaf's points (clamped to the ray's segment inside the leaf). The leaf's entry point alone would be
-biased towards the camera by half a leaf on average, and the depth loss would pull the surface forward.
+A mesh prior is ray-cast exactly (open3d's Embree-backed ``RaycastingScene``, or trimesh's Embree intersector
+where open3d is not installed). A point-cloud prior has no surface: the ray's first occupied octree leaf stands
+in for it, and the depth is where the ray passes the mean of that leaf's points (clamped to the ray's segment
+inside the leaf). The leaf's entry point alone would be biased towards the camera by half a leaf on average,
+and the depth loss would pull the surface forward.
 """
 
 from __future__ import annotations
@@ -20,21 +21,73 @@ from voxnerf.prior import GeometryPrior
 
 
 class MeshCaster:
-    """First hits of rays on a triangle mesh (open3d's ``RaycastingScene``)."""
+    """First hits of rays on a triangle mesh, cast with Embree.
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        import open3d as o3d  # imported where used: only mesh priors are ray-cast with it
+    ``backend`` "open3d" uses open3d's ``RaycastingScene`` (open3d is a dependency of the package); "embree" uses
+    trimesh's intersector over ``embreex``, for machines where open3d has no build (a GPU image on a Python that
+    open3d has no wheel for, say). "auto" takes open3d when it imports, else embreex.
+    """
 
-        self._o3d = o3d
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-                                  o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
+    BACKENDS = ("auto", "open3d", "embree")
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, backend: str = "auto") -> None:
+        if backend not in self.BACKENDS:
+            raise ValueError(f"unknown mesh caster backend {backend!r}; known: {', '.join(self.BACKENDS)}")
+        vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+        faces = np.ascontiguousarray(faces, dtype=np.int64)
+        if backend == "auto":
+            backend = "open3d" if _importable("open3d") else "embree"
+        self.backend = backend
+        self._cast = _open3d_caster(vertices, faces) if backend == "open3d" else _embree_caster(vertices, faces)
 
     def distance(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """[N] distance along each ray [N, 3] to its first hit, in units of ``|dir|`` (inf where it hits
+        """[N] float32 distance along each ray [N, 3] to its first hit, in units of ``|dir|`` (inf where it hits
         nothing)."""
-        rays = np.ascontiguousarray(np.concatenate([origins, dirs], axis=1), dtype=np.float32)
-        return self._scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
+        return self._cast(np.ascontiguousarray(origins, dtype=np.float32), np.ascontiguousarray(dirs, dtype=np.float32))
+
+
+def _importable(module: str) -> bool:
+    """Whether ``module`` imports (an installed open3d can still fail to load a system library it needs)."""
+    import importlib
+
+    try:
+        importlib.import_module(module)
+    except (ImportError, OSError):
+        return False
+    return True
+
+
+def _open3d_caster(vertices: np.ndarray, faces: np.ndarray):
+    import open3d as o3d  # imported where used: only mesh priors are ray-cast with it
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces.astype(np.uint32)))
+
+    def cast(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        rays = np.ascontiguousarray(np.concatenate([origins, dirs], axis=1))
+        return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+
+    return cast
+
+
+def _embree_caster(vertices: np.ndarray, faces: np.ndarray):
+    if not _importable("embreex"):
+        raise ImportError("casting rays on a mesh prior needs open3d or embreex; neither is installed")
+    import trimesh
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    intersector = RayMeshIntersector(trimesh.Trimesh(vertices, faces, process=False), scale_to_box=False)
+
+    def cast(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        t = np.full(len(origins), np.inf, dtype=np.float32)
+        if len(origins) == 0:
+            return t
+        hits, ray_index, _ = intersector.intersects_location(origins, dirs, multiple_hits=False)
+        d = dirs[ray_index].astype(np.float64)
+        t[ray_index] = np.einsum("ij,ij->i", hits - origins[ray_index], d) / np.einsum("ij,ij->i", d, d)
+        return t
+
+    return cast
 
 
 class PriorDepthRenderer:

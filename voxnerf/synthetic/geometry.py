@@ -11,10 +11,11 @@ from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 import trimesh
 
 if TYPE_CHECKING:
+    import open3d as o3d
+
     from voxnerf.synthetic.textures import Material
 
 ROOM_SIZE: tuple[float, float, float] = (5.0, 4.0, 2.6)
@@ -69,6 +70,8 @@ class RoomGeometry:
     @cached_property
     def raycasting_scene(self) -> o3d.t.geometry.RaycastingScene:
         """An open3d ray-casting scene of all triangles (primitive id == triangle index)."""
+        import open3d as o3d  # imported where used: a machine without open3d can still load the package
+
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(
             o3d.core.Tensor(self.vertices.astype(np.float32)),

@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import open3d as o3d
 import torch
 
 from voxnerf.camera_rules import Lens
@@ -34,12 +33,19 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
+def _o3d_rays(origins: np.ndarray, dirs: np.ndarray):
+    """open3d's [N, 6] float32 ray tensor of ``origins`` and ``dirs`` [N, 3]."""
+    import open3d as o3d  # imported where used: a machine without open3d can still load the package
+
+    return o3d.core.Tensor(np.concatenate([origins, dirs], axis=1).astype(np.float32))
+
+
 def _cast(
     geom: RoomGeometry, origins: np.ndarray, dirs: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest hits: ``t`` [N] in units of |dir| (inf on a miss), triangle ids int64 [N] (-1 on a miss),
     triangle normals [N, 3]."""
-    rays = o3d.core.Tensor(np.concatenate([origins, dirs], axis=1).astype(np.float32))
+    rays = _o3d_rays(origins, dirs)
     hit = geom.raycasting_scene.cast_rays(rays)
     t = hit["t_hit"].numpy().astype(np.float64)
     prim = hit["primitive_ids"].numpy().astype(np.int64)
@@ -135,7 +141,7 @@ def light_visibility(
     visible = np.zeros(len(start))
     if shading.light_radius_m == 0:
         to_light = np.asarray(position)[None] - start[lit]
-        rays = o3d.core.Tensor(np.concatenate([start[lit], to_light], axis=1).astype(np.float32))
+        rays = _o3d_rays(start[lit], to_light)
         occluded = geom.raycasting_scene.test_occlusions(rays, tnear=0.0, tfar=1.0).numpy()
         visible[np.flatnonzero(lit)[~occluded]] = 1.0
         return visible
@@ -144,7 +150,7 @@ def light_visibility(
     on_sphere = rng.normal(size=origins.shape)
     on_sphere *= shading.light_radius_m / np.maximum(np.linalg.norm(on_sphere, axis=1, keepdims=True), 1e-12)
     to_light = np.asarray(position)[None] + on_sphere - origins
-    rays = o3d.core.Tensor(np.concatenate([origins, to_light], axis=1).astype(np.float32))
+    rays = _o3d_rays(origins, to_light)
     occluded = geom.raycasting_scene.test_occlusions(rays, tnear=0.0, tfar=1.0).numpy()
     visible[lit] = (~occluded).reshape(-1, k).mean(axis=1)
     return visible
