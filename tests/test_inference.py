@@ -14,7 +14,7 @@ from voxnerf.errors import RunError
 from voxnerf.inference import FastSettings, FieldRunner, field_runner, linear_relu, native_bfloat16, render_rays_fast
 from voxnerf.model import VoxNeRFModel
 from voxnerf.octree import SparseVoxelOctree
-from voxnerf.render import render_normalized
+from voxnerf.render import render_normalized, resolved_render_path
 from voxnerf.scene import SceneTransform
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -156,6 +156,17 @@ def test_render_normalized_takes_either_path_and_refuses_others():
     assert (fast["depth"] - full["depth"]).abs().max() < 3e-2 * math.sqrt(3) * 2
     with pytest.raises(RunError, match="render path"):
         render_normalized(model, c2w, intr, path="slow")
+    auto = render_normalized(model, c2w, intr)  # on this CPU: the fast path
+    assert torch.equal(auto["rgb"], fast["rgb"])
+
+
+@pytest.mark.parametrize(("device", "path"), [("cpu", "fast"), ("cuda", "full"), ("cuda:1", "full"), ("mps", "full")])
+def test_the_auto_render_path_is_fast_on_the_cpu_and_full_on_a_gpu(device, path):
+    assert resolved_render_path("auto", torch.device(device)) == path
+    assert resolved_render_path("fast", torch.device(device)) == "fast"
+    assert resolved_render_path("full", torch.device(device)) == "full"
+    with pytest.raises(RunError, match="unknown render path 'slow'"):
+        resolved_render_path("slow", torch.device(device))
 
 
 def test_the_default_settings_ignore_a_grid_seeded_from_the_prior():

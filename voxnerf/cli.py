@@ -463,8 +463,9 @@ def _add_eval_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="scene directory (default: the one the run trained on)")
     p.add_argument("--json", help="write the metrics here")
     p.add_argument("--device", default="auto")
-    p.add_argument("--render-path", choices=["fast", "full"], default="fast",
-                   help="fast: rays stop when opaque, no compiling (default); full: every sample of every ray")
+    p.add_argument("--render-path", choices=["auto", "fast", "full"], default="auto",
+                   help="fast: rays stop when opaque, no compiling; full: every sample of every ray; auto "
+                        "(default): fast on the CPU, full on a GPU")
     p.set_defaults(func=_eval)
 
 

@@ -16,7 +16,7 @@ from voxnerf.image_io import encode_png, write_atomic
 from voxnerf.inference import FAST
 from voxnerf.metrics import LPIPS, LPIPS_UNAVAILABLE, evaluate_images, half_image_pairs
 from voxnerf.model import VoxNeRFModel
-from voxnerf.render import render_normalized
+from voxnerf.render import render_normalized, resolved_render_path
 
 
 class EvaluationStopped(Exception):
@@ -81,7 +81,7 @@ def evaluate_views(
     cfg: TrainConfig,
     out_dir: Path | None = None,
     lpips: bool = True,
-    path: str = "fast",
+    path: str = "auto",
     should_stop: Callable[[], bool] | None = None,
     half_image: bool = False,
 ) -> dict[str, dict]:
@@ -119,7 +119,8 @@ def evaluate_views(
                 write_atomic(out_dir / split / f"{view.name}.png", encode_png(rgb.numpy()))
         scores = evaluate_images(preds, gts, lp)
         mean = scores["mean"]
-        renderer = FAST.describe(model.device) if path == "fast" else "full: every sample of every ray"
+        renderer = (FAST.describe(model.device) if resolved_render_path(path, model.device) == "fast"
+                    else "full: every sample of every ray")
         entry = {"psnr": mean["psnr"], "ssim": mean["ssim"], "lpips": mean["lpips"], "renderer": renderer, "views": [
             {"name": v.name, "psnr": scores["psnr"][i], "ssim": scores["ssim"][i],
              "lpips": None if scores["lpips"] is None else scores["lpips"][i]}

@@ -22,7 +22,7 @@ from voxnerf.scene import Scene, with_focal_scale
 from voxnerf.training.checkpoint import load_checkpoint
 
 OUTPUTS = OUTPUT_NAMES
-RENDER_PATHS = ("fast", "full")
+RENDER_PATHS = ("auto", "fast", "full")
 FAST_CHUNK = 1 << 20  # rays per call of the fast path (it samples and composites them in cache-sized blocks)
 
 
@@ -91,7 +91,7 @@ def render_normalized(
     intrinsics: Intrinsics,
     outputs: Sequence[str] = OUTPUTS,
     chunk: int | None = None,
-    path: str = "fast",
+    path: str = "auto",
 ) -> dict[str, Tensor]:
     """Render one view whose pose is already in normalised units (a model that refined the training poses moves
     it by its nearest training cameras' corrections first, :mod:`voxnerf.pose_refinement`; one that learnt
@@ -104,17 +104,16 @@ def render_normalized(
         outputs: subset of ("rgb", "depth", "opacity"); "depth" is z-depth in normalised units.
         chunk: rays per forward pass (default: :data:`FAST_CHUNK` on the fast path, the config's eval_chunk
             on the full one).
-        path: ``"fast"`` (:mod:`voxnerf.inference`: front to back, rays stop when opaque, no compiling) or
-            ``"full"`` (every sample of every ray, compiled when the config says so: the training-time path).
+        path: ``"fast"`` (:mod:`voxnerf.inference`: front to back, rays stop when opaque, no compiling),
+            ``"full"`` (every sample of every ray, compiled when the config says so: the training-time path) or
+            ``"auto"`` (:func:`resolved_render_path`).
     Returns:
         the requested outputs, rgb [H, W, 3] and depth/opacity [H, W], float32 on the model's device.
     """
     unknown = set(outputs) - set(OUTPUTS)
     if unknown:
         raise RunError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
-    if path not in RENDER_PATHS:
-        raise RunError(f"unknown render path {path!r}; choose from {list(RENDER_PATHS)}")
-    fast = path == "fast"
+    fast = resolved_render_path(path, model.device) == "fast"
     chunk = chunk or (FAST_CHUNK if fast else int(model.config.eval_chunk))
     c2w = c2w.to(model.device, torch.float32)
     origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
@@ -135,6 +134,19 @@ def render_normalized(
         for name, values in parts.items():
             values.append(out[name])
     return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
+
+
+def resolved_render_path(path: str, device: torch.device) -> str:
+    """``path`` ("auto", "fast" or "full") as rendered on ``device``: "auto" is "fast" on the CPU and "full"
+    elsewhere. The fast path walks each block of rays one sample column at a time, skipping the rays already
+    opaque: on a CPU that saves field evaluations and keeps each column in cache, while on a GPU every column
+    costs kernel launches and a host sync, and the full path's one batched, compiled pass is the quick one.
+    RunError for any other ``path``."""
+    if path not in RENDER_PATHS:
+        raise RunError(f"unknown render path {path!r}; choose from {list(RENDER_PATHS)}")
+    if path != "auto":
+        return path
+    return "fast" if torch.device(device).type == "cpu" else "full"
 
 
 def _view_outputs(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, parts: dict[str, list[Tensor]],
@@ -159,7 +171,7 @@ def render(
     c2w: np.ndarray | Tensor,
     intrinsics: Intrinsics | None = None,
     outputs: Sequence[str] = OUTPUTS,
-    path: str = "fast",
+    path: str = "auto",
 ) -> dict[str, np.ndarray]:
     """Render a pose given in scene units.
 

@@ -96,9 +96,10 @@ class Settings(BaseSettings):
         default=120.0, gt=0, description="POST /render waits this long for a worker"
     )
     render_cache_size: int = Field(default=2, ge=1, description="loaded models each render process keeps")
-    render_path: Literal["fast", "full"] = Field(
-        default="fast",
-        description="how render workers render: fast (rays stop when opaque, no compiling) or full (every sample)",
+    render_path: Literal["auto", "fast", "full"] = Field(
+        default="auto",
+        description="how render workers render: fast (rays stop when opaque, no compiling), full (every sample), "
+        "or auto (fast on the CPU, full on a GPU)",
     )
     max_concurrent_renders: int = Field(
         default=8,

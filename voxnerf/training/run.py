@@ -42,6 +42,7 @@ from voxnerf.training.callbacks import (
     CoarseToFine,
     CompileTimer,
     DepthWeightSchedule,
+    Evaluate,
     LearningRateSchedule,
     OccupancyGridUpdate,
     ProgressBar,
@@ -286,11 +287,24 @@ def _make_step(run: Run, setup: Setup) -> tuple[TrainStep, stages.CompileStage]:
     return step, compiled
 
 
+def _progress_evaluator(evaluate: Callable[..., tuple[float, float]]) -> Evaluate:
+    """``evaluate`` (:func:`progress_eval` less its last arguments) as the loop calls it, the process's first
+    evaluation warmed up (``warm_up``)."""
+    done: list[int] = []
+
+    def progress(iteration: int, loss: float, full: bool) -> tuple[float, float]:
+        first = not done
+        done.append(iteration)
+        return evaluate(iteration, loss, full, warm_up=first)
+
+    return progress
+
+
 def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     cfg, budget, built = run.cfg, run.budget, setup.built
     step, compiled = _make_step(run, setup)
     views = eval_views_of(setup.scene, built.transform)
-    evaluate = partial(progress_eval, built.model, views, cfg, run.report.history, budget)
+    evaluate = _progress_evaluator(partial(progress_eval, built.model, views, cfg, run.report.history, budget))
     evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(views), run.events, run.report.warnings)
     save = _fenced(run, CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget,
                                          run.report.history, setup.scene))
