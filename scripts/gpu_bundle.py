@@ -75,7 +75,7 @@ def copy_used_frames(scene: Path, out: Path) -> int:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("scene", type=Path, help="a scene directory (transforms.json)")
-    p.add_argument("out", type=Path, help="the bundle's directory, e.g. .gpu (add it to .git/info/exclude)")
+    p.add_argument("out", type=Path, help="the bundle's directory, e.g. .gpu (.gitignore leaves it out)")
     args = p.parse_args(argv)
     download_wheels(args.out / "whl")
     copy_lpips(args.out / "lpips")
