@@ -30,6 +30,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from voxnerf.scene import SPLIT_KEYS
+
 # (name, version) pinned to what the engine is tested with here; numpy, torch, PIL, imageio and tqdm are there.
 WHEELS = ("pydantic==2.14.4", "pydantic-core==2.50.5", "annotated-types", "typing-inspection", "trimesh==5.2.0",
           "OpenEXR==3.5.3", "pytorch-msssim==1.0.0", "embreex==4.4.0.post1")
@@ -57,11 +59,13 @@ def copy_lpips(out: Path) -> None:
 
 
 def copy_used_frames(scene: Path, out: Path) -> int:
-    """``scene`` into ``out`` with only the frames its train, test and evaluation splits name; their count."""
+    """``scene`` into ``out`` with only the frames its splits name (``SPLIT_KEYS`` and ``eval_splits``); their
+    count. Without ``train_filenames`` every frame is kept: training then takes the frames no split names (or
+    every frame but each 8th, :func:`voxnerf.scene.load_scene`)."""
     meta = json.loads((scene / "transforms.json").read_text())
-    used = {*meta.get("train_filenames", []), *meta.get("test_filenames", []),
-            *(f for names in meta.get("eval_splits", {}).values() for f in names)}
-    if used:
+    if "train_filenames" in meta:
+        used = {*(f for key in SPLIT_KEYS for f in meta.get(key, [])),
+                *(f for names in meta.get("eval_splits", {}).values() for f in names)}
         meta["frames"] = [f for f in meta["frames"] if f["file_path"] in used]
     files = [f[key] for f in meta["frames"] for key in ("file_path", "depth_file_path") if key in f]
     files += [meta[key] for key in ("prior_file_path",) if key in meta]

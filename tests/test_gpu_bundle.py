@@ -28,8 +28,9 @@ def _scene(root: Path) -> Path:
         frames.append({"file_path": f"images/f{i}.jpg", "depth_file_path": f"depth/f{i}.png",
                        "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]})
     (root / "prior.ply").write_bytes(b"ply")
-    meta = {"fl_x": 10.0, "frames": frames, "prior_file_path": "prior.ply", "train_filenames": ["images/f0.jpg",
-            "images/f2.jpg"], "test_filenames": ["images/f3.jpg"], "eval_splits": {"far": ["images/f4.jpg"]}}
+    meta = {"fl_x": 10.0, "frames": frames, "prior_file_path": "prior.ply", "train_filenames": ["images/f0.jpg"],
+            "val_filenames": ["images/f2.jpg"], "test_filenames": ["images/f3.jpg"],
+            "eval_splits": {"far": ["images/f4.jpg"]}}
     (root / "transforms.json").write_text(json.dumps(meta))
     return root
 
@@ -51,6 +52,15 @@ def test_a_scene_without_splits_keeps_every_frame(bundle, tmp_path):
     meta = json.loads((scene / "transforms.json").read_text())
     for key in ("train_filenames", "test_filenames", "eval_splits"):
         del meta[key]
+    (scene / "transforms.json").write_text(json.dumps(meta))
+    assert bundle.copy_used_frames(scene, tmp_path / "out") == 5
+
+
+def test_without_a_training_list_every_frame_is_kept(bundle, tmp_path):
+    """Training then takes the frames no split names: none may be dropped."""
+    scene = _scene(tmp_path / "scene")
+    meta = json.loads((scene / "transforms.json").read_text())
+    del meta["train_filenames"]
     (scene / "transforms.json").write_text(json.dumps(meta))
     assert bundle.copy_used_frames(scene, tmp_path / "out") == 5
 

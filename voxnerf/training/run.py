@@ -290,12 +290,12 @@ def _make_step(run: Run, setup: Setup) -> tuple[TrainStep, stages.CompileStage]:
 def _progress_evaluator(evaluate: Callable[..., tuple[float, float]]) -> Evaluate:
     """``evaluate`` (:func:`progress_eval` less its last arguments) as the loop calls it, the process's first
     evaluation warmed up (``warm_up``)."""
-    done: list[int] = []
+    first = True
 
     def progress(iteration: int, loss: float, full: bool) -> tuple[float, float]:
-        first = not done
-        done.append(iteration)
-        return evaluate(iteration, loss, full, warm_up=first)
+        nonlocal first
+        warm_up, first = first, False
+        return evaluate(iteration, loss, full, warm_up=warm_up)
 
     return progress
 
