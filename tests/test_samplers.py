@@ -6,6 +6,7 @@ import torch
 
 from voxnerf.octree import SparseVoxelOctree
 from voxnerf.samplers import (
+    GRID_UPDATE_BATCH,
     OccGridSampler,
     OccupancyGrid,
     RayBundle,
@@ -128,6 +129,22 @@ def test_occgrid_sampler_uniform_when_grid_full():
     starts, ends = OccGridSampler(grid, 10)(rays, stratified=False)
     widths = ends - starts
     torch.testing.assert_close(widths[:, 1:-1], widths[:, 1:2].expand(4, 8), rtol=1e-3, atol=1e-4)
+
+
+def test_prepare_calls_density_once_with_the_updates_shape_and_leaves_the_grid_alone():
+    grid, seen = OccupancyGrid(8), []
+
+    def density(p):
+        seen.append((tuple(p.shape), p.dtype, torch.is_grad_enabled()))
+        return torch.zeros(len(p))
+
+    before = (grid.density_ema.clone(), grid.occupied.clone(), int(grid.updates))
+    grid.prepare(density)
+    assert seen == [((GRID_UPDATE_BATCH, 3), torch.float32, False)]
+    assert (torch.equal(grid.density_ema, before[0]) and torch.equal(grid.occupied, before[1])
+            and int(grid.updates) == before[2])
+    grid.update(density, warmup=True)  # 512 cells: one padded chunk, the shape prepare used
+    assert seen[1] == seen[0]
 
 
 def test_occupancy_grid_update_calls_density_with_one_shape():

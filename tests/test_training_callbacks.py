@@ -12,6 +12,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.field import HashEncoding
 from voxnerf.training.budget import Budget, TrainingProgress
 from voxnerf.training.callbacks import (
+    COMPILE_DENSITY_WHY,
     COMPILE_NO_STEP_WHY,
     COMPILE_RAN_WHY,
     DEFAULT_EVAL_SECONDS_PER_RAY,
@@ -142,7 +143,8 @@ class StubModel:
     def __init__(self) -> None:
         self.updates: list[tuple[object, bool]] = []
         self.field = SimpleNamespace(density="eager density")
-        self.grid = SimpleNamespace(update=lambda density, warmup: self.updates.append((density, warmup)))
+        self.grid = SimpleNamespace(update=lambda density, warmup: self.updates.append((density, warmup)),
+                                    prepare=lambda density: self.updates.append((density, "prepared")))
 
     def compiled_density(self) -> str:
         return "compiled density"
@@ -164,6 +166,13 @@ def test_grid_updates_every_n_steps_with_two_warmup_updates(compiled, density):
     for iteration in range(1, 17):
         update.after_step(LoopState(iteration))
     assert model.updates == [(density, True), (density, True), (density, False), (density, False)]
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_compiled_density_is_compiled_before_the_first_step_and_the_eager_one_is_left_alone(compiled):
+    model = StubModel()
+    assert OccupancyGridUpdate(model, every=4, compiled=compiled).compile_density() is compiled
+    assert model.updates == ([("compiled density", "prepared")] if compiled else [])
 
 
 # --------------------------------------------------------------------------------------- progress events
@@ -396,6 +405,15 @@ def test_a_step_of_two_graphs_counts_the_first_step_of_each_and_not_what_ran_bet
     timer.finish(3)
     why = "torch.compile of the training step's 2 graphs (time of the first step of each)"
     assert recorded == [(StageRecord(name="compile", ran=True, why=why, seconds=14.0), 2)]
+
+
+def test_a_density_compiled_before_the_first_step_is_counted_and_said():
+    clock, recorded = FakeClock(), []
+    timer = CompileTimer(started=90.0, record=lambda rec, it: recorded.append((rec, it)), clock=clock,
+                         density=True)
+    timer.after_step(LoopState(1))
+    assert recorded == [(StageRecord(name="compile", ran=True, why=COMPILE_RAN_WHY + COMPILE_DENSITY_WHY,
+                                     seconds=10.0), 1)]
 
 
 def test_a_run_that_stops_between_the_graphs_records_the_first_step():

@@ -102,6 +102,9 @@ class UniformSampler:
         return intervals_from_points(t, rays.near, rays.far)
 
 
+GRID_UPDATE_BATCH = 65_536  # points per density call of an update: one shape, so a compiled density compiles once
+
+
 class OccupancyGrid(nn.Module):
     """A ``res^3`` binary occupancy grid over the canonical box ``[-1, 1]^3``, kept from an EMA of density.
 
@@ -144,7 +147,12 @@ class OccupancyGrid(nn.Module):
         self.density_ema.copy_(torch.where(seeded, self.threshold / self.cell_size * 10, 0.0))
 
     @torch.no_grad()
-    def update(self, density_fn: Callable[[Tensor], Tensor], warmup: bool, batch: int = 65_536) -> None:
+    def prepare(self, density_fn: Callable[[Tensor], Tensor], batch: int = GRID_UPDATE_BATCH) -> None:
+        """Call ``density_fn`` once on ``batch`` points, as :meth:`update` calls it: a compiled one compiles now."""
+        density_fn(self.density_ema.new_zeros(batch, 3))
+
+    @torch.no_grad()
+    def update(self, density_fn: Callable[[Tensor], Tensor], warmup: bool, batch: int = GRID_UPDATE_BATCH) -> None:
         """Refresh the EMA from ``density_fn`` ([N, 3] -> [N] densities) and re-threshold.
 
         ``density_fn`` always gets exactly ``batch`` points (the last chunk is padded), so a compiled function

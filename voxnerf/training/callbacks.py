@@ -28,6 +28,7 @@ EARLY_EVAL_S = (10.0, 20.0, 30.0, 45.0)
 EARLY_EVAL_MAX_SHARE = 0.15
 PROGRESS_EVALS_STAGE = "progress_evals"
 COMPILE_RAN_WHY = "torch.compile of the training step (time of the first step)"
+COMPILE_DENSITY_WHY = ", the occupancy grid's density compiled before the first step included"
 COMPILE_NO_STEP_WHY = "no training step ran"
 ProgressCallback = Callable[[ProgressEvent], None]
 Evaluate = Callable[[int, float, bool], tuple[float, float]]  # (iteration, loss, full) -> (seconds, s per ray)
@@ -113,6 +114,13 @@ class OccupancyGridUpdate(Callback):
             return None
         return cls(model, cfg.occgrid_update_every * (1 if cfg.sampler == "occgrid" or not has_octree else 4),
                    cfg.compile)
+
+    def compile_density(self) -> bool:
+        """Compile the density the updates use now, before the first step, so that its compilation does not
+        land in the step of the first update; False (nothing done) where the updates run eagerly."""
+        if self.compiled:
+            self.model.grid.prepare(self.model.compiled_density())
+        return self.compiled
 
     def after_step(self, state: LoopState) -> None:
         iteration = state.iteration
@@ -335,15 +343,17 @@ class ProgressBar(Callback):
 
 
 class CompileTimer(Callback):
-    """Records the compile stage after the first ``steps`` steps, or at :meth:`finish` when fewer ran.
+    """Records the compile stage after the first ``steps`` steps, or at :meth:`finish` when fewer ran (what was
+    compiled before the first step, ``density``, counts in: the first step's time runs from ``started``).
     ``torch.compile`` compiles a graph on its first call: the first step's time, from ``started``, is the step's
     compile time, and where the step alternates between graphs (pose refinement on every n-th step only) the
     first step of each other graph adds its own time (from its ``before_step``, so evaluations before it do not
     count)."""
 
     def __init__(self, started: float, record: Callable[[StageRecord, int], None],
-                 clock: Clock = time.perf_counter, steps: int = 1) -> None:
+                 clock: Clock = time.perf_counter, steps: int = 1, density: bool = False) -> None:
         self.started, self.record, self.clock, self.steps = started, record, clock, steps
+        self.density = density  # the occupancy grid's density was compiled between ``started`` and the first step
         self.pending, self.timed, self.spent = True, 0, 0.0
 
     def before_step(self, state: LoopState) -> None:
@@ -362,9 +372,9 @@ class CompileTimer(Callback):
             self._record(self.timed > 0, self._ran_why() if self.timed else COMPILE_NO_STEP_WHY, iteration)
 
     def _ran_why(self) -> str:
-        if self.steps == 1:
-            return COMPILE_RAN_WHY
-        return f"torch.compile of the training step's {self.steps} graphs (time of the first step of each)"
+        why = (COMPILE_RAN_WHY if self.steps == 1 else
+               f"torch.compile of the training step's {self.steps} graphs (time of the first step of each)")
+        return why + COMPILE_DENSITY_WHY if self.density else why
 
     def _record(self, ran: bool, why: str, iteration: int) -> None:
         self.pending = False

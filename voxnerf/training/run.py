@@ -309,13 +309,12 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     save = _fenced(run, CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget,
                                          run.report.history, setup.scene))
     saving = Checkpointing(save, cfg.checkpoint_every_s)
-    timer = CompileTimer(compiled.started, run.events.stage, steps=step.graphs) if compiled.record is None else None
+    grid = OccupancyGridUpdate.for_config(built.model, cfg, setup.octree is not None)
+    timer = _compile_timer(run, compiled, step, grid)
     bar = ProgressBar.create(cfg.max_iters, built.iteration, progress_bar)
     progress = TrainingProgress(budget, cfg.max_iters, evaluation.final_eval_reserve)
     schedules = _schedules(cfg, built, step, progress)
-    callbacks = present([evaluation, *schedules, timer, bar,
-                         OccupancyGridUpdate.for_config(built.model, cfg, setup.octree is not None), saving,
-                         run.events])
+    callbacks = present([evaluation, *schedules, timer, bar, grid, saving, run.events])
     state = LoopState(built.iteration)
     try:
         status = run_loop(step, state, callbacks, Limits(cfg.max_iters, budget, evaluation.final_eval_reserve,
@@ -329,6 +328,17 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     if timer is not None:
         timer.finish(state.iteration)
     return _finish(run, setup, views, save, status, state)
+
+
+def _compile_timer(run: Run, compiled: stages.CompileStage, step: TrainStep,
+                   grid: OccupancyGridUpdate | None) -> CompileTimer | None:
+    """The compile stage's timer (None when the step is not compiled). The occupancy grid's compiled density
+    is compiled here, before the first step, and counted in the stage, rather than in the step of the first
+    grid update."""
+    if compiled.record is not None:
+        return None
+    density = grid is not None and grid.compile_density()
+    return CompileTimer(compiled.started, run.events.stage, steps=step.graphs, density=density)
 
 
 def _schedules(cfg: TrainConfig, built: stages.ModelStage, step: TrainStep,
