@@ -100,8 +100,8 @@ def main() -> int:
         f"Preset `cpu`: {cfg.rays_per_batch} rays{patches} per step, {cfg.n_importance}+{cfg.n_rest} samples "
         f"per ray, hash grid "
         f"{cfg.hash_levels}x{cfg.hash_features}, 2^{cfg.hash_log2_size} entries per level. Training samples/s "
-        f"exclude the compilation of the first step; {args.iters} iterations per run, median of "
-        f"{args.repeats} alternating runs.",
+        f"are the training loop's (set-up and the compilation of the first step left out); {args.iters} "
+        f"iterations per run, median of {args.repeats} alternating runs.",
         "",
         "| path | training samples/s | training rays/s | 640x480 render (rgb + depth) |",
         "| --- | --- | --- | --- |",

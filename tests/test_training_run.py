@@ -48,12 +48,23 @@ def test_a_resumed_run_continues_its_iterations_and_history(tiny_room, tmp_path)
 
 def test_throughput_counts_patch_rays_and_leaves_out_compile_time():
     records = [StageRecord(name="compile", ran=True, why="", seconds=2.0),
-               StageRecord(name="train", ran=True, why="", seconds=12.0)]
+               StageRecord(name="train", ran=True, why="", seconds=30.0)]  # set-up included: not the loop's
     cfg = TrainConfig(max_iters=10, rays_per_batch=100, n_importance=6, n_rest=2)
-    got = throughput(cfg, 10, records, True, 28)
+    got = throughput(cfg, 10, 12.0, records, True, 28)
     assert got == {"rays_per_step": 128, "rays_per_s": 128.0, "samples_per_s": 128.0 * cfg.samples_per_ray,
                    "seconds_excluding_compile": 10.0}
-    assert throughput(cfg, 10, records, False, 28)["rays_per_step"] == 100
+    assert throughput(cfg, 10, 12.0, records, False, 28)["rays_per_step"] == 100
+
+
+def test_throughput_is_the_loops_own_and_a_resumed_run_counts_its_own_steps(tiny_room, tmp_path):
+    """Set-up seconds are left out of the rate: the loop's steps over the loop's seconds less compilation."""
+    first = train(tiny_room, tmp_path, _config(final_eval=False), progress_bar=False)
+    setup_s = sum(s.seconds for s in first.stages if s.name not in ("compile", "train", "final_eval",
+                                                                      "progress_evals"))
+    assert first.throughput["seconds_excluding_compile"] < first.train_seconds - setup_s + 1e-6
+    again = train(tiny_room, tmp_path, _config(max_iters=5, final_eval=False), progress_bar=False)
+    seconds = again.throughput["seconds_excluding_compile"]
+    assert again.throughput["rays_per_s"] == pytest.approx(again.throughput["rays_per_step"] * 2 / seconds)
 
 
 def test_the_trainer_facade_keeps_the_old_names():

@@ -302,6 +302,7 @@ def _progress_evaluator(evaluate: Callable[..., tuple[float, float]]) -> Evaluat
 
 def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     cfg, budget, built = run.cfg, run.budget, setup.built
+    loop_started = budget.train_seconds
     step, compiled = _make_step(run, setup)
     views = eval_views_of(setup.scene, built.transform)
     evaluate = _progress_evaluator(partial(progress_eval, built.model, views, cfg, run.report.history, budget))
@@ -327,7 +328,7 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     bar.close()
     if timer is not None:
         timer.finish(state.iteration)
-    return _finish(run, setup, views, save, status, state)
+    return _finish(run, setup, views, save, status, state, loop_started)
 
 
 def _compile_timer(run: Run, compiled: stages.CompileStage, step: TrainStep,
@@ -376,8 +377,9 @@ def _diverged(run: Run, exc: TrainingDiverged, iteration: int) -> TrainingDiverg
 
 
 def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None], status: str,
-            state: LoopState) -> TrainReport:
-    """The train stage, the last checkpoint, the final evaluation and the report."""
+            state: LoopState, loop_started: float) -> TrainReport:
+    """The train stage, the last checkpoint, the final evaluation and the report (``loop_started``: the budget's
+    training seconds when the step was built, before its compilation)."""
     report, budget, iteration = run.report, run.budget, state.iteration
     train_seconds = budget.train_seconds
     report.stages.append(StageRecord(name="train", ran=iteration > 0, why=f"{status} at iteration {iteration}",
@@ -391,7 +393,8 @@ def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None
     use_patches, _, n_patch_rays = _patches(run.cfg, setup)
     report.status, report.iteration = status, iteration
     report.train_seconds, report.wall_seconds = round(train_seconds, 3), round(budget.wall, 3)
-    report.throughput = throughput(run.cfg, iteration, report.stages, use_patches, n_patch_rays)
+    report.throughput = throughput(run.cfg, iteration - setup.built.iteration, train_seconds - loop_started,
+                                   report.stages, use_patches, n_patch_rays)
     run.fence()
     write_report(report, run.dir / REPORT)
     run.events.emit("done", iteration, state.last_loss)
@@ -455,13 +458,13 @@ def _replace_eval_dir(run: Run, rendered: Path) -> None:
         rendered.rename(target)
 
 
-def throughput(cfg: TrainConfig, iterations: int, records: list[StageRecord], patches: bool,
+def throughput(cfg: TrainConfig, steps: int, loop_seconds: float, records: list[StageRecord], patches: bool,
                patch_rays: int) -> dict:
-    """Rays per step, rays and samples per second of training time less the compile stage's."""
-    train_s = next((s.seconds for s in records if s.name == "train"), 0.0)
+    """Rays per step, rays and samples per second of this command's ``steps`` over its ``loop_seconds`` (the
+    training loop's, set-up and evaluations left out) less the compile stage's."""
     compile_s = next((s.seconds for s in records if s.name == "compile" and s.ran), 0.0)
     rays_per_step = int(cfg.rays_per_batch) + (patch_rays if patches else 0)
-    rays = rays_per_step * iterations
-    seconds = max(train_s - compile_s, 1e-9)
+    rays = rays_per_step * steps
+    seconds = max(loop_seconds - compile_s, 1e-9)
     return {"rays_per_step": rays_per_step, "rays_per_s": rays / seconds,
             "samples_per_s": rays * cfg.samples_per_ray / seconds, "seconds_excluding_compile": seconds}
