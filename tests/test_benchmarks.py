@@ -31,6 +31,7 @@ suite = importlib.import_module("suite")
 sample_placement = importlib.import_module("sample_placement")
 suite_geometry = importlib.import_module("suite_geometry")
 pose_views = importlib.import_module("pose_views")
+step_profile = importlib.import_module("step_profile")
 suite_rooms = importlib.import_module("voxnerf.synthetic.suite")
 
 pytestmark = pytest.mark.timeout(300)
@@ -465,3 +466,27 @@ def test_pose_views_scores_held_out_views_at_given_and_moved_poses(room: Path, t
     train(room, tmp_path / "plain", cfg.model_copy(update={"pose_refinement": "none"}), progress_bar=False)
     assert pose_views.main([str(tmp_path / "plain"), str(room)]) == 2
     assert "did not refine its poses" in capsys.readouterr().err
+
+
+def test_step_profile_times_every_phase_and_traces_the_steps_after_the_warm_ones(room: Path, tmp_path: Path,
+                                                                                 capsys) -> None:
+    out = tmp_path / "profile.json"
+    args = [str(room), "--steps", "2", "--warm", "1", "--trace", "1", "--json", str(out),
+            "--config", 'eager={"compile": false, "rays_per_batch": 64}']
+    assert step_profile.main(args) == 0
+    row = json.loads(out.read_text())["rows"]["eager"]
+    phases = row["phases_ms"]
+    assert {"batch (rays, sampling)", "forward + backward", "optimiser update"} <= set(phases)
+    assert all(ms >= 0 for ms in phases.values()) and phases["forward + backward"] > 0
+    assert row["step_ms"] == pytest.approx(sum(phases.values()))
+    assert row["config"]["rays_per_batch"] == 64 and row["config"]["max_iters"] == 4
+    assert "Self CPU" in row["trace"] and "## eager on cpu" in capsys.readouterr().out
+
+
+def test_step_profile_refuses_a_config_that_is_not_a_json_object(capsys) -> None:
+    with pytest.raises(SystemExit):
+        step_profile.main(["scene", "--config", "paper=[1]"])
+    assert "expected a JSON object" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        step_profile.main(["scene", "--config", "paper"])
+    assert "expected NAME=JSON" in capsys.readouterr().err
