@@ -16,7 +16,8 @@ MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
 # 2^19 hash tables); "cpu" trades samples per ray (8 + 4) and table size for steps per second, chosen with the
-# samples-per-ray sweep (benchmarks/samples_sweep.py; results in docs/benchmarks.md).
+# samples-per-ray sweep (benchmarks/samples_sweep.py; results in docs/benchmarks.md). "cpu" is the default on
+# every device: on a GPU "paper" wins interpolation but not extrapolation (docs/cuda.md).
 PRESETS: dict[str, dict] = {
     "cpu": dict(
         rays_per_batch=2048,
