@@ -43,7 +43,7 @@ class PhaseClock:
 
     def __init__(self, sync: Callable[[], None], warm: int) -> None:
         self.sync, self.warm = sync, warm
-        self.steps = 0  # batches drawn so far
+        self.steps = 0  # steps begun so far (the loop's batch counts them)
         self.seconds: dict[str, list[float]] = defaultdict(list)
 
     def timed(self, name: str, fn: Callable) -> Callable:
@@ -59,12 +59,6 @@ class PhaseClock:
             return result
         return wrapper
 
-    def count_step(self, fn: Callable) -> Callable:
-        def batch(*args, **kwargs):
-            self.steps += 1
-            return fn(*args, **kwargs)
-        return batch
-
     def milliseconds(self, steps: int) -> dict[str, float]:
         """Each phase's mean milliseconds per step (a duty that ran on some steps only, spread over all)."""
         return {name: 1000.0 * sum(times) / steps for name, times in self.seconds.items()}
@@ -79,6 +73,7 @@ class StepTrace:
         self.table = ""
 
     def at_batch(self, step: int) -> None:
+        """Before step ``step``'s batch: start recording at the first step after the warm ones, stop after ``n``."""
         if self.n <= 0:
             return
         if step == self.warm + 1:
@@ -106,14 +101,14 @@ def instrumented_loop(clock: PhaseClock, trace: StepTrace) -> Callable:
     real_loop = training_run.run_loop
 
     def run_loop(step, state, callbacks, limits):
-        count = clock.count_step(step.batch)
+        timed_batch = clock.timed("batch (rays, sampling)", step.batch)
 
-        def batch():
-            batch = count()
+        def batch():  # a step begins: count it, start or stop the trace, then draw (and time) the batch
+            clock.steps += 1
             trace.at_batch(clock.steps)
-            return batch
+            return timed_batch()
 
-        step.batch = clock.timed("batch (rays, sampling)", batch)
+        step.batch = batch
         step.losses = clock.timed("forward + backward", step.losses)
         step.apply = clock.timed("optimiser update", step.apply)
         for callback in callbacks:
@@ -145,7 +140,9 @@ def profile_config(scene: Path, run_dir: Path, overrides: dict, downscale: int |
     finally:
         training_run.run_loop = real_loop
     ms = clock.milliseconds(max(1, clock.steps - clock.warm))
-    return {"config": report.config, "device": report.device, "phases_ms": ms, "step_ms": sum(ms.values()),
+    calls = {name: len(times) for name, times in clock.seconds.items()}
+    return {"config": report.config, "device": report.device, "phases_ms": ms, "phase_calls": calls,
+            "step_ms": sum(ms.values()),
             "throughput": report.throughput, "trace": trace.table,
             "stages": {s.name: s.seconds for s in report.stages}}
 

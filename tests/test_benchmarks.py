@@ -479,6 +479,8 @@ def test_step_profile_times_every_phase_and_traces_the_steps_after_the_warm_ones
     assert {"batch (rays, sampling)", "forward + backward", "optimiser update"} <= set(phases)
     assert all(ms >= 0 for ms in phases.values()) and phases["forward + backward"] > 0
     assert row["step_ms"] == pytest.approx(sum(phases.values()))
+    core = ("batch (rays, sampling)", "forward + backward", "optimiser update")
+    assert [row["phase_calls"][name] for name in core] == [2, 2, 2]  # the two timed steps, no warm or traced one
     assert row["config"]["rays_per_batch"] == 64 and row["config"]["max_iters"] == 4
     assert "Self CPU" in row["trace"] and "## eager on cpu" in capsys.readouterr().out
 
