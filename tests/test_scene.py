@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from voxnerf.errors import SceneError
-from voxnerf.scene import SceneTransform, inspect_scene, load_scene
+from voxnerf.scene import SceneTransform, inspect_scene, load_scene, prior_file
 
 
 def _write_scene(root: Path, n: int = 10, w: int = 8, h: int = 6, **top) -> dict:
@@ -193,6 +193,20 @@ def test_prior_file_path_wins_over_ply_file_path(tmp_path):
     _write_cloud(tmp_path / "sparse_pc.ply")
     scene = load_scene(tmp_path, load_images=False)
     assert scene.prior_path.name == "prior_mesh.ply" and scene.prior_key == "prior_file_path"
+
+
+def test_prior_file_is_the_prior_load_scene_takes(tmp_path):
+    _write_scene(tmp_path, prior_file_path="prior_mesh.ply", ply_file_path="sparse_pc.ply")
+    _write_cloud(tmp_path / "prior_mesh.ply")
+    _write_cloud(tmp_path / "sparse_pc.ply")
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    assert prior_file(tmp_path, meta) == load_scene(tmp_path, load_images=False).prior_path
+    del meta["prior_file_path"], meta["ply_file_path"]
+    assert prior_file(tmp_path, meta) is None
+    meta["ply_file_path"] = "../outside.ply"
+    with pytest.raises(SceneError) as info:
+        prior_file(tmp_path, meta)
+    assert info.value.key == "ply_file_path"
 
 
 @pytest.mark.parametrize(("value", "words"), [("missing.ply", "file not found"), ("../outside.ply", "outside"),

@@ -451,6 +451,12 @@ def _read_frames(root: Path, meta: dict, json_path: Path, warnings: list[str]) -
     return frames
 
 
+def prior_file(root: Path, meta: dict) -> Path | None:
+    """The prior file (resolved) that :func:`load_scene` takes for the scene at ``root`` whose transforms.json
+    holds ``meta``, or None; SceneError for a path outside ``root``."""
+    return _read_prior_keys(root, meta, root / "transforms.json", [])[0]
+
+
 def _read_prior_keys(
     root: Path, meta: dict, json_path: Path, warnings: list[str]
 ) -> tuple[Path | None, float | None, str | None]:

@@ -311,7 +311,7 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
                                          run.report.history, setup.scene))
     saving = Checkpointing(save, cfg.checkpoint_every_s)
     grid = OccupancyGridUpdate.for_config(built.model, cfg, setup.octree is not None)
-    timer = _compile_timer(run, compiled, step, grid)
+    timer = _compile_density_and_time(run, compiled, step, grid)
     bar = ProgressBar.create(cfg.max_iters, built.iteration, progress_bar)
     progress = TrainingProgress(budget, cfg.max_iters, evaluation.final_eval_reserve)
     schedules = _schedules(cfg, built, step, progress)
@@ -331,11 +331,11 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     return _finish(run, setup, views, save, status, state, loop_started)
 
 
-def _compile_timer(run: Run, compiled: stages.CompileStage, step: TrainStep,
-                   grid: OccupancyGridUpdate | None) -> CompileTimer | None:
-    """The compile stage's timer (None when the step is not compiled). The occupancy grid's compiled density
-    is compiled here, before the first step, and counted in the stage, rather than in the step of the first
-    grid update."""
+def _compile_density_and_time(run: Run, compiled: stages.CompileStage, step: TrainStep,
+                              grid: OccupancyGridUpdate | None) -> CompileTimer | None:
+    """When the step is compiled: compile the occupancy grid's density now, before the first step (its time then
+    counts in the compile stage, not in the step of the first grid update), and return the compile stage's
+    timer; None when the step is not compiled."""
     if compiled.record is not None:
         return None
     density = grid is not None and grid.compile_density()
