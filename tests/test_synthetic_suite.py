@@ -1,6 +1,11 @@
 """voxnerf.synthetic's variety and capture-like rendering (RoomSpec's style fields, room.RoomStyle,
 raycast.Shading, sensor) and the tuning suite (voxnerf.synthetic.suite): each field's validation, each effect on
-a tiny render, determinism, the default room unchanged byte for byte, and make_suite's reuse and rebuild."""
+a tiny render, determinism, the default rooms unchanged (against reference fingerprints) and make_suite's reuse and
+rebuild.
+
+``python tests/test_synthetic_suite.py`` rewrites the reference fingerprints (tests/synthetic_default_rooms.json)
+from this machine's default rooms: only after a deliberate change to what the generator writes.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +13,7 @@ import hashlib
 import itertools
 import json
 import math
+import sys
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -15,7 +21,10 @@ import imageio.v3 as iio
 import numpy as np
 import open3d as o3d
 import pytest
+import trimesh
 
+import voxnerf.synthetic.raycast as raycast
+import voxnerf.synthetic.writer as writer
 from voxnerf.image_io import srgb_to_linear
 from voxnerf.synthetic import RoomSpec, build_room, camera_path, make_room_scene
 from voxnerf.synthetic.raycast import Shading, light_visibility, render_radiance
@@ -34,31 +43,22 @@ from voxnerf.synthetic.writer import WRITER_VERSION
 
 # 24 x 18 pixels, 7 training, 5 interpolation and 3 extrapolation frames, no prior: renders in a fraction of a second.
 TINY = RoomSpec(width=24, height=18, n_frames=36, train_every=4, n_gaps=1, gap_len=12, prior_kind="none")
-# The default room's files as the generator wrote them before the style and capture fields existed.
-DEFAULT_HASHES = {
-    "b64f1c2d457357031d3b4018459d7bfc5ee4f09c67794cf9dbbe7fcf6bbe9600": RoomSpec(
-        width=24, height=18, n_frames=40, train_every=4, n_gaps=0, gap_len=0, prior_max_points=3000),
-    "a055918e6c33220329a0ed1cdca675d2632bb7aed020f3f08f725103a5b6a0e6": RoomSpec(
-        width=20, height=16, n_frames=24, train_every=4, n_gaps=1, gap_len=12, prior_kind="mesh", seed=3,
-        hfov_deg=80.0),
+# The default rooms, one per prior kind, whose files must not change by accident (REFERENCE holds their fingerprints).
+DEFAULT_ROOMS = {
+    "points": RoomSpec(width=24, height=18, n_frames=40, train_every=4, n_gaps=0, gap_len=0, prior_max_points=3000),
+    "mesh": RoomSpec(width=20, height=16, n_frames=24, train_every=4, n_gaps=1, gap_len=12, prior_kind="mesh", seed=3,
+                     hfov_deg=80.0),
 }
-
-
-def _without_version_2_keys(text: str) -> bytes:
-    """transforms.json as the writer wrote it before version 2 added ``synthetic`` and ``voxnerf_synthetic.writer``."""
-    meta = json.loads(text)
-    assert meta.pop("synthetic") is True and meta["voxnerf_synthetic"].pop("writer") == WRITER_VERSION
-    return (json.dumps(meta, indent=2) + "\n").encode()
+REFERENCE = Path(__file__).with_name("synthetic_default_rooms.json")
 
 
 def _tree_hash(root: Path) -> str:
-    """Every file's path and bytes; transforms.json as the writer before version 2 wrote it."""
+    """Every file's path and bytes."""
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*")):
         if path.is_file():
             digest.update(str(path.relative_to(root)).encode())
-            is_meta = path.name == "transforms.json"
-            digest.update(_without_version_2_keys(path.read_text()) if is_meta else path.read_bytes())
+            digest.update(path.read_bytes())
     return digest.hexdigest()
 
 
@@ -69,6 +69,184 @@ def _linear_images(scene: Path) -> dict[str, np.ndarray]:
 
 def _meta(scene: Path) -> dict:
     return json.loads((scene / "transforms.json").read_text())
+
+
+# --- fingerprints of a scene's files ----------------------------------------------------------------------------
+# A byte hash of a scene differs between machines: the ray caster (open3d's Embree, float32) rounds hit distances
+# by the CPU's instruction set and library build, and a value moved by one ulp can flip one 8-bit colour or one
+# millimetre of depth. Each file is fingerprinted instead and compared within tolerances far above such flips
+# (a few pixels off by one) and far below what a change to the generator does (another seed, an object moved by
+# 1 cm, a texture scaled by 5 %, a palette shifted by 0.05, sensor noise, a prior's sigma 10 % larger): see
+# test_fingerprints_tolerate_a_ray_caster_one_ulp_off and test_fingerprints_catch_a_changed_generator.
+
+BLOCK = 4
+"""Image and depth thumbnails are the means of about BLOCK x BLOCK pixel blocks."""
+QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
+TOLERANCES = {
+    "image_mean": 0.5,  # per-channel mean, units of 1/255
+    "image_thumb": 3.0,  # per-channel block means, units of 1/255
+    "image_roughness": 0.25,  # per-channel mean |difference| of neighbouring pixels, units of 1/255
+    "depth_mean": 0.5,  # millimetres
+    "depth_thumb": 2.0,  # block means, millimetres
+    "depth_zeros": 2,  # pixels without depth
+    "points": 2,  # a point-cloud prior's point count (a point on a hole's edge may go either way)
+    "bbox": 1e-5,  # metres (PLY coordinates are float32)
+    "centroid": 2e-3,  # metres
+    "quantiles": 2e-3,  # metres, per axis
+    "median_distance": 3e-4,  # metres: a prior's median distance to the true mesh
+    "json": 1e-6,  # transforms.json numbers, absolute (relative above 1)
+}
+
+
+def _blocks(a: np.ndarray) -> np.ndarray:
+    """Means [h // BLOCK, w // BLOCK, c] of about BLOCK x BLOCK pixel blocks of ``a`` [h, w, c]."""
+    rows = np.array_split(np.arange(a.shape[0]), max(a.shape[0] // BLOCK, 1))
+    cols = np.array_split(np.arange(a.shape[1]), max(a.shape[1] // BLOCK, 1))
+    return np.array([[a[r[0]:r[-1] + 1, c[0]:c[-1] + 1].mean(axis=(0, 1)) for c in cols] for r in rows])
+
+
+def _rounded(x, digits: int) -> list | float:
+    return np.round(np.asarray(x, np.float64), digits).tolist()
+
+
+def _image_fingerprint(path: Path) -> dict:
+    a = iio.imread(path).astype(np.float64)
+    roughness = np.abs(np.diff(a, axis=0)).mean(axis=(0, 1)) + np.abs(np.diff(a, axis=1)).mean(axis=(0, 1))
+    return {"shape": list(a.shape), "mean": _rounded(a.mean(axis=(0, 1)), 3), "thumb": _rounded(_blocks(a), 2),
+            "roughness": _rounded(roughness, 3)}
+
+
+def _depth_fingerprint(path: Path) -> dict:
+    a = iio.imread(path).astype(np.float64)
+    return {"shape": list(a.shape), "mean": _rounded(a.mean(), 3), "zeros": int((a == 0).sum()),
+            "thumb": _rounded(_blocks(a[..., None])[..., 0], 1)}
+
+
+def _geometry_fingerprint(path: Path, gt_mesh: Path) -> dict:
+    """Counts, bounding box, centroid and coordinate quantiles of a PLY; for a prior its median distance to the true
+    mesh (how noisy it is)."""
+    geometry = trimesh.load(path, process=False)
+    v = np.asarray(geometry.vertices, np.float64)
+    fingerprint = {
+        "vertices": len(v), "faces": len(geometry.faces) if isinstance(geometry, trimesh.Trimesh) else 0,
+        "bbox": _rounded([v.min(axis=0), v.max(axis=0)], 6), "centroid": _rounded(v.mean(axis=0), 6),
+        "quantiles": _rounded(np.quantile(v, QUANTILES, axis=0), 6),
+    }
+    if path != gt_mesh:
+        mesh = trimesh.load(gt_mesh, process=False)
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                            o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+        distance = scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
+        fingerprint["median_distance"] = round(float(np.median(distance)), 6)
+    return fingerprint
+
+
+def _json_rounded(value):
+    """``value`` (parsed JSON) with floats to 10 significant digits."""
+    if isinstance(value, float):
+        return float(f"{value:.10g}")
+    if isinstance(value, list):
+        return [_json_rounded(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _json_rounded(v) for k, v in value.items()}
+    return value
+
+
+def _fingerprints(scene: Path) -> dict:
+    """Each file of ``scene`` by relative path: its fingerprint (transforms.json: its content)."""
+    fingerprints = {}
+    for path in sorted(p for p in scene.rglob("*") if p.is_file()):
+        name = path.relative_to(scene).as_posix()
+        if name == "transforms.json":
+            fingerprints[name] = _json_rounded(json.loads(path.read_text()))
+        elif name.startswith("images/"):
+            fingerprints[name] = _image_fingerprint(path)
+        elif name.startswith("depth/"):
+            fingerprints[name] = _depth_fingerprint(path)
+        elif path.suffix == ".ply":
+            fingerprints[name] = _geometry_fingerprint(path, scene / "gt_mesh.ply")
+        else:
+            fingerprints[name] = None  # a file of a kind not fingerprinted: compared by its presence
+    return fingerprints
+
+
+def _off(name: str, want, got, tolerance: float, out: list) -> None:
+    """Append ``(file, why)`` to ``out`` when the arrays ``got`` and ``want`` differ by more than ``tolerance``."""
+    want, got = np.asarray(want, np.float64), np.asarray(got, np.float64)
+    file, _, stat = name.partition(" ")
+    if want.shape != got.shape:
+        out.append((file, f"{stat}: shape {got.shape}, want {want.shape}"))
+    elif want.size and not np.abs(want - got).max() <= tolerance:
+        out.append((file, f"{stat}: max |difference| {np.abs(want - got).max():.4g} > {tolerance:g}"))
+
+
+def _json_mismatches(want, got, where: str, out: list) -> None:
+    """transforms.json: the same structure, keys, strings, booleans and integers; numbers within TOLERANCES."""
+    if isinstance(want, dict) and isinstance(got, dict):
+        if want.keys() != got.keys():
+            out.append(("transforms.json", f"{where}: keys {sorted(got)}, want {sorted(want)}"))
+            return
+        for key in want:
+            _json_mismatches(want[key], got[key], f"{where}.{key}", out)
+    elif isinstance(want, list) and isinstance(got, list):
+        if len(want) != len(got):
+            out.append(("transforms.json", f"{where}: {len(got)} items, want {len(want)}"))
+            return
+        for k, (a, b) in enumerate(zip(want, got, strict=True)):
+            _json_mismatches(a, b, f"{where}[{k}]", out)
+    elif type(want) is type(got) and isinstance(want, float):
+        if not abs(want - got) <= TOLERANCES["json"] * max(1.0, abs(want)):
+            out.append(("transforms.json", f"{where}: {got!r}, want {want!r}"))
+    elif type(want) is type(got) and type(want) is int and where.endswith(".prior.n_points"):
+        if abs(want - got) > TOLERANCES["points"]:
+            out.append(("transforms.json", f"{where}: {got!r}, want {want!r}"))
+    elif type(want) is not type(got) or want != got:
+        out.append(("transforms.json", f"{where}: {got!r}, want {want!r}"))
+
+
+def _mismatches(want: dict, got: dict) -> list[tuple[str, str]]:
+    """``(file, why)`` for every file whose fingerprint ``got`` is not within TOLERANCES of ``want``."""
+    out: list[tuple[str, str]] = [(name, "missing") for name in sorted(set(want) - set(got))]
+    out += [(name, "not in the reference") for name in sorted(set(got) - set(want))]
+    for name in sorted(set(want) & set(got)):
+        w, g = want[name], got[name]
+        if name == "transforms.json":
+            _json_mismatches(w, g, "transforms.json", out)
+        elif name.startswith(("images/", "depth/")):
+            kind = "image" if name.startswith("images/") else "depth"
+            if w["shape"] != g["shape"]:
+                out.append((name, f"shape {g['shape']}, want {w['shape']}"))
+                continue
+            if kind == "depth" and abs(w["zeros"] - g["zeros"]) > TOLERANCES["depth_zeros"]:
+                out.append((name, f"{g['zeros']} pixels without depth, want {w['zeros']}"))
+            for stat in ("mean", "thumb", "roughness") if kind == "image" else ("mean", "thumb"):
+                _off(f"{name} {stat}", w[stat], g[stat], TOLERANCES[f"{kind}_{stat}"], out)
+        elif w is not None:
+            count_tolerance = TOLERANCES["points"] if w["faces"] == 0 else 0
+            if abs(w["vertices"] - g["vertices"]) > count_tolerance or w["faces"] != g["faces"]:
+                out.append((name, f"{g['vertices']} vertices and {g['faces']} faces, "
+                                  f"want {w['vertices']} and {w['faces']}"))
+            for stat in ("bbox", "centroid", "quantiles", "median_distance"):
+                if stat in w or stat in g:
+                    _off(f"{name} {stat}", w.get(stat, []), g.get(stat, []), TOLERANCES[stat], out)
+    return out
+
+
+def _reference() -> dict:
+    return json.loads(REFERENCE.read_text())["rooms"]
+
+
+def write_reference(out_dir: Path) -> None:
+    """Render the default rooms into ``out_dir`` and write their fingerprints to REFERENCE (one line per file)."""
+    lines = []
+    for room, spec in DEFAULT_ROOMS.items():
+        scene = make_room_scene(out_dir / room, spec)
+        files = [f"    {json.dumps(name)}: {json.dumps(fp)}" for name, fp in _fingerprints(scene).items()]
+        lines.append(f"  {json.dumps(room)}: {{\n" + ",\n".join(files) + "\n  }")
+    about = json.dumps("Fingerprints of the default rooms (tests/test_synthetic_suite.py DEFAULT_ROOMS); rewrite "
+                       "with `python tests/test_synthetic_suite.py` only after a deliberate generator change.")
+    REFERENCE.write_text(f'{{"about": {about},\n "rooms": {{\n' + ",\n".join(lines) + "\n}}\n")
 
 
 # --- validation -------------------------------------------------------------------------------------------------
@@ -99,9 +277,78 @@ def test_make_room_scene_refuses_a_bad_style_before_writing(tmp_path: Path):
 # --- defaults and determinism -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("expected", sorted(DEFAULT_HASHES))
-def test_default_rooms_are_byte_identical_to_before(tmp_path: Path, expected: str):
-    assert _tree_hash(make_room_scene(tmp_path / "room", DEFAULT_HASHES[expected])) == expected
+@pytest.fixture(scope="module")
+def default_rooms(tmp_path_factory) -> dict[str, Path]:
+    out = tmp_path_factory.mktemp("default_rooms")
+    return {room: make_room_scene(out / room, spec) for room, spec in DEFAULT_ROOMS.items()}
+
+
+@pytest.mark.parametrize("room", sorted(DEFAULT_ROOMS))
+def test_default_rooms_match_their_reference_fingerprints(default_rooms: dict[str, Path], room: str):
+    assert _mismatches(_reference()[room], _fingerprints(default_rooms[room])) == []
+
+
+@pytest.mark.parametrize("room", sorted(DEFAULT_ROOMS))
+def test_default_rooms_are_byte_identical_when_generated_again(
+    tmp_path: Path, default_rooms: dict[str, Path], room: str
+):
+    assert _tree_hash(make_room_scene(tmp_path / room, DEFAULT_ROOMS[room])) == _tree_hash(default_rooms[room])
+
+
+def _one_ulp_up(x: np.ndarray) -> np.ndarray:
+    """float32 ``x`` one unit in the last place larger, as float64."""
+    return np.nextafter(x.astype(np.float32), np.float32(np.inf)).astype(np.float64)
+
+
+def test_fingerprints_tolerate_a_ray_caster_one_ulp_off(
+    monkeypatch, tmp_path: Path, default_rooms: dict[str, Path]
+):
+    """What differs between machines: every camera and shadow ray and every hit distance one float32 ulp off changes
+    bytes (a few pixels by one 8-bit step or one millimetre) but no fingerprint beyond its tolerance."""
+    rays, cast = raycast._o3d_rays, raycast._cast
+
+    def cast_one_ulp_off(geom, origins, dirs):
+        t, prim, normals = cast(geom, origins, dirs)
+        return _one_ulp_up(t), prim, normals
+
+    monkeypatch.setattr(raycast, "_o3d_rays", lambda origins, dirs: rays(origins, _one_ulp_up(dirs)))
+    monkeypatch.setattr(raycast, "_cast", cast_one_ulp_off)
+    for room, spec in DEFAULT_ROOMS.items():
+        scene = make_room_scene(tmp_path / room, spec)
+        assert _tree_hash(scene) != _tree_hash(default_rooms[room]), "the bytes change"
+        assert _mismatches(_reference()[room], _fingerprints(scene)) == []
+
+
+def _table_moved_1cm(*args, **kwargs):
+    """build_room with the table (top, legs, vase) 1 cm further along +x."""
+    geom = build_room(*args, **kwargs)
+    table = [k for k, obj in enumerate(geom.objects) if obj.name.startswith("table")]
+    geom.vertices[np.unique(geom.triangles[np.isin(geom.triangle_object, table)])] += [0.01, 0.0, 0.0]
+    return geom
+
+
+GENERATOR_CHANGES = {  # a change to the generator: the room it applies to, its spec, the files it must be caught in
+    "seed": ("points", dict(seed=1), {"images", "depth", "prior.ply", "gt_mesh.ply"}),
+    "table_moved_1cm": ("points", None, {"images", "depth", "gt_mesh.ply"}),
+    "texture_scale": ("mesh", dict(texture_scale=1.05), {"images"}),
+    "palette_shift": ("points", dict(palette_shift=0.05), {"images"}),
+    "sensor_noise": ("mesh", dict(noise_photons=1e4), {"images"}),
+    "ambient_light": ("points", dict(ambient=0.23), {"images"}),
+    "lights_moved": ("mesh", dict(light_jitter_m=0.05), {"images"}),
+    "point_prior_sigma": ("points", dict(prior_sigma=0.022), {"prior.ply"}),
+    "mesh_prior_sigma": ("mesh", dict(prior_sigma=0.022), {"prior.ply"}),
+}
+
+
+@pytest.mark.parametrize("change", sorted(GENERATOR_CHANGES))
+def test_fingerprints_catch_a_changed_generator(monkeypatch, tmp_path: Path, change: str):
+    """Each change is caught in the files it changes, not only in the spec transforms.json records."""
+    room, fields, files = GENERATOR_CHANGES[change]
+    if fields is None:
+        monkeypatch.setattr(writer, "build_room", _table_moved_1cm)
+    scene = make_room_scene(tmp_path / room, replace(DEFAULT_ROOMS[room], **(fields or {})))
+    caught = {file.split("/")[0] for file, _ in _mismatches(_reference()[room], _fingerprints(scene))}
+    assert files <= caught
 
 
 def test_capture_room_is_deterministic_and_seeded(tmp_path: Path):
@@ -384,3 +631,11 @@ def test_spec_json_round_trips_the_spec():
     stored = spec_json(spec)
     assert RoomSpec(**{**stored, "room_size": tuple(stored["room_size"])}) == spec
     assert stored == json.loads(json.dumps(asdict(spec)))
+
+
+if __name__ == "__main__":
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        write_reference(Path(tmp))
+    print(f"wrote {REFERENCE}", file=sys.stderr)
