@@ -1,11 +1,15 @@
-"""voxnerf.devices: device names resolved, unavailable or unknown devices refused with the flag's name."""
+"""voxnerf.devices: device names resolved, unavailable or unknown devices refused with the flag's name; the record of
+how a process computes."""
 
 from __future__ import annotations
+
+import os
 
 import pytest
 import torch
 
-from voxnerf.devices import resolve_device
+from voxnerf import hash_kernel, octree
+from voxnerf.devices import compute_environment, resolve_device
 from voxnerf.errors import VoxNeRFError
 
 
@@ -36,3 +40,17 @@ def test_cuda_auto_uses_cuda_when_the_runtime_reports_it(monkeypatch):
 def test_unknown_names_are_refused(name):
     with pytest.raises(VoxNeRFError, match="expected auto, cpu or cuda"):
         resolve_device(name)
+
+
+def test_compute_environment_records_threads_openmp_settings_and_kernels(monkeypatch):
+    monkeypatch.setenv("OMP_WAIT_POLICY", "PASSIVE")
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    record = compute_environment(torch.device("cpu"))
+    assert record["device"] == "cpu" and record["torch"] == torch.__version__
+    assert record["threads"] == torch.get_num_threads() and record["interop_threads"] >= 1
+    assert 1 <= record["cpus"] <= (os.cpu_count() or 1)
+    assert record["omp_wait_policy"] == "PASSIVE" and record["omp_num_threads"] is None
+    assert record["hash_kernel"] == hash_kernel.available()
+    assert record["octree_kernel"] == octree.kernel_available()
+    monkeypatch.delenv("OMP_WAIT_POLICY")
+    assert compute_environment(torch.device("cpu"))["omp_wait_policy"] is None

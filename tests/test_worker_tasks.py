@@ -4,9 +4,6 @@ task's outcome around a stand-in model."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import time
 from types import SimpleNamespace
 
@@ -165,13 +162,3 @@ def test_render_task_answers_the_image_or_a_4xx(settings, monkeypatch):
     tasks.render_pose("r3", "b" * 32, {**request, "transform_matrix": [[1, 2]]})
     outcome = receive_outcome(settings, "r3", timeout_s=5)
     assert outcome.status == 500 and "render failed" in outcome.detail
-
-
-@pytest.mark.parametrize(("given", "expected"), [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
-def test_a_worker_loads_torch_with_sleeping_openmp_threads_unless_told_otherwise(given, expected):
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    if given is not None:
-        env["OMP_WAIT_POLICY"] = given
-    code = "import worker.tasks, os, sys; assert 'torch' in sys.modules; print(os.environ['OMP_WAIT_POLICY'])"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == expected

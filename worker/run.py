@@ -5,13 +5,45 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import sys
+from collections.abc import MutableMapping, Sequence
 
 from app.core import storage
-from app.core.celery_app import QUEUES, create_celery
+from app.core.celery_app import QUEUES, TRAIN_QUEUE, create_celery
 from app.core.redact import install_log_masking
 from app.core.settings import get_settings
 
 TASK_MODULES = ("worker.tasks",)  # imported by the worker (and its pool processes) for their tasks
+log = logging.getLogger(__name__)
+
+
+def openmp_wait_policy(queues: Sequence[str]) -> str | None:
+    """How the OpenMP threads of a worker consuming ``queues`` wait at the end of a parallel region: None (the
+    runtime's default, as ``voxnerf train`` runs: they spin briefly, then sleep) for a worker that trains,
+    ``PASSIVE`` (they sleep at once) for a render or outputs worker.
+
+    A training step is hundreds of short parallel regions (the compiled step's fused loops, ATen's operations):
+    with ``PASSIVE`` each one ends in a sleep and starts with a wake-up, and a job trained several times slower
+    than the CLI. A render worker shares the cores with a training job: with spinning threads its views wait
+    for a sibling thread the scheduler has taken the core from. docs/performance.md ("OpenMP threads in the
+    workers") measures both.
+    """
+    return None if TRAIN_QUEUE in queues else "PASSIVE"
+
+
+def set_openmp_wait_policy(queues: Sequence[str], environ: MutableMapping[str, str] | None = None) -> str | None:
+    """Set ``OMP_WAIT_POLICY`` for ``queues`` (:func:`openmp_wait_policy`) unless the environment sets it; the
+    policy the process runs with (None: the runtime's default). It must run before torch loads (OpenMP reads
+    it once, when its runtime loads; the pool processes, forked later, inherit it): a warning says when torch
+    has already loaded."""
+    env = os.environ if environ is None else environ
+    wanted = openmp_wait_policy(queues)
+    if "OMP_WAIT_POLICY" not in env and wanted is not None:
+        if "torch" in sys.modules:
+            log.warning("torch loaded before the worker set OMP_WAIT_POLICY=%s: its OpenMP threads keep the "
+                        "policy they loaded with", wanted)
+        env["OMP_WAIT_POLICY"] = wanted
+    return env.get("OMP_WAIT_POLICY")
 
 
 def worker_name(queues: list[str], embedded: bool) -> str:
@@ -29,10 +61,12 @@ def run_worker(queues: list[str], concurrency: int) -> None:
         raise ValueError(f"queues must be a non-empty subset of {list(QUEUES)}, got {queues}")
     if concurrency < 1:
         raise ValueError(f"concurrency must be >= 1, got {concurrency}")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    policy = set_openmp_wait_policy(queues)  # before the tasks' modules load torch
+    log.info("OpenMP wait policy %s", policy or "default (as voxnerf train)")
     settings = get_settings()
     settings.make_dirs()
     storage.check_store(settings)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     install_log_masking()  # broker and storage URLs' credentials never reach a log line
     celery_app = create_celery(settings, include=TASK_MODULES, queues=queues)
     celery_app.worker_main(

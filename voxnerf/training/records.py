@@ -134,7 +134,8 @@ class TrainReport(BaseModel):
 
     ``scene``, ``prior`` and ``octree`` are the summaries of those stages' objects; ``warnings`` lists what the
     user should know (a prior that few pixels see, a sampler asking for a prior the scene lacks); ``pose_refinement``
-    and ``appearance`` the size of the learnt per-image corrections (configs of those names). Fields that a
+    and ``appearance`` the size of the learnt per-image corrections (configs of those names); ``runtime`` how the
+process that trained computed (:func:`voxnerf.devices.compute_environment`). Fields that a
     run never set (a prior-less scene has no ``prior``) stay out of the JSON.
     """
 
@@ -162,6 +163,7 @@ class TrainReport(BaseModel):
     train_seconds: float | None = None
     wall_seconds: float | None = None
     throughput: dict[str, int | float] | None = None
+    runtime: dict[str, str | int | bool | None] | None = None
     checkpoint_kept: bool | None = None
 
     def to_json_dict(self) -> dict[str, Any]:

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.devices import resolve_device
+from voxnerf.devices import compute_environment, resolve_device
 from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.files import CHECKPOINT, REFINED_POSES, REPORT
 from voxnerf.image_io import write_atomic
@@ -304,6 +304,7 @@ def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
     cfg, budget, built = run.cfg, run.budget, setup.built
     loop_started = budget.train_seconds
     step, compiled = _make_step(run, setup)
+    run.report.runtime = compute_environment(run.device)
     views = eval_views_of(setup.scene, built.transform)
     evaluate = _progress_evaluator(partial(progress_eval, built.model, views, cfg, run.report.history, budget))
     evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(views), run.events, run.report.warnings)
