@@ -1,5 +1,6 @@
-"""The rules an uploaded file's name and size must meet, and the bounded copy, shared by the API process (which
-stages an upload) and the validation process (which unpacks and checks it, :mod:`app.upload_validation`).
+"""The rules an uploaded file's name and size must meet, the bounded copy, and what the API process (which stages
+an upload) and the validation process (which unpacks and checks it, :mod:`app.upload_validation`) hand each other:
+:class:`StagedUpload` in, :class:`ValidatedScene` out.
 
 :class:`UploadError` is a refusal: an HTTP status (4xx) and a one-line ``detail`` naming the entry at fault.
 Nothing here interprets a file's contents.
@@ -9,11 +10,31 @@ from __future__ import annotations
 
 import errno
 import re
+from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 from app.core.settings import Settings
 from voxnerf.files import TRANSFORMS
+from voxnerf.importers.splits import PaperSplitRule
+
+
+@dataclass(frozen=True)
+class StagedUpload:
+    """An upload on disk, as the API process hands it to the validation process."""
+
+    root: Path  # the scene directory to fill (from ``archive``) and validate: ``<staging>/scene``
+    archive: Path | None  # a zip to unpack into ``root`` first; None: the files are in ``root`` already
+    splits: PaperSplitRule | None = None  # for an archive to import: write the paper's splits
+
+
+@dataclass(frozen=True)
+class ValidatedScene:
+    """What the validation process answers for a valid scene."""
+
+    size_bytes: int  # of the files in ``root``
+    summary: dict  # the engine's summary (``voxnerf.scene.inspect_scene``), with ``imported`` for an import
+
 
 ALLOWED_SUFFIXES = frozenset(
     {".json", ".png", ".jpg", ".jpeg", ".npy", ".ply", ".obj", ".mtl", ".glb", ".off"}

@@ -25,13 +25,10 @@ import multiprocessing
 import resource
 import signal
 import sys
-from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
-from pathlib import Path
 
 from app.core.settings import Settings
-from app.upload_rules import UploadError
-from voxnerf.importers.splits import PaperSplitRule
+from app.upload_rules import StagedUpload, UploadError, ValidatedScene
 
 log = logging.getLogger(__name__)
 
@@ -53,23 +50,6 @@ _CONTEXT = multiprocessing.get_context("forkserver")
 _CONTEXT.set_forkserver_preload(_preload())
 REAP_TIMEOUT_S = 10.0  # how long to wait for a child that was killed or has answered to exit
 CPU_GRACE_S = 5  # CPU seconds past the wall-clock timeout: the API's kill comes first; this ends an orphan
-
-
-@dataclass(frozen=True)
-class StagedUpload:
-    """An upload on disk, as the API process hands it to the validation process."""
-
-    root: Path  # the scene directory to fill (from ``archive``) and validate: ``<staging>/scene``
-    archive: Path | None  # a zip to unpack into ``root`` first; None: the files are in ``root`` already
-    splits: PaperSplitRule | None = None  # for an archive to import: write the paper's splits
-
-
-@dataclass(frozen=True)
-class ValidatedScene:
-    """What the validation process answers for a valid scene."""
-
-    size_bytes: int  # of the files in ``root``
-    summary: dict  # the engine's summary (``voxnerf.scene.inspect_scene``), with ``imported`` for an import
 
 
 def validate_in_child(upload: StagedUpload, settings: Settings) -> ValidatedScene:

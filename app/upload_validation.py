@@ -43,7 +43,9 @@ from app.core.settings import Settings
 from app.upload_rules import (
     IMPORT_SUFFIXES,
     MAX_PATH_BYTES,
+    StagedUpload,
     UploadError,
+    ValidatedScene,
     check_suffix,
     check_transforms_size,
     clip,
@@ -51,7 +53,6 @@ from app.upload_rules import (
     ignored,
     safe_relpath,
 )
-from app.upload_sandbox import StagedUpload, ValidatedScene
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
 from voxnerf.image_io import PNG_SIGNATURE, image_size

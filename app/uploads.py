@@ -28,8 +28,16 @@ from typing import BinaryIO
 
 from app.core import jobstore, storage
 from app.core.settings import Settings
-from app.upload_rules import UploadError, check_suffix, check_transforms_size, clip, copy_limited, safe_relpath
-from app.upload_sandbox import StagedUpload, validate_in_child
+from app.upload_rules import (
+    StagedUpload,
+    UploadError,
+    check_suffix,
+    check_transforms_size,
+    clip,
+    copy_limited,
+    safe_relpath,
+)
+from app.upload_sandbox import validate_in_child
 from voxnerf.files import TRANSFORMS
 from voxnerf.importers.splits import PaperSplitRule
 

@@ -3,6 +3,8 @@
 - the API (``app/`` outside ``app/core``) never imports the workers (``worker``);
 - the workers import ``app.core`` and nothing else of ``app``;
 - ``app/core`` imports neither the workers nor the API modules;
+- no two files of ``voxnerf/``, ``app/`` or ``worker/`` import each other in a cycle (a function-level import or
+  one for type checking counts: each is a dependency all the same);
 
 and, by running it, that the API process does not load torch: building the ASGI app and serving requests
 that need no scene validation imports neither ``torch`` nor the engine's model nor open3d. Importing the
@@ -95,6 +97,72 @@ def test_core_modules_import_neither_the_api_nor_the_workers(path: Path):
     assert not bad, f"{path.relative_to(ROOT)} imports {bad}: app.core must not depend on its users"
 
 
+def _module_graph() -> dict[str, set[str]]:
+    """Module -> the project modules it imports (``from a import b`` is module ``a.b`` when that file exists, else
+    ``a``), over every file of voxnerf/, app/ and worker/."""
+    paths = {_module_name(p): p for folder in ("voxnerf", "app", "worker") for p in _modules(folder)}
+    graph = {}
+    for module, path in paths.items():
+        targets = {name if name in paths else name.rpartition(".")[0] for name in _imports(path)}
+        graph[module] = {t for t in targets if t in paths and t != module}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of ``graph`` with more than one module (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_no_import_cycle_between_the_project_s_files():
+    graph = _module_graph()
+    assert "worker.tasks" in graph and "voxnerf.synthetic.geometry" in graph
+    cycles = _cycles(graph)
+    assert not cycles, f"import cycles (each a set of modules that import each other): {cycles}"
+
+
+def test_the_cycle_finder_finds_a_cycle_and_only_cycles():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set(), "f": {"g"}, "g": {"f"}}
+    assert sorted(_cycles(graph)) == [["a", "b", "c"], ["f", "g"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
 def test_the_import_reader_sees_function_level_and_relative_imports():
     source = "def f():\n    from worker.tasks import x\n    from . import jobstore\n    import app.main\n"
     found = _imports_in(source, "app.core.example")
@@ -138,11 +206,11 @@ def test_the_api_process_does_not_load_torch(tmp_path: Path):
 WORKER_IMPORT = """
 import json, sys
 from celery import _state
-import worker.tasks, worker.run
+import worker.tasks, worker.outputs, worker.model_cache, worker.run
 
 print(json.dumps({
     "celery_apps": len(list(_state._get_active_apps())),
-    "cached_models": worker.tasks.model_cache.cache_info().currsize,
+    "cached_models": worker.model_cache.model_cache.cache_info().currsize,
 }))
 """
 

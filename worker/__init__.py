@@ -1,9 +1,10 @@
 """Celery workers of the VoxNeRF service: a ``train`` queue (one job per process), a ``render`` queue and an
 ``outputs`` queue.
 
-A worker holds the tasks (:mod:`worker.tasks`: training with its lease and progress writer, rendering with its
-model cache; :mod:`worker.outputs`: videos, meshes, point clouds) and how a worker process starts
-(:mod:`worker.run`, which also chooses how the process's OpenMP threads wait before torch loads). Everything it
+A worker holds the tasks (:mod:`worker.tasks`: training with its progress writer, and rendering;
+:mod:`worker.outputs`: videos, meshes, point clouds), what each task holds its work with (:mod:`worker.lease`), the
+models a process keeps loaded (:mod:`worker.model_cache`) and how a worker process starts (:mod:`worker.run`, which
+also chooses how the process's OpenMP threads wait before torch loads). Everything it
 shares with the API (settings, job store, storage, queues, broker, render results, the render request) is in
 :mod:`app.core`.
 """

@@ -1,10 +1,10 @@
 """Celery task of the ``outputs`` queue: make an output job's video, mesh or point cloud from a trained model.
 
 The task claims the output in the job store (fenced by its attempt, :mod:`app.core.outputs`), loads the trained
-job's model through this process's model cache (:func:`worker.tasks.model_cache`; with an object store the
+job's model through this process's model cache (:func:`worker.model_cache.model_cache`; with an object store the
 run's checkpoint is fetched first), and runs the engine: :func:`voxnerf.video.render_path` for a video,
 :func:`voxnerf.export.export_geometry` for a mesh or point cloud. Progress (frames or views done, ETA) is
-written at most every ``progress_interval_s``; a :class:`worker.tasks.Lease` renews the output's lease every
+written at most every ``progress_interval_s``; a :class:`worker.lease.Lease` renews the output's lease every
 ``heartbeat_s`` and turns its cancel flag into ``should_stop``, so a cancelled output stops at its next frame or
 view. The engine writes each file under a temporary name and renames it when complete; a failed or cancelled
 output's directory is removed, a succeeded one's is uploaded to the object store (when there is one).
@@ -34,7 +34,8 @@ from voxnerf.export import export_geometry
 from voxnerf.render import TrainedModel, scene_as_trained
 from voxnerf.scene import Scene, load_scene
 from voxnerf.video import render_path
-from worker.tasks import DeathNotingRequest, Lease, model_cache
+from worker.lease import DeathNotingRequest, Lease
+from worker.model_cache import model_cache
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,7 @@ def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
 
 
 class OutputDeathNotingRequest(DeathNotingRequest):
-    """:class:`worker.tasks.DeathNotingRequest` for output jobs."""
+    """:class:`worker.lease.DeathNotingRequest` for output jobs."""
 
     table = OutputRow
 

@@ -1,15 +1,16 @@
 """Celery tasks: train a job (queue ``train``) and render a pose of a finished job (queue ``render``); output
-jobs (queue ``outputs``: videos, meshes, point clouds) are in :mod:`worker.outputs`, imported at the end.
+jobs (queue ``outputs``: videos, meshes, point clouds) are in :mod:`worker.outputs`; both hold their work with
+:mod:`worker.lease` and load models through :mod:`worker.model_cache`.
 
 Training: the task claims the job in the job store (fenced by its attempt number), runs
 :func:`voxnerf.trainer.train` with ``resume=True`` (a redelivered job continues from its checkpoint),
 writes progress at most every ``progress_interval_s``, and renews its lease every ``heartbeat_s`` from a
 side thread that also picks up cancellation. ``acks_late`` + ``reject_on_worker_lost`` give the message
 back to the broker if the process dies (the Celery main process notes the death on the job's row first,
-:class:`DeathNotingRequest`); the job store's stale-job sweep covers the rest, and fails a job whose worker
+:class:`worker.lease.DeathNotingRequest`); the job store's stale-job sweep covers the rest, and fails a job whose worker
 died ``max_worker_deaths`` times. Every job trains for at most ``max_job_seconds`` of wall clock, its
 ``eval_at`` evaluations for at most ``max_eval_at_seconds``; before each file it writes, the trainer asks the
-job store whether this attempt still owns the job (:meth:`Lease.still_owned`), so a worker that lost its
+job store whether this attempt still owns the job (:meth:`worker.lease.Lease.still_owned`), so a worker that lost its
 lease writes nothing more into the run.
 
 With an object store (``VOXNERF_STORAGE_URL``, :mod:`app.core.storage`) the scene and the run's last uploaded
@@ -28,23 +29,15 @@ import dataclasses
 import logging
 import os
 import signal
-import threading
 import time
-from collections import OrderedDict
-from collections.abc import Callable
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 from celery import shared_task
-from celery.exceptions import WorkerLostError
 from celery.signals import worker_ready
-from celery.worker.request import Request
 
 from app.core import jobstore, storage
 from app.core.celery_app import RENDER_TASK, TRAIN_TASK
 from app.core.dispatch import sweep_jobs
-from app.core.models import JobRow
 from app.core.redact import public_error
 from app.core.render_request import RenderRequest
 from app.core.render_results import RenderOutcome, deliver_outcome
@@ -52,77 +45,15 @@ from app.core.settings import Settings, get_settings
 from voxnerf.camera_rules import CameraError
 from voxnerf.config import TrainConfig
 from voxnerf.errors import RunError, VoxNeRFError
-from voxnerf.files import CHECKPOINT
 from voxnerf.outputs import encode_outputs
-from voxnerf.render import TrainedModel, load_model, render
+from voxnerf.render import render
 from voxnerf.trainer import train
 from voxnerf.training.records import ProgressEvent, TrainReport
 from voxnerf.training.run import LeaseLost
+from worker.lease import DeathNotingRequest, Lease
+from worker.model_cache import model_cache
 
 log = logging.getLogger(__name__)
-
-
-class Lease:
-    """Renews a claimed job's heartbeat in a side thread and turns cancellation into ``should_stop``.
-
-    ``renew(settings, id, attempt) -> LeaseStatus`` refreshes the lease: a training job's by default
-    (:func:`app.core.jobstore.renew_lease`), an output job's with :func:`app.core.outputs.renew_lease`.
-    """
-
-    def __init__(
-        self,
-        settings: Settings,
-        job_id: str,
-        attempt: int,
-        renew: Callable[[Settings, str, int], jobstore.LeaseStatus] = jobstore.renew_lease,
-    ) -> None:
-        self.settings = settings
-        self.job_id = job_id
-        self.attempt = attempt
-        self.renew = renew
-        self.cancelled = threading.Event()
-        self.lost = threading.Event()
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"lease-{job_id}", daemon=True)
-
-    def _run(self) -> None:
-        while not self._done.wait(self.settings.heartbeat_s):
-            try:
-                status = self.renew(self.settings, self.job_id, self.attempt)
-            except Exception:  # the database is briefly unreachable: keep training, retry next beat
-                log.warning("job %s: lease renewal failed", self.job_id, exc_info=True)
-                continue
-            if not status.owned:
-                log.warning("job %s: lease lost (requeued elsewhere); stopping", self.job_id)
-                self.lost.set()
-            if status.cancel_requested:
-                self.cancelled.set()
-
-    def should_stop(self) -> bool:
-        return self.cancelled.is_set() or self.lost.is_set()
-
-    def still_owned(self) -> bool:
-        """Ask the job store now (the fence before each file the trainer writes) whether this attempt still
-        owns the job; a no sets ``lost``. A store that cannot answer counts as a no: better an attempt that
-        stops than two that write."""
-        if self.lost.is_set():
-            return False
-        try:
-            owned = self.renew(self.settings, self.job_id, self.attempt).owned
-        except Exception:
-            log.warning("job %s: cannot confirm the lease before writing", self.job_id, exc_info=True)
-            owned = False
-        if not owned:
-            self.lost.set()
-        return owned
-
-    def __enter__(self) -> Lease:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._done.set()
-        self._thread.join()
 
 
 class ProgressWriter:
@@ -209,24 +140,6 @@ def _train_claimed(settings: Settings, job, writer: ProgressWriter, lease: Lease
     return None
 
 
-class DeathNotingRequest(Request):
-    """A task request that, in the worker's main process, notes on the job's row why its pool process died
-    (Celery's "Worker exited prematurely: signal 9 (SIGKILL)") before the message goes back to the queue; a
-    job failed for dying too often names the last death. ``table``: the rows the task's first argument names."""
-
-    table = JobRow
-
-    def on_failure(self, exc_info, send_failed_event=True, return_ok=False):
-        exc = getattr(exc_info, "exception", None)
-        exc = getattr(exc, "exc", exc)  # unwrap Celery's ExceptionWithTraceback
-        if isinstance(exc, WorkerLostError) and self.args:
-            try:
-                jobstore.record_worker_death(get_settings(), self.table, self.args[0], str(exc))
-            except Exception:  # the store is down: the death still counts, only its reason is lost
-                log.warning("cannot note the worker's death on %s", self.args[0], exc_info=True)
-        return super().on_failure(exc_info, send_failed_event, return_ok)
-
-
 @shared_task(name=TRAIN_TASK, acks_late=True, reject_on_worker_lost=True, Request=DeathNotingRequest)
 def train_job(job_id: str) -> None:
     """Train job ``job_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
@@ -244,35 +157,6 @@ def train_job(job_id: str) -> None:
     if report is None or lease.lost.is_set():
         return
     jobstore.finish_with_report(settings, job_id, job.attempt, report, writer.progress)
-
-
-class ModelCache:
-    """The ``size`` most recently used trained models of this process, keyed by checkpoint file and mtime."""
-
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self._models: OrderedDict[tuple[str, int], TrainedModel] = OrderedDict()
-
-    def get(self, run_dir: Path, device: str) -> TrainedModel:
-        checkpoint = run_dir / CHECKPOINT
-        try:
-            key = (str(checkpoint), checkpoint.stat().st_mtime_ns)
-        except FileNotFoundError:
-            raise RunError(f"job {run_dir.name} has no checkpoint") from None
-        if key in self._models:
-            self._models.move_to_end(key)
-            return self._models[key]
-        model = load_model(run_dir, device)
-        self._models[key] = model
-        while len(self._models) > self.size:
-            self._models.popitem(last=False)
-        return model
-
-
-@lru_cache(maxsize=1)
-def model_cache() -> ModelCache:
-    """This process's model cache, built on first use (``render_cache_size`` models)."""
-    return ModelCache(get_settings().render_cache_size)
 
 
 def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:
@@ -315,5 +199,3 @@ def _recover_stale_jobs(sender=None, **_) -> None:
     except Exception:
         log.exception("start-up recovery of stale jobs failed")
 
-
-import worker.outputs  # noqa: E402, F401  (registers the output task; it uses Lease and model_cache above)

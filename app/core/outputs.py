@@ -230,7 +230,7 @@ def _write_running(settings: Settings, output_id: str, attempt: int, values: dic
 
 
 def renew_lease(settings: Settings, output_id: str, attempt: int) -> LeaseStatus:
-    """Refresh a claimed output's heartbeat and read its cancel flag (the lease of ``worker.tasks.Lease``)."""
+    """Refresh a claimed output's heartbeat and read its cancel flag (the lease of ``worker.lease.Lease``)."""
     owned = _write_running(settings, output_id, attempt, {})
     with session_scope(settings) as session:
         cancel = session.scalar(select(OutputRow.cancel_requested).where(OutputRow.id == output_id))

@@ -341,7 +341,7 @@ class RunPublisher:
     when the file changed (the trainer replaces it atomically, so an upload reads one whole checkpoint).
     Leaving the context uploads the final run (checkpoint, report.json, evaluation renders); an upload error
     there propagates unless the block already raised. Does nothing without a store. ``may_upload()`` (a
-    worker's lease: :meth:`worker.tasks.Lease.still_owned`) is asked before every upload, so an attempt that
+    worker's lease: :meth:`worker.lease.Lease.still_owned`) is asked before every upload, so an attempt that
     lost its job never overwrites its successor's run in the store.
     """
 

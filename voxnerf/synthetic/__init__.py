@@ -14,8 +14,9 @@ the real redkitchen scene (``shared/data/README.md``): every ``train_every``-th 
 
 Submodules, in dependency order:
 
-- ``geometry``: ``ROOM_SIZE``, the room as a triangle soup (:class:`RoomGeometry`) and its builder;
+- ``dimensions``: ``ROOM_SIZE``;
 - ``textures``: :class:`Material` and the procedural patterns;
+- ``geometry``: the room as a triangle soup (:class:`RoomGeometry`) and its builder;
 - ``furniture``: the furniture and lights as data; ``room``: :func:`build_room` reads them for a seed;
 - ``raycast``: :class:`Shading`, :func:`shade` and :func:`render_view` / :func:`render_radiance`;
 - ``sensor``: the camera's response (drift, vignetting, noise) and Kinect-like depth;
@@ -26,7 +27,8 @@ Submodules, in dependency order:
 """
 
 from voxnerf.synthetic.cameras import FrameSplits, camera_path, look_at_c2w, split_frames
-from voxnerf.synthetic.geometry import ROOM_SIZE, PointLight, RoomGeometry, RoomObject
+from voxnerf.synthetic.dimensions import ROOM_SIZE
+from voxnerf.synthetic.geometry import PointLight, RoomGeometry, RoomObject
 from voxnerf.synthetic.priors import (
     PRIOR_HOLE_RADIUS,
     PRIOR_HOLES,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from voxnerf.camera_path import look_at
-from voxnerf.synthetic.geometry import ROOM_SIZE
+from voxnerf.synthetic.dimensions import ROOM_SIZE
 
 
 def look_at_c2w(position: np.ndarray, forward: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The room as a triangle soup: named objects with materials and bounds, point lights, and the mesh builder.
 
 World frame: metres, +Z up, the room spans ``x in [-W/2, W/2]``, ``y in [-D/2, D/2]``, ``z in [0, H]`` with
-``(W, D, H) == ROOM_SIZE``.
+``(W, D, H)`` the room's size (``voxnerf.synthetic.dimensions.ROOM_SIZE`` by default).
 """
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import trimesh
 
+from voxnerf.synthetic.dimensions import ROOM_SIZE
+
 if TYPE_CHECKING:
     import open3d as o3d
 
     from voxnerf.synthetic.textures import Material
 
-ROOM_SIZE: tuple[float, float, float] = (5.0, 4.0, 2.6)
-"""Room width (x), depth (y) and height (z) in metres."""
 
 
 @dataclass(frozen=True)

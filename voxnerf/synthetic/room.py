@@ -11,8 +11,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from voxnerf.synthetic.dimensions import ROOM_SIZE
 from voxnerf.synthetic.furniture import FURNITURE, LIGHTS, BookRows, Box, Coord, Cylinder, Group, Piece, Quad
-from voxnerf.synthetic.geometry import ROOM_SIZE, PointLight, RoomBuilder, RoomGeometry, RoomObject
+from voxnerf.synthetic.geometry import PointLight, RoomBuilder, RoomGeometry, RoomObject
 from voxnerf.synthetic.textures import Material
 
 _TERM = re.compile(r"([+-]?)([^+-]+)")

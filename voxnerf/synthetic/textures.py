@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from voxnerf.synthetic.geometry import ROOM_SIZE
+from voxnerf.synthetic.dimensions import ROOM_SIZE
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,8 @@ import trimesh
 from voxnerf.camera_rules import COEFFICIENT_KEYS, MODEL_COEFFICIENTS, CameraError, Lens, lens_of
 from voxnerf.image_io import build_dir_atomic
 from voxnerf.synthetic.cameras import FrameSplits, camera_path, split_frames
-from voxnerf.synthetic.geometry import ROOM_SIZE, RoomGeometry
+from voxnerf.synthetic.dimensions import ROOM_SIZE
+from voxnerf.synthetic.geometry import RoomGeometry
 from voxnerf.synthetic.priors import PRIOR_KINDS, noisy_mesh_prior, sample_point_prior
 from voxnerf.synthetic.raycast import AMBIENT, Shading, linear_to_srgb, render_radiance
 from voxnerf.synthetic.room import LIGHT_TEMPERATURE_RANGE_K, ROOM_SIZE_RANGE, RoomStyle, build_room
