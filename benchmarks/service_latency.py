@@ -35,10 +35,10 @@ SECTION = "service-latency"  # the marked section of DOC that --write-docs repla
 TRAIN = {"max_iters": 8, "compile": False}  # latency does not depend on how well the model fits
 
 
-def measure_renders(
+def render_times(
     client, job_id: str, pose: list, count: int, size: tuple[int, int], warmup: int = 1
-) -> dict:
-    """Latency of ``count`` sequential POST /render of a ``size`` PNG, after ``warmup`` untimed ones."""
+) -> list[float]:
+    """Seconds of ``count`` sequential POST /render of a ``size`` PNG, after ``warmup`` untimed ones."""
     body = {"job_id": job_id, "transform_matrix": pose, "width": size[0], "height": size[1], "format": "png"}
     for _ in range(warmup):  # loads the model into the render worker's cache
         client.post("/render", json=body).raise_for_status()
@@ -49,7 +49,14 @@ def measure_renders(
         times.append(time.perf_counter() - started)
         response.raise_for_status()
         assert response.headers["content-type"] == "image/png"
-    ms = np.asarray(times) * 1000
+    return times
+
+
+def measure_renders(
+    client, job_id: str, pose: list, count: int, size: tuple[int, int], warmup: int = 1
+) -> dict:
+    """Latency of ``count`` sequential POST /render of a ``size`` PNG, after ``warmup`` untimed ones."""
+    ms = np.asarray(render_times(client, job_id, pose, count, size, warmup)) * 1000
     return {
         "n": count,
         "p50_ms": float(np.percentile(ms, 50)),

@@ -42,6 +42,7 @@ sys.path.insert(0, str(REPO / "tests"))  # the process helpers the service tests
 
 from docs_section import publish  # noqa: E402
 from service_fixtures import first_pose, start_redis, start_service, wait_for, zip_scene  # noqa: E402
+from service_latency import render_times  # noqa: E402
 
 from voxnerf import camera_path  # noqa: E402
 from voxnerf.camera_rules import resolve_intrinsics  # noqa: E402
@@ -98,19 +99,6 @@ def warm_caches(scene: Path, run: Path, options: dict) -> None:
         flags += ["--downscale", str(options["downscale"])]
     cmd = [sys.executable, "-m", "voxnerf", "train", str(scene), "--out", str(run), *flags]
     subprocess.run(cmd, env=service_env(), cwd=REPO, check=True, capture_output=True, timeout=TRAIN_TIMEOUT_S)
-
-
-def measure_renders(client, job_id: str, pose: list, count: int, size: tuple[int, int]) -> list[float]:
-    """Seconds of ``count`` sequential POST /render PNGs of ``size``, after one untimed warm-up."""
-    body = {"job_id": job_id, "transform_matrix": pose, "width": size[0], "height": size[1], "format": "png"}
-    client.post("/render", json=body).raise_for_status()
-    times = []
-    for _ in range(count):
-        started = time.perf_counter()
-        response = client.post("/render", json=body)
-        times.append(time.perf_counter() - started)
-        response.raise_for_status()
-    return times
 
 
 def render_in_process(run_dir: Path, pose: list, count: int) -> list[float]:
@@ -173,8 +161,8 @@ def through_service(mode: str, root: Path, scene_dir: Path, options: dict, args)
             run_dir = next(p.parent for p in service.data_dir.rglob("report.json") if job["id"] in p.as_posix())
             result = summary(json.loads((run_dir / "report.json").read_text()), wall_s)
             pose = first_pose(scene_dir)
-            result["render_s"] = measure_renders(client, job["id"], pose, args.renders, RENDER_SIZE)
-            result["overhead_s"] = measure_renders(client, job["id"], pose, args.renders, (8, 6))
+            result["render_s"] = render_times(client, job["id"], pose, args.renders, RENDER_SIZE)
+            result["overhead_s"] = render_times(client, job["id"], pose, args.renders, (8, 6))
             result["in_process_render_s"] = render_in_process(run_dir, pose, args.renders)
             result["video_service_first_s"] = video_through_service(client, job["id"], args.video_frames)
             result["video_service_s"] = video_through_service(client, job["id"], args.video_frames)

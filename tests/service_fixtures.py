@@ -301,6 +301,17 @@ def upload_scene(client: httpx.Client, scene_dir: Path) -> dict:
     return response.json()
 
 
+def wait_until_succeeded(service: Service, client: httpx.Client, job_id: str, timeout_s: float) -> dict:
+    """Poll GET /jobs/{id} until the job succeeded; its JSON. AssertionError with the service's logs when it
+    failed, was cancelled, or did not succeed within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while (job := client.get(f"/jobs/{job_id}").json())["state"] != "succeeded":
+        if job["state"] in ("failed", "cancelled") or time.monotonic() > deadline:
+            raise AssertionError(f"job {job_id} is {job['state']} ({job['error']})\n{service.logs()}")
+        time.sleep(0.5)
+    return job
+
+
 def first_pose(scene_dir: Path, split_key: str = "test_filenames") -> list[list[float]]:
     """The transform_matrix of the first frame of a split (a pose the model has not trained on)."""
     meta = json.loads((scene_dir / "transforms.json").read_text())

@@ -50,7 +50,9 @@ def test_compute_environment_records_threads_openmp_settings_and_kernels(monkeyp
     assert record["threads"] == torch.get_num_threads() and record["interop_threads"] >= 1
     assert 1 <= record["cpus"] <= (os.cpu_count() or 1)
     assert record["omp_wait_policy"] == "PASSIVE" and record["omp_num_threads"] is None
-    assert record["hash_kernel"] == hash_kernel.available()
-    assert record["octree_kernel"] == octree.kernel_available()
+    assert record["hash_kernel"] == hash_kernel.loaded() and record["octree_kernel"] == octree.kernel_loaded()
+    hash_kernel.available(), octree.kernel_available()  # load them (built once, cached)
+    record = compute_environment(torch.device("cpu"))
+    assert record["hash_kernel"] == hash_kernel.available() and record["octree_kernel"] == octree.kernel_available()
     monkeypatch.delenv("OMP_WAIT_POLICY")
     assert compute_environment(torch.device("cpu"))["omp_wait_policy"] is None

@@ -8,13 +8,12 @@ compared: PNG rgb (8-bit colour), depth (16-bit) and opacity (8-bit gray), and t
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
 import pytest
-from service_fixtures import first_pose, start_service, upload_scene
+from service_fixtures import first_pose, start_service, upload_scene, wait_until_succeeded
 
 from voxnerf.cli import main
 from voxnerf.image_io import decode_exr
@@ -44,13 +43,7 @@ def job(service, client, small_room) -> dict:
     scene = upload_scene(client, small_room)
     response = client.post(f"/scenes/{scene['id']}/jobs", json=JOB)
     assert response.status_code == 202, response.text
-    job_id = response.json()["id"]
-    deadline = time.monotonic() + TRAIN_TIMEOUT_S
-    while (body := client.get(f"/jobs/{job_id}").json())["state"] != "succeeded":
-        if body["state"] in ("failed", "cancelled") or time.monotonic() > deadline:
-            pytest.fail(f"job {job_id} is {body['state']} ({body['error']})\n{service.logs()}")
-        time.sleep(0.5)
-    return body
+    return wait_until_succeeded(service, client, response.json()["id"], TRAIN_TIMEOUT_S)
 
 
 @pytest.fixture(scope="module")

@@ -16,11 +16,10 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
-from service_fixtures import REPO, start_redis, start_service, upload_scene
+from service_fixtures import REPO, start_redis, start_service, upload_scene, wait_until_succeeded
 
 pytestmark = pytest.mark.slow
 
@@ -66,11 +65,7 @@ def _train_through_service(root: Path, scene_dir: Path, mode: str) -> dict:
                 response = client.post(f"/scenes/{scene['id']}/jobs", json={"max_iters": STEPS})
                 assert response.status_code == 202, response.text
                 job_id = response.json()["id"]
-                deadline = time.monotonic() + TRAIN_TIMEOUT_S
-                while (job := client.get(f"/jobs/{job_id}").json())["state"] != "succeeded":
-                    if job["state"] in ("failed", "cancelled") or time.monotonic() > deadline:
-                        pytest.fail(f"job {job_id} is {job['state']} ({job['error']})\n{service.logs()}")
-                    time.sleep(0.5)
+                wait_until_succeeded(service, client, job_id, TRAIN_TIMEOUT_S)
             reports = [p for p in service.data_dir.rglob("report.json") if job_id in p.as_posix()]
             assert len(reports) == 1, reports
             return json.loads(reports[0].read_text())

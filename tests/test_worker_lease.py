@@ -6,30 +6,20 @@ from __future__ import annotations
 import time
 
 import pytest
+from worker_fixtures import claimed_job, store_with_scene
 
 from app.core import jobstore
 from app.core.settings import Settings
 from worker.lease import Lease
 
-SCENE = "a" * 32
-
 
 @pytest.fixture
 def settings(tmp_path) -> Settings:
-    s = Settings(data_dir=tmp_path / "data", heartbeat_s=0.05)
-    s.make_dirs()
-    (s.scenes_dir / SCENE).mkdir()
-    jobstore.add_scene(s, SCENE, "room", {"frames": 1}, 10)
-    return s
-
-
-def _claimed(settings: Settings) -> jobstore.JobRow:
-    job = jobstore.create_job(settings, SCENE, {"max_iters": 50, "compile": False})
-    return jobstore.claim_job(settings, job.id, jobstore.worker_identity())
+    return store_with_scene(tmp_path, heartbeat_s=0.05)
 
 
 def test_lease_renews_and_reports_cancellation(settings):
-    job = _claimed(settings)
+    job = claimed_job(settings)
     before = jobstore.get_job(settings, job.id).heartbeat_at
     with Lease(settings, job.id, job.attempt) as lease:
         time.sleep(0.2)
@@ -43,7 +33,7 @@ def test_lease_renews_and_reports_cancellation(settings):
 
 
 def test_the_fence_says_no_for_a_stale_attempt_and_for_a_store_that_cannot_answer(settings):
-    job = _claimed(settings)
+    job = claimed_job(settings)
     assert Lease(settings, job.id, job.attempt).still_owned()
     stale = Lease(settings, job.id, job.attempt - 1)
     assert not stale.still_owned() and stale.lost.is_set() and stale.should_stop()

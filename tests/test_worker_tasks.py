@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from worker_fixtures import SCENE, claimed_job, store_with_scene
 
 from app.core import jobstore
 from app.core.render_results import receive_outcome
@@ -18,26 +19,16 @@ from voxnerf.errors import SceneError
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
 from worker import tasks
 
-SCENE = "a" * 32
-
 
 @pytest.fixture
 def settings(tmp_path, monkeypatch) -> Settings:
-    s = Settings(data_dir=tmp_path / "data", progress_interval_s=60.0, heartbeat_s=0.05, max_render_pixels=100)
-    s.make_dirs()
-    (s.scenes_dir / SCENE).mkdir()
-    jobstore.add_scene(s, SCENE, "room", {"frames": 1}, 10)
+    s = store_with_scene(tmp_path, progress_interval_s=60.0, heartbeat_s=0.05, max_render_pixels=100)
     monkeypatch.setattr(tasks, "get_settings", lambda: s)
     return s
 
 
-def _claimed(settings: Settings) -> jobstore.JobRow:
-    job = jobstore.create_job(settings, SCENE, {"max_iters": 50, "compile": False})
-    return jobstore.claim_job(settings, job.id, jobstore.worker_identity())
-
-
 def test_progress_writer_writes_each_stage_then_one_event_per_interval(settings):
-    job = _claimed(settings)
+    job = claimed_job(settings)
     writer = tasks.ProgressWriter(settings, job.id, job.attempt)
     writer(ProgressEvent(stage="load_scene"))
     assert jobstore.get_job(settings, job.id).stage == "load_scene"
@@ -51,7 +42,7 @@ def test_progress_writer_writes_each_stage_then_one_event_per_interval(settings)
 
 
 def test_progress_writer_never_goes_back_and_leaves_done_to_the_task(settings):
-    job = _claimed(settings)
+    job = claimed_job(settings)
     writer = tasks.ProgressWriter(settings, job.id, job.attempt)
     writer(ProgressEvent(stage="train", iteration=30, progress=0.6))
     writer(ProgressEvent(stage="checkpoint", iteration=0, progress=0.0))  # stage events carry iteration 0
@@ -63,7 +54,7 @@ def test_progress_writer_never_goes_back_and_leaves_done_to_the_task(settings):
 
 
 def test_a_fenced_off_writer_writes_nothing(settings):
-    job = _claimed(settings)
+    job = claimed_job(settings)
     stale = tasks.ProgressWriter(settings, job.id, job.attempt - 1)
     stale(ProgressEvent(stage="train", iteration=7, progress=0.3))
     assert jobstore.get_job(settings, job.id).iteration == 0

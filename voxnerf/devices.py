@@ -26,8 +26,9 @@ def compute_environment(device: torch.device) -> dict[str, str | int | bool | No
     """How this process computes, as report.json's ``runtime`` records it: the device, torch's intra-op and
     inter-op threads, the cores the process may run on, the OpenMP settings it loaded with (the environment's
     ``OMP_WAIT_POLICY`` and ``OMP_NUM_THREADS``, None where unset: the runtime's default) and whether the
-    plain-C kernels (hash encoding, octree tracing) load here. A run trained by a service worker and one trained by
-    ``voxnerf train`` on the same machine record the same values (``tests/test_service_runtime.py``)."""
+    process has loaded the plain-C kernels (hash encoding, octree tracing); asking builds nothing. A run trained
+    by a service worker and one trained by ``voxnerf train`` on the same machine record the same values
+    (``tests/test_service_runtime.py``)."""
     return {
         "device": str(device),
         "torch": torch.__version__,
@@ -36,6 +37,6 @@ def compute_environment(device: torch.device) -> dict[str, str | int | bool | No
         "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        "hash_kernel": hash_kernel.available(),
-        "octree_kernel": octree.kernel_available(),
+        "hash_kernel": hash_kernel.loaded(),
+        "octree_kernel": octree.kernel_loaded(),
     }

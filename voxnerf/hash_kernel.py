@@ -40,6 +40,11 @@ def available() -> bool:
     return not isinstance(_library(), str)
 
 
+def loaded() -> bool:
+    """Whether this process has loaded the kernel (nothing is built or loaded to answer)."""
+    return native.loaded(_library)
+
+
 def unavailable_reason() -> str | None:
     lib = _library()
     return lib if isinstance(lib, str) else None

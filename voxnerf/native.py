@@ -9,6 +9,7 @@ one line and the callers keep their pure-PyTorch paths.
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import shutil
@@ -42,6 +43,12 @@ def _build(compiler: str, source: Path, target: Path) -> None:
         os.replace(partial, target)
     finally:
         partial.unlink(missing_ok=True)
+
+
+def loaded(library: functools._lru_cache_wrapper) -> bool:
+    """Whether ``library`` (a cached loader of :func:`load`) has loaded its kernel in this process, without
+    building or loading it."""
+    return library.cache_info().currsize > 0 and not isinstance(library(), str)
 
 
 def load(source: Path, signatures: dict[str, list]) -> ctypes.CDLL | str:

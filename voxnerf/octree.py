@@ -448,6 +448,11 @@ def _trace_library() -> ctypes.CDLL | str:
     return native.load(_TRACE_SOURCE, {"octree_first_hit": signature})
 
 
+def kernel_loaded() -> bool:
+    """Whether this process has loaded the tracing kernel (nothing is built or loaded to answer)."""
+    return native.loaded(_trace_library)
+
+
 def kernel_available() -> bool:
     """Whether the C tracing kernel is built and loaded (building it on the first call)."""
     return not isinstance(_trace_library(), str)
