@@ -251,7 +251,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2, help="runs of each path, in rotated order")
     parser.add_argument("--renders", type=int, default=5, help="timed renders per measurement")
     parser.add_argument("--video-frames", type=int, default=12)
-    parser.add_argument("--out", type=Path, default=REPO / "docs" / "bench" / "service_speed")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "service_speed")
     parser.add_argument("--write-docs", action="store_true", help=f"replace the {SECTION} section of {DOC}")
     args = parser.parse_args()
     results: dict = {

@@ -26,7 +26,7 @@ def openmp_wait_policy(queues: Sequence[str]) -> str | None:
     with ``PASSIVE`` each one ends in a sleep and starts with a wake-up, and a job trained several times slower
     than the CLI. A render worker shares the cores with a training job: with spinning threads its views wait
     for a sibling thread the scheduler has taken the core from. docs/performance.md ("OpenMP threads in the
-    workers") measures both.
+    workers") says why; benchmarks/results/service_speed/notes.md holds the measurements.
     """
     return None if TRAIN_QUEUE in queues else "PASSIVE"
 
