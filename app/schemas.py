@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from app.core import outputs, progress
 from app.core.models import JOB_STATES, OUTPUT_KINDS
-from voxnerf.camera_path import MAX_FPS
+from voxnerf.cameras.paths import MAX_FPS
 from voxnerf.config import TrainConfig
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord
 
@@ -43,7 +43,7 @@ class PriorSummary(BaseModel):
 
 
 class SceneSummary(BaseModel):
-    """What :func:`voxnerf.scene.inspect_scene` found in the upload."""
+    """What :func:`voxnerf.data.scene.inspect_scene` found in the upload."""
 
     model_config = ConfigDict(extra="allow")
 
@@ -61,7 +61,7 @@ class SceneSummary(BaseModel):
 
 
 class ImportSummary(BaseModel):
-    """What an importer (:mod:`voxnerf.importers`) made of a COLMAP or ScanNet upload."""
+    """What an importer (:mod:`voxnerf.data.importers`) made of a COLMAP or ScanNet upload."""
 
     model_config = ConfigDict(extra="allow")
 
@@ -310,7 +310,7 @@ MAX_OUTPUT_SIDE = 16384
 
 class VideoRequest(BaseModel):
     """A fly-through video (H.264 MP4) of a trained job: either ``camera_path`` (nerfstudio's camera-path JSON,
-    as its viewer's Render panel writes it, checked by :func:`voxnerf.camera_path.parse_nerfstudio`), or a
+    as its viewer's Render panel writes it, checked by :func:`voxnerf.cameras.paths.parse_nerfstudio`), or a
     generated ``path``: ``interpolate`` (a smooth path through the scene's training cameras) or ``orbit``
     (one turn around their centre), with ``frames``, ``fps`` and optionally ``width``/``height`` (default:
     the scene's size), ``radius`` and ``height_above`` (scene units; orbit only). Sizes must be even."""
@@ -350,7 +350,7 @@ class VideoRequest(BaseModel):
 
 class ExportRequest(BaseModel):
     """Geometry of a trained job: a triangle ``mesh`` or a coloured ``pointcloud``, as binary PLY in scene
-    units (:func:`voxnerf.export.export_geometry`)."""
+    units (:func:`voxnerf.inference.export.export_geometry`)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -468,7 +468,7 @@ class PriorPreviewOut(BaseModel):
 class CameraPathRequest(BaseModel):
     """A video path for the viewer: either ``keyframes`` (camera-to-world poses, scene units, in order) with
     ``frames`` and the camera (``width height fl_x fl_y cx cy``) to interpolate through them
-    (:func:`voxnerf.camera_path.interpolate_path`, as videos through training cameras do), or a nerfstudio
+    (:func:`voxnerf.cameras.paths.interpolate_path`, as videos through training cameras do), or a nerfstudio
     ``camera_path`` (with its ``dataparser_transforms`` when needed) to read back in scene units."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)

@@ -38,8 +38,8 @@ from app.upload_rules import (
     safe_relpath,
 )
 from app.upload_sandbox import validate_in_child
+from voxnerf.data.importers.splits import PaperSplitRule
 from voxnerf.files import TRANSFORMS
-from voxnerf.importers.splits import PaperSplitRule
 
 __all__ = ["TRANSFORMS", "StoredScene", "UploadError", "safe_relpath", "split_rule", "store_parts", "store_zip"]
 

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import torch
 
-from voxnerf.cameras import camera_rays
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.prior import load_prior
+from voxnerf.cameras.rays import camera_rays
+from voxnerf.prior.loading import load_prior
+from voxnerf.prior.octree import SparseVoxelOctree
 
 device, threads, sizes = sys.argv[1], int(sys.argv[2]), [int(x) for x in sys.argv[3].split(",")]
 torch.set_num_threads(threads)

@@ -29,9 +29,9 @@ from docs_section import replace_section
 CHILD = r"""
 import json, sys, time
 import numpy as np
-from voxnerf.cameras import Intrinsics
+from voxnerf.cameras.rays import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.render import load_model, render
+from voxnerf.inference.render import load_model, render
 from voxnerf.trainer import train
 scene, run, iters, downscale = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 cfg = TrainConfig(max_iters=iters, downscale=downscale, final_eval=False, eval_every_s=1e9)

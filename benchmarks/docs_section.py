@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from voxnerf.image_io import write_atomic
+from voxnerf.data.image_io import write_atomic
 
 
 def markers(name: str) -> tuple[str, str]:

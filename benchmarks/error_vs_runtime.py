@@ -38,8 +38,8 @@ from pathlib import Path
 from make_priors import SOURCES, make_priors, prior_scene_dir
 
 from voxnerf.config import TrainConfig
+from voxnerf.data.image_io import write_atomic
 from voxnerf.errors import SceneError
-from voxnerf.image_io import write_atomic
 from voxnerf.synthetic.suite import make_suite
 from voxnerf.synthetic.writer import RoomSpec
 

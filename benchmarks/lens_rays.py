@@ -12,8 +12,8 @@ import time
 
 import torch
 
-from voxnerf.camera_rules import Lens
-from voxnerf.lens import LensBatch
+from voxnerf.cameras.lens import LensBatch
+from voxnerf.cameras.rules import Lens
 from voxnerf.training.pixels import TrainingPixels, direction_table
 
 

@@ -25,7 +25,7 @@ import shutil
 import time
 from pathlib import Path
 
-from voxnerf.camera_rules import COEFFICIENT_KEYS
+from voxnerf.cameras.rules import COEFFICIENT_KEYS
 from voxnerf.config import TrainConfig
 from voxnerf.synthetic import RoomSpec, make_room_scene
 from voxnerf.training.run import train

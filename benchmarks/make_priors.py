@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from voxnerf.cameras import Intrinsics
+from voxnerf.cameras.rays import Intrinsics
+from voxnerf.data.image_io import read_depth
+from voxnerf.data.scene import load_scene
 from voxnerf.errors import SceneError
-from voxnerf.image_io import read_depth
-from voxnerf.scene import load_scene
 
 SOURCES = ("monosdf", "slam", "tsdf")
 SIGMA_FLOOR = 0.01

@@ -19,8 +19,8 @@ import torch
 from docs_section import replace_section
 
 from voxnerf.config import TrainConfig
-from voxnerf.field import RadianceField
-from voxnerf.model import field_for
+from voxnerf.model.field import RadianceField
+from voxnerf.model.voxnerf_model import field_for
 
 IMPLEMENTATIONS = {"loop": {"foreach": False}, "foreach": {"foreach": True}, "fused": {"fused": True}}
 

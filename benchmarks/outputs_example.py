@@ -31,9 +31,9 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from docs_section import publish  # noqa: E402
 
-from voxnerf.depth_fusion import DepthView, backproject  # noqa: E402
-from voxnerf.export import distances_to_mesh  # noqa: E402
-from voxnerf.scene import load_scene  # noqa: E402
+from voxnerf.data.scene import load_scene  # noqa: E402
+from voxnerf.inference.export import distances_to_mesh  # noqa: E402
+from voxnerf.prior.depth_fusion import DepthView, backproject  # noqa: E402
 
 DOC = REPO / "docs" / "outputs.md"
 SECTION = "outputs-example"

@@ -20,12 +20,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from voxnerf.data.scene import load_scene  # noqa: E402
 from voxnerf.files import CHECKPOINT  # noqa: E402
-from voxnerf.model import VoxNeRFModel  # noqa: E402
-from voxnerf.render import render_normalized, scene_as_trained  # noqa: E402
-from voxnerf.scene import load_scene  # noqa: E402
+from voxnerf.inference.render import render_normalized, scene_as_trained  # noqa: E402
+from voxnerf.model.voxnerf_model import VoxNeRFModel  # noqa: E402
 from voxnerf.training.checkpoint import load_checkpoint  # noqa: E402
-from voxnerf.training.evals import eval_views_of  # noqa: E402
+from voxnerf.training.eval_passes import eval_views_of  # noqa: E402
 
 
 def view_psnr(model: VoxNeRFModel, view) -> float:

@@ -37,14 +37,14 @@ sys.path.insert(0, str(REPO / "tests"))  # the process helpers the service tests
 from docs_section import publish  # noqa: E402
 from service_fixtures import start_service, wait_for, zip_scene  # noqa: E402
 
-from voxnerf.camera_rules import resolve_intrinsics  # noqa: E402
+from voxnerf.cameras.rules import resolve_intrinsics  # noqa: E402
 from voxnerf.config import TrainConfig  # noqa: E402
-from voxnerf.evaluation import evaluate_views  # noqa: E402
-from voxnerf.render import load_model, render  # noqa: E402
-from voxnerf.scene import load_scene  # noqa: E402
+from voxnerf.data.scene import load_scene  # noqa: E402
+from voxnerf.inference.evaluation import evaluate_views  # noqa: E402
+from voxnerf.inference.render import load_model, render  # noqa: E402
 from voxnerf.synthetic import RoomSpec, make_room_scene  # noqa: E402
 from voxnerf.trainer import train  # noqa: E402
-from voxnerf.training.evals import eval_views_of  # noqa: E402
+from voxnerf.training.eval_passes import eval_views_of  # noqa: E402
 
 DOC = REPO / "docs" / "performance.md"
 SECTION = "render-speed"

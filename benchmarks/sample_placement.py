@@ -26,11 +26,11 @@ import numpy as np
 import torch
 from suite import measure_runs, print_table
 
-from voxnerf.cameras import image_rays
-from voxnerf.render import load_model, render_normalized, scene_as_trained
-from voxnerf.samplers import VoxNeRFSampler
-from voxnerf.scene import depth_on_image, load_scene
-from voxnerf.training.evals import eval_views_of
+from voxnerf.cameras.rays import image_rays
+from voxnerf.data.scene import depth_on_image, load_scene
+from voxnerf.inference.render import load_model, render_normalized, scene_as_trained
+from voxnerf.model.samplers import VoxNeRFSampler
+from voxnerf.training.eval_passes import eval_views_of
 
 BANDS_M = (0.02, 0.05, 0.10)
 

@@ -13,7 +13,8 @@ splits and how each process computed (report.json's ``runtime``). With each serv
 rendering: the median of ``POST /render`` 320x240 PNG, that of an 8x6 PNG (whose latency is the service's own
 overhead: HTTP, queue, result file), ``render()`` of the same model and pose in this process (after a warm-up), and
 a video of ``--video-frames`` frames through the outputs worker (its ``render_seconds``: the first video of the
-worker's process, then a second one) against :func:`voxnerf.video.render_path` in this process (after a warm-up).
+worker's process, then a second one) against :func:`voxnerf.inference.video.render_path` in this process (after a
+warm-up).
 
 Scenes: the 160x120 path-traced room of ``voxnerf synth`` with its transforms.json's ``synthetic`` key removed,
 as a user would write it (so pose refinement and per-image appearance train too); with ``--redkitchen``, the
@@ -44,12 +45,12 @@ from docs_section import publish  # noqa: E402
 from service_fixtures import first_pose, start_redis, start_service, wait_for, zip_scene  # noqa: E402
 from service_latency import render_times  # noqa: E402
 
-from voxnerf import camera_path  # noqa: E402
-from voxnerf.camera_rules import resolve_intrinsics  # noqa: E402
-from voxnerf.render import load_model, render, scene_as_trained  # noqa: E402
-from voxnerf.scene import load_scene  # noqa: E402
+from voxnerf.cameras import paths as camera_path  # noqa: E402
+from voxnerf.cameras.rules import resolve_intrinsics  # noqa: E402
+from voxnerf.data.scene import load_scene  # noqa: E402
+from voxnerf.inference.render import load_model, render, scene_as_trained  # noqa: E402
+from voxnerf.inference.video import render_path  # noqa: E402
 from voxnerf.synthetic import RoomSpec, make_room_scene  # noqa: E402
-from voxnerf.video import render_path  # noqa: E402
 
 DOC = REPO / "docs" / "performance.md"
 SECTION = "service-speed"

@@ -39,7 +39,7 @@ from pathlib import Path
 from docs_section import publish
 from error_vs_runtime import QUICK_TRAIN_ARGS, train_command
 
-from voxnerf.image_io import write_atomic
+from voxnerf.data.image_io import write_atomic
 
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 DOCS_SECTION = "suite"

@@ -25,11 +25,11 @@ import torch
 import trimesh
 from suite import measure_runs, print_table
 
-from voxnerf.depth_fusion import DepthView, backproject
-from voxnerf.export import distances_to_mesh, export_geometry
-from voxnerf.render import load_model, render_normalized, scene_as_trained
-from voxnerf.scene import load_scene
-from voxnerf.training.evals import eval_views_of
+from voxnerf.data.scene import load_scene
+from voxnerf.inference.export import distances_to_mesh, export_geometry
+from voxnerf.inference.render import load_model, render_normalized, scene_as_trained
+from voxnerf.prior.depth_fusion import DepthView, backproject
+from voxnerf.training.eval_passes import eval_views_of
 
 SEEN_SPLIT = "interpolation"
 

@@ -1,5 +1,5 @@
 """Training throughput (samples/s, rays/s) and render time, eager against torch.compile and the hash
-encoding in PyTorch against its C kernel (voxnerf/hash_kernel.py), side by side.
+encoding in PyTorch against its C kernel (voxnerf/model/hash_kernel.py), side by side.
 
 Runs on one scene (default: the synthetic 160x120 room, generated into a temp dir), alternating the four
 configurations in one process so all see the same machine load, and replaces the marked ``throughput``
@@ -22,10 +22,10 @@ from pathlib import Path
 import torch
 from docs_section import replace_section
 
-from voxnerf import hash_kernel
-from voxnerf.cameras import Intrinsics
+from voxnerf.cameras.rays import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.render import load_model, render
+from voxnerf.inference.render import load_model, render
+from voxnerf.model import hash_kernel
 from voxnerf.synthetic import RoomSpec, make_room_scene
 from voxnerf.training.run import train
 

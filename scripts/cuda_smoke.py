@@ -28,10 +28,10 @@ def prepare(out: Path) -> None:
 
 def run(root: Path) -> None:
     from voxnerf.config import TrainConfig
-    from voxnerf.model import VoxNeRFModel
-    from voxnerf.octree import SparseVoxelOctree
-    from voxnerf.render import load_model, render, render_normalized
-    from voxnerf.scene import load_scene
+    from voxnerf.data.scene import load_scene
+    from voxnerf.inference.render import load_model, render, render_normalized
+    from voxnerf.model.voxnerf_model import VoxNeRFModel
+    from voxnerf.prior.octree import SparseVoxelOctree
     from voxnerf.training.run import train
 
     assert torch.cuda.is_available(), "no CUDA device"

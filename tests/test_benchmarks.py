@@ -234,8 +234,8 @@ def _fake_peer_run(scene_dir: Path, out: Path) -> None:
     held-out images themselves), timeline.csv and run.json."""
     import numpy as np
 
-    from voxnerf.image_io import encode_png, read_rgb, write_atomic
-    from voxnerf.scene import load_scene
+    from voxnerf.data.image_io import encode_png, read_rgb, write_atomic
+    from voxnerf.data.scene import load_scene
 
     scene = load_scene(scene_dir, load_images=False)
     for t in ("30", "60"):

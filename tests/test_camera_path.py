@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from voxnerf.camera_path import (
+from voxnerf.cameras.paths import (
     MAX_FRAMES,
     CameraPath,
     CameraPathError,
@@ -26,7 +26,7 @@ from voxnerf.camera_path import (
     slerp,
     to_dataparser_frame,
 )
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.rules import Intrinsics
 
 CAMERA = Intrinsics(fl_x=40.0, fl_y=40.0, cx=16.0, cy=12.0, width=32, height=24)
 
@@ -65,7 +65,7 @@ def _doc(poses: np.ndarray, fov: float = 60.0, width: int = 32, height: int = 24
 
 
 def test_module_does_not_import_torch():
-    code = "import sys, voxnerf.camera_path; assert 'torch' not in sys.modules, 'torch imported'"
+    code = "import sys, voxnerf.cameras.paths; assert 'torch' not in sys.modules, 'torch imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -378,7 +378,7 @@ def test_camera_path_refuses_mixed_sizes_lenses_and_count_mismatch(intrinsics, k
 
 def _ring(n: int) -> np.ndarray:
     """n cameras on a horizontal circle of radius 2 (z up), looking at the origin, in capture order."""
-    from voxnerf.camera_path import look_at
+    from voxnerf.cameras.paths import look_at
 
     angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
     return np.stack([look_at(np.array([2 * np.cos(a), 2 * np.sin(a), 0.0]), np.zeros(3), np.array([0.0, 0, 1]))
@@ -386,7 +386,7 @@ def _ring(n: int) -> np.ndarray:
 
 
 def test_generated_interpolation_thins_the_cameras_to_one_per_eight_frames():
-    from voxnerf.camera_path import FRAMES_PER_KEY, generated_path
+    from voxnerf.cameras.paths import FRAMES_PER_KEY, generated_path
 
     poses = _ring(20)
     path = generated_path("interpolate", poses, CAMERA, n_frames=4 * FRAMES_PER_KEY, fps=10.0)
@@ -397,7 +397,7 @@ def test_generated_interpolation_thins_the_cameras_to_one_per_eight_frames():
 
 
 def test_generated_orbit_circles_the_cameras_centre_at_their_radius():
-    from voxnerf.camera_path import generated_path
+    from voxnerf.cameras.paths import generated_path
 
     path = generated_path("orbit", _ring(12), CAMERA, n_frames=8)
     np.testing.assert_allclose(np.linalg.norm(path.poses[:, :2, 3], axis=1), 2.0, atol=1e-9)
@@ -414,7 +414,7 @@ def test_generated_orbit_circles_the_cameras_centre_at_their_radius():
     ],
 )
 def test_generated_paths_refuse_what_they_cannot_make(kind, poses, options, key):
-    from voxnerf.camera_path import generated_path
+    from voxnerf.cameras.paths import generated_path
 
     with pytest.raises(CameraPathError) as err:
         generated_path(kind, poses, CAMERA, **{"n_frames": 16, **options})
@@ -422,7 +422,7 @@ def test_generated_paths_refuse_what_they_cannot_make(kind, poses, options, key)
 
 
 def test_one_camera_gives_a_still_path():
-    from voxnerf.camera_path import generated_path
+    from voxnerf.cameras.paths import generated_path
 
     path = generated_path("interpolate", _ring(1), CAMERA, n_frames=5)
     assert len(path) == 5 and np.allclose(path.poses, _ring(1)[0])

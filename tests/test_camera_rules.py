@@ -1,4 +1,4 @@
-"""voxnerf.camera_rules: the pose and intrinsics rules shared by scenes, the CLI, the Python API and REST."""
+"""voxnerf.cameras.rules: the pose and intrinsics rules shared by scenes, the CLI, the Python API and REST."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from voxnerf.camera_rules import (
+from voxnerf.cameras.rules import (
     REPAIR_WARNING_ABOVE,
     ROTATION_TOLERANCE,
     CameraError,
@@ -217,14 +217,15 @@ def test_intrinsics_scaled_and_as_dict():
 
 
 def test_cameras_and_scene_re_export_the_same_objects():
-    from voxnerf import cameras, scene
+    from voxnerf.cameras import rays as cameras
+    from voxnerf.data import scene
 
     assert cameras.Intrinsics is Intrinsics
     assert scene.ROTATION_TOLERANCE is ROTATION_TOLERANCE
 
 
 def test_camera_rules_and_outputs_import_no_torch():
-    code = "import sys, voxnerf.camera_rules, voxnerf.outputs; sys.exit(1 if 'torch' in sys.modules else 0)"
+    code = "import sys, voxnerf.cameras.rules, voxnerf.inference.encoding; sys.exit(1 if 'torch' in sys.modules else 0)"
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 
 

@@ -1,4 +1,4 @@
-"""voxnerf.cameras: pinhole rays in the OpenGL convention (camera looks along -Z, +Y up, +X right)."""
+"""voxnerf.cameras.rays: pinhole rays in the OpenGL convention (camera looks along -Z, +Y up, +X right)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf.cameras import Intrinsics, camera_rays, image_rays
+from voxnerf.cameras.rays import Intrinsics, camera_rays, image_rays
 
 
 def _c2w(rot: np.ndarray | None = None, t=(0.0, 0.0, 0.0)) -> torch.Tensor:

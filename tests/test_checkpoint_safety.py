@@ -19,7 +19,7 @@ from voxnerf.cli import main
 from voxnerf.config import TrainConfig
 from voxnerf.errors import RunError
 from voxnerf.files import CHECKPOINT
-from voxnerf.render import load_model
+from voxnerf.inference.render import load_model
 from voxnerf.training.checkpoint import check_plain, load_checkpoint, save_atomic_torch
 from voxnerf.training.run import train
 

@@ -10,9 +10,9 @@ import pytest
 from tiny_run import DEFAULT_INTRINSICS, DEPTH_UNIT_SCALE, write_tiny_run
 
 from voxnerf.cli import MAX_RENDER_PIXELS, main
-from voxnerf.image_io import decode_exr, read_png_header
-from voxnerf.outputs import encode_outputs
-from voxnerf.render import load_model, render
+from voxnerf.data.image_io import decode_exr, read_png_header
+from voxnerf.inference.encoding import encode_outputs
+from voxnerf.inference.render import load_model, render
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +43,7 @@ def test_png_render_writes_rgb_and_optionally_depth_and_gray_opacity(run, tmp_pa
     assert read_png_header(out / "view_depth.png")[2:] == (16, 0)  # 16-bit gray
     assert read_png_header(out / "view_opacity.png")[2:] == (8, 0)  # 8-bit gray, one channel
     assert iio.imread(out / "view_opacity.png").shape == (h, w)
-    # the same bytes as the Python API's render encoded by voxnerf.outputs
+    # the same bytes as the Python API's render encoded by voxnerf.inference.encoding
     images = render(load_model(run, "cpu"), np.asarray(_pose()))
     for name, file in (("rgb", "view.png"), ("depth", "view_depth.png"), ("opacity", "view_opacity.png")):
         assert (out / file).read_bytes() == encode_outputs(images, "png", [name], DEPTH_UNIT_SCALE), name

@@ -13,12 +13,12 @@ import pytest
 import torch
 from tiny_run import DEFAULT_INTRINSICS, write_tiny_run
 
-from voxnerf.camera_path import FRAMES_PER_KEY, read_nerfstudio
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.paths import FRAMES_PER_KEY, read_nerfstudio
+from voxnerf.cameras.rules import Intrinsics
 from voxnerf.cli import main
-from voxnerf.outputs import encode_outputs
-from voxnerf.render import CHECKPOINT, load_model, render
-from voxnerf.scene import load_scene
+from voxnerf.data.scene import load_scene
+from voxnerf.inference.encoding import encode_outputs
+from voxnerf.inference.render import CHECKPOINT, load_model, render
 
 N_FRAMES = 9  # frames 0 and 8 are held out (every eighth): 7 training cameras
 
@@ -190,7 +190,7 @@ def test_frame_at_another_size_scales_its_camera(run, scene, tmp_path):
     frame = load_scene(scene, load_images=False).frames[2]
     camera = Intrinsics(40.0, 36.0, 15.0, 13.0, 32, 24)
     assert frame.intrinsics.scaled(2.0) == camera
-    from voxnerf.image_io import decode_exr
+    from voxnerf.data.image_io import decode_exr
 
     channels = decode_exr((tmp_path / "view.exr").read_bytes())
     np.testing.assert_allclose(channels["Z"], render(load_model(run, "cpu"), frame.c2w, camera, ["depth"])["depth"],

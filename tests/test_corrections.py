@@ -12,9 +12,9 @@ import torch
 from synthetic_fixtures import make_micro_scene, meta_of, micro_config
 
 from voxnerf.config import TrainConfig
+from voxnerf.data.scene import load_scene
 from voxnerf.errors import SceneError
 from voxnerf.files import REFINED_POSES
-from voxnerf.scene import load_scene
 from voxnerf.training.corrections import corrections_stage
 from voxnerf.training.run import train
 from voxnerf.training.stages import model_stage

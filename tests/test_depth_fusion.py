@@ -1,4 +1,5 @@
-"""The TSDF prior from depth maps (voxnerf/depth_fusion.py): geometry, the measured noise, bad and extreme depth."""
+"""The TSDF prior from depth maps (voxnerf/prior/depth_fusion.py): geometry, the measured noise, bad and extreme
+depth."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import open3d as o3d
 import pytest
 import trimesh
 
-from voxnerf.camera_rules import Intrinsics
-from voxnerf.depth_fusion import (
+from voxnerf.cameras.rules import Intrinsics
+from voxnerf.prior.depth_fusion import (
     DepthView,
     FusionError,
     backproject,

@@ -8,9 +8,10 @@ import os
 import pytest
 import torch
 
-from voxnerf import hash_kernel, octree
 from voxnerf.devices import compute_environment, resolve_device
 from voxnerf.errors import VoxNeRFError
+from voxnerf.model import hash_kernel
+from voxnerf.prior import octree
 
 
 def test_auto_picks_cuda_only_when_present():

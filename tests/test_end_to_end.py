@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf import hash_kernel
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
-from voxnerf.evaluation import evaluate_views
-from voxnerf.image_io import decode_exr
-from voxnerf.render import load_model, render
-from voxnerf.scene import load_scene
+from voxnerf.data.image_io import decode_exr
+from voxnerf.data.scene import load_scene
+from voxnerf.inference.evaluation import evaluate_views
+from voxnerf.inference.render import load_model, render
+from voxnerf.model import hash_kernel
 from voxnerf.synthetic import build_room, render_view
-from voxnerf.training.evals import eval_views_of
+from voxnerf.training.eval_passes import eval_views_of
 from voxnerf.training.run import train
 
 pytestmark = pytest.mark.slow

@@ -1,4 +1,4 @@
-"""voxnerf.evaluation: every view of every split rendered and scored, renders written, LPIPS left out with a
+"""voxnerf.inference.evaluation: every view of every split rendered and scored, renders written, LPIPS left out with a
 note when views are too small for its network."""
 
 from __future__ import annotations
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf.cameras import Intrinsics
+from voxnerf.cameras.rays import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.evaluation import EvalView, evaluate_views, lpips_model
-from voxnerf.image_io import read_rgb
-from voxnerf.model import VoxNeRFModel
-from voxnerf.scene import SceneTransform
+from voxnerf.data.image_io import read_rgb
+from voxnerf.data.scene import SceneTransform
+from voxnerf.inference.evaluation import EvalView, evaluate_views, lpips_model
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 
 SMALL = dict(compile=False, hash_kernel=False, hash_levels=4, hash_log2_size=12, hidden_dim=16,
              occgrid_resolution=8, sampler="uniform", eval_chunk=256)

@@ -1,4 +1,5 @@
-"""Geometry export (voxnerf/export.py, ``voxnerf export``): a briefly trained small room's mesh and point cloud
+"""Geometry export (voxnerf/inference/export.py, ``voxnerf export``): a briefly trained small room's mesh and point
+cloud
 against the room's true mesh, in scene units; the failure paths on an untrained tiny run (tests/tiny_run.py)."""
 
 from __future__ import annotations
@@ -13,11 +14,18 @@ from tiny_run import DEFAULT_INTRINSICS, write_tiny_run
 
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
-from voxnerf.depth_fusion import DepthView, backproject
+from voxnerf.data.scene import Frame, Scene, load_scene
 from voxnerf.errors import VoxNeRFError
-from voxnerf.export import EXPORT_KINDS, ExportError, distances_to_mesh, export_geometry, fuse_mesh, point_cloud
-from voxnerf.render import load_model
-from voxnerf.scene import Frame, Scene, load_scene
+from voxnerf.inference.export import (
+    EXPORT_KINDS,
+    ExportError,
+    distances_to_mesh,
+    export_geometry,
+    fuse_mesh,
+    point_cloud,
+)
+from voxnerf.inference.render import load_model
+from voxnerf.prior.depth_fusion import DepthView, backproject
 from voxnerf.training.run import train
 
 # Measured on the fixture below (small_room, 250 iterations of 1024 rays, CPU, seed 0; exports at 2 cm): see

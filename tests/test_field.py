@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from voxnerf import hash_kernel
-from voxnerf.field import HashEncoding, RadianceField, spherical_harmonics_deg4, trunc_exp
+from voxnerf.model import hash_kernel
+from voxnerf.model.field import HashEncoding, RadianceField, spherical_harmonics_deg4, trunc_exp
 
 
 def test_hash_encoding_interpolates_trilinearly_on_dense_level():

@@ -1,5 +1,6 @@
-"""The colour focal length checked against the prior (voxnerf/focal_check.py, voxnerf/training/focal.py) and the
-scene seen through a corrected one (voxnerf/scene.py's with_focal_scale, voxnerf/render.py's scene_as_trained)."""
+"""The colour focal length checked against the prior (voxnerf/prior/focal_check.py, voxnerf/training/focal.py) and the
+scene seen through a corrected one (voxnerf/data/scene.py's with_focal_scale, voxnerf/inference/render.py's
+scene_as_trained)."""
 
 from __future__ import annotations
 
@@ -16,11 +17,11 @@ import trimesh
 from synthetic_fixtures import micro_config
 
 from voxnerf.config import TrainConfig
-from voxnerf.focal_check import check_focal, image_pairs
-from voxnerf.prior import load_prior
-from voxnerf.pseudo_depth import MeshCaster
-from voxnerf.render import load_model, scene_as_trained
-from voxnerf.scene import depth_on_image, load_scene, read_depth_map, with_focal_scale
+from voxnerf.data.scene import depth_on_image, load_scene, read_depth_map, with_focal_scale
+from voxnerf.inference.render import load_model, scene_as_trained
+from voxnerf.prior.focal_check import check_focal, image_pairs
+from voxnerf.prior.loading import load_prior
+from voxnerf.prior.pseudo_depth import MeshCaster
 from voxnerf.synthetic import RoomSpec, make_room_scene
 from voxnerf.training.focal import focal_stage
 from voxnerf.training.run import train
@@ -124,7 +125,7 @@ def test_the_stage_leaves_lens_models_and_several_cameras_alone(captured: Path):
     moved = replace(scene.frames[first].intrinsics, cx=10.0)
     two_cameras.frames[first] = replace(scene.frames[first], intrinsics=moved)
     assert "from 2 cameras" in focal_stage(micro_config(), two_cameras, prior).record.why
-    from voxnerf.camera_rules import Lens
+    from voxnerf.cameras.rules import Lens
 
     lens = Lens("OPENCV", k1=0.01)
     with_lens = replace(scene, frames=[replace(f, intrinsics=replace(f.intrinsics, lens=lens)) for f in scene.frames])

@@ -6,11 +6,11 @@ import json
 import pytest
 import torch
 
-from voxnerf import hash_kernel
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
-from voxnerf.field import HashEncoding
-from voxnerf.model import field_for
+from voxnerf.model import hash_kernel
+from voxnerf.model.field import HashEncoding
+from voxnerf.model.voxnerf_model import field_for
 from voxnerf.training.run import train
 
 pytestmark = pytest.mark.skipif(not hash_kernel.available(), reason="the hash kernel could not be built here")

@@ -21,8 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from voxnerf.cli import main
+from voxnerf.data.scene import inspect_scene, load_scene
 from voxnerf.errors import SceneError
-from voxnerf.scene import inspect_scene, load_scene
 
 W, H = 8, 6
 SECONDS_PER_DOCUMENT = 10.0  # generous on a loaded 2-core machine; a valid document takes ~50 ms

@@ -1,4 +1,4 @@
-"""Tests of voxnerf.image_io: PNG/JPEG/depth reading, PNG/EXR encoding and atomic writes."""
+"""Tests of voxnerf.data.image_io: PNG/JPEG/depth reading, PNG/EXR encoding and atomic writes."""
 
 from __future__ import annotations
 
@@ -12,8 +12,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from voxnerf.errors import SceneError
-from voxnerf.image_io import (
+from voxnerf.data.image_io import (
     decode_exr,
     encode_depth_png16,
     encode_exr,
@@ -23,6 +22,7 @@ from voxnerf.image_io import (
     read_rgb,
     write_atomic,
 )
+from voxnerf.errors import SceneError
 
 
 def _png_chunk(kind: bytes, payload: bytes) -> bytes:

@@ -1,11 +1,11 @@
-"""The noise of an image measured from the image alone (voxnerf/image_noise.py)."""
+"""The noise of an image measured from the image alone (voxnerf/data/image_noise.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from voxnerf.image_noise import images_noise_sigma, noise_sigma
+from voxnerf.data.image_noise import images_noise_sigma, noise_sigma
 
 
 def _plane(h=120, w=160):

@@ -12,9 +12,9 @@ import pytest
 import trimesh
 
 from voxnerf.cli import main
+from voxnerf.data.importers import PaperSplitRule, import_colmap, paper_splits
+from voxnerf.data.importers.colmap import CAMERA_MODELS
 from voxnerf.errors import SceneError
-from voxnerf.importers import PaperSplitRule, import_colmap, paper_splits
-from voxnerf.importers.colmap import CAMERA_MODELS
 
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
 needs_redkitchen = pytest.mark.skipif(
@@ -187,7 +187,7 @@ def test_binary_model_reads_the_same(project, tmp_path):
 
 @needs_redkitchen
 def test_imported_scene_loads(small, tmp_path):
-    from voxnerf.scene import inspect_scene
+    from voxnerf.data.scene import inspect_scene
 
     import_colmap(small, tmp_path / "scene")
     summary = inspect_scene(tmp_path / "scene")

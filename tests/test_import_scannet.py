@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from voxnerf.cli import main
+from voxnerf.data.importers import PaperSplitRule, import_scannet, paper_splits
 from voxnerf.errors import SceneError
-from voxnerf.importers import PaperSplitRule, import_scannet, paper_splits
 
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
 needs_redkitchen = pytest.mark.skipif(
@@ -105,7 +105,7 @@ def test_without_splits_no_split_keys(small_export, tmp_path):
 
 @needs_redkitchen
 def test_imported_scene_loads(small_export, tmp_path):
-    from voxnerf.scene import inspect_scene
+    from voxnerf.data.scene import inspect_scene
 
     import_scannet(small_export, tmp_path / "scene")
     summary = inspect_scene(tmp_path / "scene")
@@ -217,7 +217,7 @@ def test_a_smaller_depth_camera_is_registered_to_the_colour_images(small_export,
     320x240 with their own intrinsics; the imported scene registers them to the colour pixels on load."""
     import imageio.v3 as iio
 
-    from voxnerf.scene import load_scene
+    from voxnerf.data.scene import load_scene
 
     originals = {}
     for path in (small_export / "depth").iterdir():

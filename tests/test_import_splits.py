@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from voxnerf.importers.splits import PaperSplitRule, SplitError, paper_splits, split_keys
+from voxnerf.data.importers.splits import PaperSplitRule, SplitError, paper_splits, split_keys
 
 
 def check_properties(n: int, rule: PaperSplitRule) -> None:

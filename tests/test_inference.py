@@ -1,4 +1,4 @@
-"""voxnerf.inference: the fast path composites exactly what the full path does up to its stated bounds, skips
+"""voxnerf.inference.fast_path: the fast path composites exactly what the full path does up to its stated bounds, skips
 what cannot change a pixel, stays finite on stiff fields, and runs the MLPs in bfloat16 only where asked."""
 
 from __future__ import annotations
@@ -8,14 +8,21 @@ import math
 import pytest
 import torch
 
-from voxnerf import inference
 from voxnerf.config import TrainConfig
+from voxnerf.data.scene import SceneTransform
 from voxnerf.errors import RunError
-from voxnerf.inference import FastSettings, FieldRunner, field_runner, linear_relu, native_bfloat16, render_rays_fast
-from voxnerf.model import VoxNeRFModel
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.render import render_normalized, resolved_render_path
-from voxnerf.scene import SceneTransform
+from voxnerf.inference import fast_path as inference
+from voxnerf.inference.fast_path import (
+    FastSettings,
+    FieldRunner,
+    field_runner,
+    linear_relu,
+    native_bfloat16,
+    render_rays_fast,
+)
+from voxnerf.inference.render import render_normalized, resolved_render_path
+from voxnerf.model.voxnerf_model import VoxNeRFModel
+from voxnerf.prior.octree import SparseVoxelOctree
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 SMALL = dict(compile=False, hash_kernel=False, hash_levels=4, hash_log2_size=12, hidden_dim=16,
@@ -143,7 +150,7 @@ def test_auto_precision_is_bfloat16_only_where_the_device_has_it():
 
 
 def test_render_normalized_takes_either_path_and_refuses_others():
-    from voxnerf.cameras import Intrinsics
+    from voxnerf.cameras.rays import Intrinsics
 
     model = _model()
     intr = Intrinsics(fl_x=10.0, fl_y=10.0, cx=6.0, cy=4.0, width=12, height=8)

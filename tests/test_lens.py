@@ -1,4 +1,4 @@
-"""Lens distortion (voxnerf/lens.py): the forward models against OpenCV, the Newton inverses against
+"""Lens distortion (voxnerf/cameras/lens.py): the forward models against OpenCV, the Newton inverses against
 ``cv2.undistortPoints``, round trips, finiteness on extreme input; rays through a lens; and the synthetic room
 rendered through a lens, whose rays (as training builds them) hit the surface points the renderer saw."""
 
@@ -12,9 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf.camera_rules import Intrinsics, Lens
-from voxnerf.cameras import camera_rays, image_rays
-from voxnerf.lens import (
+from voxnerf.cameras.lens import (
     LensBatch,
     distort,
     distort_fisheye,
@@ -23,7 +21,9 @@ from voxnerf.lens import (
     lens_directions,
     undistort,
 )
-from voxnerf.scene import SceneTransform, load_scene
+from voxnerf.cameras.rays import camera_rays, image_rays
+from voxnerf.cameras.rules import Intrinsics, Lens
+from voxnerf.data.scene import SceneTransform, load_scene
 from voxnerf.synthetic import RoomSpec, build_room, make_room_scene
 from voxnerf.synthetic.raycast import _cast
 from voxnerf.training.pixels import training_pixels

@@ -2,7 +2,7 @@
 
 import torch
 
-from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss, log_huber
+from voxnerf.model.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss, log_huber
 
 
 def test_log_huber_values_and_continuity_at_beta():

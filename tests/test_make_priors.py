@@ -12,9 +12,9 @@ import open3d as o3d
 import pytest
 import trimesh
 
-from voxnerf.image_io import read_depth
-from voxnerf.prior import load_prior
-from voxnerf.scene import load_scene
+from voxnerf.data.image_io import read_depth
+from voxnerf.data.scene import load_scene
+from voxnerf.prior.loading import load_prior
 from voxnerf.synthetic import RoomSpec, make_room_scene
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "make_priors.py"

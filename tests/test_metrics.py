@@ -1,4 +1,4 @@
-"""Tests of voxnerf.metrics against independent references.
+"""Tests of voxnerf.inference.metrics against independent references.
 
 - SSIM against a plain-numpy implementation of Wang et al.'s formula (same Gaussian window, valid region).
 - LPIPS against a plain-numpy forward pass written directly in the checkpoint's flax layout (NHWC images,
@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from numpy.lib.stride_tricks import sliding_window_view
 
-from voxnerf.metrics import (
+from voxnerf.inference.metrics import (
     LPIPS,
     LPIPS_UNAVAILABLE,
     PSNR_MAX_DB,

@@ -1,4 +1,5 @@
-"""voxnerf.model: the ray-box slab test, the sampler a config chooses, clipping rays to the scene box, and a
+"""voxnerf.model.voxnerf_model: the ray-box slab test, the sampler a config chooses, clipping rays to the scene box,
+and a
 checkpoint's state dict that rebuilds the same model."""
 
 from __future__ import annotations
@@ -9,10 +10,10 @@ import pytest
 import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.model import NEAR_MIN, VoxNeRFModel, field_for, ray_aabb
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.samplers import OccGridSampler, UniformSampler, VoxNeRFSampler
-from voxnerf.scene import SceneTransform
+from voxnerf.data.scene import SceneTransform
+from voxnerf.model.samplers import OccGridSampler, UniformSampler, VoxNeRFSampler
+from voxnerf.model.voxnerf_model import NEAR_MIN, VoxNeRFModel, field_for, ray_aabb
+from voxnerf.prior.octree import SparseVoxelOctree
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 SMALL = dict(compile=False, hash_kernel=False, hash_levels=4, hash_log2_size=12, hidden_dim=16,

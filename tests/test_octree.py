@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf import octree
-from voxnerf.octree import SparseVoxelOctree, coverage_octree, kernel_available, morton_decode, morton_encode
+from voxnerf.prior import octree
+from voxnerf.prior.octree import SparseVoxelOctree, coverage_octree, kernel_available, morton_decode, morton_encode
 
 TINY = np.float32(1e-30)  # the octree's stand-in for zero direction components
 

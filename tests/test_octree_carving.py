@@ -1,4 +1,4 @@
-"""Free-space carving of the sampler octree by measured depth (voxnerf.octree_carving) and SparseVoxelOctree's
+"""Free-space carving of the sampler octree by measured depth (voxnerf.prior.carving) and SparseVoxelOctree's
 keep_leaves."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.octree_carving import MIN_FREE_VOTES, carve_free_space, remove_empty
+from voxnerf.prior.carving import MIN_FREE_VOTES, carve_free_space, remove_empty
+from voxnerf.prior.octree import SparseVoxelOctree
 
 LEAF = 0.05
 
@@ -109,7 +109,7 @@ def test_each_ray_votes_once_for_every_leaf_it_crosses_in_any_direction():
     origins = torch.rand(300, 3, generator=gen) * 0.2 - 0.1
     dirs = torch.nn.functional.normalize(torch.rand(300, 3, generator=gen) + 0.2, dim=1)
     until = torch.rand(300, generator=gen) * 1.5
-    from voxnerf.octree_carving import _free_votes
+    from voxnerf.prior.carving import _free_votes
 
     votes = _free_votes(tree, origins, dirs, until)
     t = torch.arange(1, 2000) * (0.1 / 50)
@@ -185,8 +185,8 @@ def micro_room(tmp_path_factory):
 def _short_falls(run) -> float:
     """Fraction of the run's training pixels with depth whose octree first hit lies more than the sampler's
     half window before the measured depth (the importance samples miss the surface the pixel sees)."""
-    from voxnerf.render import load_model
-    from voxnerf.scene import load_scene
+    from voxnerf.data.scene import load_scene
+    from voxnerf.inference.render import load_model
     from voxnerf.training.pixels import sensor_ray_distance, training_pixels
 
     trained = load_model(run, "cpu")

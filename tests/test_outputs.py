@@ -1,4 +1,4 @@
-"""voxnerf.outputs: every format and output encoded, then decoded back and compared."""
+"""voxnerf.inference.encoding: every format and output encoded, then decoded back and compared."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from voxnerf.image_io import decode_exr, read_png_header, srgb_to_linear
-from voxnerf.outputs import (
+from voxnerf.data.image_io import decode_exr, read_png_header, srgb_to_linear
+from voxnerf.inference.encoding import (
     FORMATS,
     MEDIA_TYPES,
     OUTPUT_NAMES,

@@ -52,7 +52,7 @@ def test_dev_extra_is_the_service_plus_the_test_tooling(project):
 
 def test_engine_imports_no_service_package():
     code = (
-        "import sys, voxnerf.cli, voxnerf.render, voxnerf.trainer, voxnerf.evaluation\n"
+        "import sys, voxnerf.cli, voxnerf.inference.render, voxnerf.trainer, voxnerf.inference.evaluation\n"
         "bad = sorted(m for m in ('fastapi', 'celery', 'sqlalchemy', 'redis', 'uvicorn', 'app', 'worker') "
         "if m in sys.modules)\n"
         "print(','.join(bad))"

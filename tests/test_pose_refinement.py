@@ -1,4 +1,4 @@
-"""Camera pose refinement (voxnerf/pose_refinement.py): the exponential map, the per-image correction of rays,
+"""Camera pose refinement (voxnerf/cameras/pose_refinement.py): the exponential map, the per-image correction of rays,
 its wiring into the loss (image rays only), recovery of a known pose error, and a training run that keeps it."""
 
 from __future__ import annotations
@@ -13,14 +13,14 @@ import torch
 from synthetic_fixtures import make_micro_scene, micro_config
 from tiny_run import tiny_model
 
-from voxnerf import hash_kernel
-from voxnerf import render as render_module
-from voxnerf.cameras import Intrinsics, camera_rays, image_rays
+from voxnerf.cameras.pose_refinement import PoseRefinement, refined_frames, so3_exp
+from voxnerf.cameras.rays import Intrinsics, camera_rays, image_rays
 from voxnerf.config import TrainConfig
-from voxnerf.model import VoxNeRFModel
-from voxnerf.pose_refinement import PoseRefinement, refined_frames, so3_exp
-from voxnerf.render import render_normalized
-from voxnerf.scene import SceneTransform, load_scene
+from voxnerf.data.scene import SceneTransform, load_scene
+from voxnerf.inference import render as render_module
+from voxnerf.inference.render import render_normalized
+from voxnerf.model import hash_kernel
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.run import train
 from voxnerf.training.step import make_loss_fn

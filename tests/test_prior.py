@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from voxnerf.errors import SceneError
-from voxnerf.prior import estimate_sigma, load_prior
+from voxnerf.prior.loading import estimate_sigma, load_prior
 
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
 

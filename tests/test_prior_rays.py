@@ -8,12 +8,12 @@ import torch
 import trimesh
 
 from voxnerf.config import TrainConfig
-from voxnerf.model import VoxNeRFModel
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.prior import GeometryPrior
-from voxnerf.pseudo_depth import PriorDepthRenderer
-from voxnerf.samplers import RayBundle
-from voxnerf.scene import SceneTransform
+from voxnerf.data.scene import SceneTransform
+from voxnerf.model.samplers import RayBundle
+from voxnerf.model.voxnerf_model import VoxNeRFModel
+from voxnerf.prior.loading import GeometryPrior
+from voxnerf.prior.octree import SparseVoxelOctree
+from voxnerf.prior.pseudo_depth import PriorDepthRenderer
 from voxnerf.training.prior_rays import PriorRayBank, bank_size, camera_centre_rays, prior_ray_bank, seen_by
 from voxnerf.training.step import make_loss_fn
 

@@ -7,10 +7,10 @@ import pytest
 import torch
 import trimesh
 
-from voxnerf import pseudo_depth
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.prior import load_prior
-from voxnerf.pseudo_depth import MeshCaster, PriorDepthRenderer
+from voxnerf.prior import pseudo_depth
+from voxnerf.prior.loading import load_prior
+from voxnerf.prior.octree import SparseVoxelOctree
+from voxnerf.prior.pseudo_depth import MeshCaster, PriorDepthRenderer
 
 
 def renderer_for(path, sigma: float) -> tuple[PriorDepthRenderer, SparseVoxelOctree]:

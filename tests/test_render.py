@@ -1,4 +1,5 @@
-"""voxnerf.render: loading a run and rendering a pose, on an untrained model written directly (no training)."""
+"""voxnerf.inference.render: loading a run and rendering a pose, on an untrained model written directly (no
+training)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,10 @@ import pytest
 import torch
 from tiny_run import DEFAULT_INTRINSICS, DEPTH_UNIT_SCALE, write_tiny_run
 
-from voxnerf.camera_rules import Intrinsics, Lens, validate_pose
+from voxnerf.cameras.rules import Intrinsics, Lens, validate_pose
 from voxnerf.errors import RunError
-from voxnerf.outputs import OUTPUT_NAMES
-from voxnerf.render import CHECKPOINT, OUTPUTS, load_model, render
+from voxnerf.inference.encoding import OUTPUT_NAMES
+from voxnerf.inference.render import CHECKPOINT, OUTPUTS, load_model, render
 
 
 @pytest.fixture(scope="module")

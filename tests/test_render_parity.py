@@ -16,7 +16,7 @@ import pytest
 from service_fixtures import first_pose, start_service, upload_scene, wait_until_succeeded
 
 from voxnerf.cli import main
-from voxnerf.image_io import decode_exr
+from voxnerf.data.image_io import decode_exr
 
 pytestmark = pytest.mark.slow
 

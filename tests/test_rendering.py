@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from voxnerf.rendering import render_weights, volume_render
+from voxnerf.model.volume_rendering import render_weights, volume_render
 
 
 def _intervals(r: int, s: int, length: float = 1.0):

@@ -4,8 +4,7 @@ import math
 
 import torch
 
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.samplers import (
+from voxnerf.model.samplers import (
     GRID_UPDATE_BATCH,
     OccGridSampler,
     OccupancyGrid,
@@ -14,6 +13,7 @@ from voxnerf.samplers import (
     VoxNeRFSampler,
     intervals_around_window,
 )
+from voxnerf.prior.octree import SparseVoxelOctree
 
 
 def _rays(n: int, origin=(0.0, 0.0, 0.0), direction=(1.0, 0.0, 0.0), near=0.01, far=1.7) -> RayBundle:

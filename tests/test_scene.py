@@ -8,8 +8,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from voxnerf.data.scene import SceneTransform, inspect_scene, load_scene, prior_file
 from voxnerf.errors import SceneError
-from voxnerf.scene import SceneTransform, inspect_scene, load_scene, prior_file
 
 
 def _write_scene(root: Path, n: int = 10, w: int = 8, h: int = 6, **top) -> dict:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from service_fixtures import Service, first_pose, start_redis, start_service, upload_scene, wait_for, zip_scene
 
-from voxnerf.image_io import decode_exr, srgb_to_linear
+from voxnerf.data.image_io import decode_exr, srgb_to_linear
 
 pytestmark = pytest.mark.slow
 

@@ -14,9 +14,9 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from voxnerf.losses import depth_loss, log_huber
-from voxnerf.octree import MAX_LEVELS, SparseVoxelOctree, morton_decode
-from voxnerf.rendering import MAX_OPTICAL_DEPTH, render_weights, volume_render
+from voxnerf.model.losses import depth_loss, log_huber
+from voxnerf.model.volume_rendering import MAX_OPTICAL_DEPTH, render_weights, volume_render
+from voxnerf.prior.octree import MAX_LEVELS, SparseVoxelOctree, morton_decode
 
 PROPERTY = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 TINY_DIR = np.float32(1e-30)  # the octree's documented stand-in for a zero direction component

@@ -22,16 +22,16 @@ import trimesh
 from synthetic_fixtures import make_micro_scene
 
 import voxnerf.training.step as step_module
-from voxnerf.cameras import Intrinsics
+from voxnerf.cameras.rays import Intrinsics
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
+from voxnerf.data.scene import SceneTransform, load_scene
 from voxnerf.errors import SceneError, TrainingDiverged
-from voxnerf.evaluation import evaluate_views
-from voxnerf.prior import load_prior
-from voxnerf.render import load_model, render
-from voxnerf.scene import SceneTransform, load_scene
+from voxnerf.inference.evaluation import evaluate_views
+from voxnerf.inference.render import load_model, render
+from voxnerf.prior.loading import load_prior
 from voxnerf.synthetic import RoomSpec, make_room_scene
-from voxnerf.training.evals import eval_views_of
+from voxnerf.training.eval_passes import eval_views_of
 from voxnerf.training.records import TrainReport
 from voxnerf.training.run import train
 from voxnerf.training.stages import FROM_CACHE

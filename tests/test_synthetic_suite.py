@@ -25,7 +25,7 @@ import trimesh
 
 import voxnerf.synthetic.raycast as raycast
 import voxnerf.synthetic.writer as writer
-from voxnerf.image_io import srgb_to_linear
+from voxnerf.data.image_io import srgb_to_linear
 from voxnerf.synthetic import RoomSpec, build_room, camera_path, make_room_scene
 from voxnerf.synthetic.raycast import Shading, light_visibility, render_radiance
 from voxnerf.synthetic.room import ROOM_SIZE_RANGE, RoomStyle, temperature_rgb

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.field import HashEncoding
+from voxnerf.model.field import HashEncoding
 from voxnerf.training.budget import Budget, TrainingProgress
 from voxnerf.training.callbacks import (
     COMPILE_DENSITY_WHY,

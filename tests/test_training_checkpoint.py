@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+from voxnerf.cameras.pose_refinement import PoseRefinement
 from voxnerf.errors import TrainingDiverged
-from voxnerf.pose_refinement import PoseRefinement
 from voxnerf.training.budget import Budget
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
 from voxnerf.training.records import EvalRecord, TrainReport

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from voxnerf.camera_rules import Intrinsics, Lens
+from voxnerf.cameras.lens import undistort
+from voxnerf.cameras.rules import Intrinsics, Lens
 from voxnerf.config import TrainConfig
-from voxnerf.depth_fusion import DepthNoise
+from voxnerf.data.scene import SceneTransform, load_scene
 from voxnerf.errors import SceneError
 from voxnerf.files import FUSED_PRIOR
-from voxnerf.lens import undistort
-from voxnerf.scene import SceneTransform, load_scene
+from voxnerf.prior.depth_fusion import DepthNoise
 from voxnerf.training import stages
 from voxnerf.training.pixels import TrainingPixels, sensor_ray_distance
 from voxnerf.training.run import train

@@ -1,4 +1,4 @@
-"""Evaluations during training (voxnerf/training/evals.py), with a stub evaluate_views."""
+"""Evaluations during training (voxnerf/training/eval_passes.py), with a stub evaluate_views."""
 
 from __future__ import annotations
 

@@ -91,8 +91,8 @@ def test_training_images_of_different_sizes_are_refused():
 
 def test_lens_rays_from_the_direction_table_equal_the_inverse_model():
     """Frames with lenses look their rays up in a table of each distinct camera (two here, three frames)."""
-    from voxnerf.camera_rules import Lens
-    from voxnerf.lens import LensBatch
+    from voxnerf.cameras.lens import LensBatch
+    from voxnerf.cameras.rules import Lens
     from voxnerf.training.pixels import direction_table
 
     n, h, w = 3, 12, 16
@@ -117,8 +117,8 @@ def test_lens_rays_from_the_direction_table_equal_the_inverse_model():
 
 
 def test_a_direction_table_past_its_memory_bound_is_not_built(monkeypatch):
-    from voxnerf.camera_rules import Lens
-    from voxnerf.lens import LensBatch
+    from voxnerf.cameras.lens import LensBatch
+    from voxnerf.cameras.rules import Lens
     from voxnerf.training import pixels
 
     monkeypatch.setattr(pixels, "MAX_DIRECTION_TABLE_BYTES", 2 * 12 * 16 * 3 * 4 - 1)  # one byte short of two

@@ -11,9 +11,9 @@ import pytest
 import torch
 from synthetic_fixtures import make_micro_scene, micro_config
 
-from voxnerf import hash_kernel
 from voxnerf.config import TrainConfig
-from voxnerf.scene import load_scene
+from voxnerf.data.scene import load_scene
+from voxnerf.model import hash_kernel
 from voxnerf.training import stages
 from voxnerf.training.records import StageRecord
 
@@ -123,8 +123,8 @@ def test_the_training_mean_background_is_the_mean_colour_of_the_training_images(
 
 
 def test_an_unresolved_training_mean_background_shows_black():
-    from voxnerf.model import VoxNeRFModel
-    from voxnerf.scene import SceneTransform
+    from voxnerf.data.scene import SceneTransform
+    from voxnerf.model.voxnerf_model import VoxNeRFModel
 
     cfg = TrainConfig(max_iters=1, hash_levels=2, hash_log2_size=10, hash_max_resolution=32, hidden_dim=8,
                       background="training_mean")

@@ -8,11 +8,11 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from voxnerf.cameras.pose_refinement import PoseRefinement
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
-from voxnerf.losses import color_loss
-from voxnerf.pose_refinement import PoseRefinement
-from voxnerf.samplers import RayBundle
+from voxnerf.model.losses import color_loss
+from voxnerf.model.samplers import RayBundle
 from voxnerf.training.pixels import TrainingPixels
 from voxnerf.training.step import PAPER_BETA, Batch, Losses, TrainStep, divergence_guard, make_loss_fn
 

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 from tiny_run import DEPTH_UNIT_SCALE, write_tiny_run
 
-from voxnerf.camera_path import CameraPath, orbit_path, read_nerfstudio
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.paths import CameraPath, orbit_path, read_nerfstudio
+from voxnerf.cameras.rules import Intrinsics
+from voxnerf.data.image_io import decode_exr, read_png_header
 from voxnerf.errors import RunError
-from voxnerf.image_io import decode_exr, read_png_header
-from voxnerf.outputs import encode_outputs
-from voxnerf.render import load_model, render
-from voxnerf.video import render_path
+from voxnerf.inference.encoding import encode_outputs
+from voxnerf.inference.render import load_model, render
+from voxnerf.inference.video import render_path
 
 CAMERA = Intrinsics(fl_x=30.0, fl_y=30.0, cx=16.0, cy=12.0, width=32, height=24)
 

@@ -14,8 +14,8 @@ import pytest
 import torch
 from synthetic_fixtures import make_micro_scene, micro_config
 
-from voxnerf.image_noise import images_noise_sigma
-from voxnerf.scene import load_scene
+from voxnerf.data.image_noise import images_noise_sigma
+from voxnerf.data.scene import load_scene
 from voxnerf.training.run import train
 from voxnerf.training.stages import model_stage
 from voxnerf.training.weight_decay import NOISE_DECAY, NOISE_FLOOR, weight_decay_stage

@@ -14,7 +14,7 @@ from worker_fixtures import SCENE, claimed_job, store_with_scene
 from app.core import jobstore
 from app.core.render_results import receive_outcome
 from app.core.settings import Settings
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.rules import Intrinsics
 from voxnerf.errors import SceneError
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
 from worker import tasks

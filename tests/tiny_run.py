@@ -6,11 +6,11 @@ from pathlib import Path
 
 import torch
 
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.rules import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.model import VoxNeRFModel
-from voxnerf.render import CHECKPOINT
-from voxnerf.scene import SceneTransform
+from voxnerf.data.scene import SceneTransform
+from voxnerf.inference.render import CHECKPOINT
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 
 DEFAULT_INTRINSICS = Intrinsics(fl_x=20.0, fl_y=20.0, cx=8.0, cy=6.0, width=16, height=12)
 DEPTH_UNIT_SCALE = 0.001

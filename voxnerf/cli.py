@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from voxnerf.camera_rules import LENS_KEYS, CameraError, Intrinsics, resolve_intrinsics, validate_pose
+from voxnerf.cameras.rules import LENS_KEYS, CameraError, Intrinsics, resolve_intrinsics, validate_pose
 from voxnerf.errors import RunError, VoxNeRFError
 
 if TYPE_CHECKING:
@@ -66,10 +66,10 @@ def _metrics_line(split: str, m: dict) -> str:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from voxnerf.evaluation import evaluate_views
-    from voxnerf.render import load_model, scene_as_trained
-    from voxnerf.scene import load_scene
-    from voxnerf.training.evals import eval_views_of
+    from voxnerf.data.scene import load_scene
+    from voxnerf.inference.evaluation import evaluate_views
+    from voxnerf.inference.render import load_model, scene_as_trained
+    from voxnerf.training.eval_passes import eval_views_of
 
     trained = load_model(args.run, args.device)
     scene_dir = args.scene or trained.scene_dir
@@ -85,7 +85,7 @@ def _eval(args: argparse.Namespace) -> int:
     print(_metrics_line(split, metrics))
     print(f"rendered by the {metrics['renderer']}")
     if args.json:
-        from voxnerf.image_io import write_atomic
+        from voxnerf.data.image_io import write_atomic
 
         payload = {"split": split, **metrics, "iteration": trained.iteration}
         write_atomic(Path(args.json), json.dumps(payload, indent=2).encode())
@@ -102,7 +102,7 @@ def _read_pose(path: Path, default: Intrinsics) -> tuple[np.ndarray, Intrinsics]
     """The pose and camera of a pose file: ``transform_matrix``, optional ``fl_x fl_y cx cy w h`` and an optional
     lens, ``camera_model`` (OPENCV, OPENCV_FISHEYE) with ``k1 k2 k3 k4 p1 p2`` (absent: the pinhole view).
 
-    The rules are :mod:`voxnerf.camera_rules`' (those of ``POST /render``); a refusal is a RunError
+    The rules are :mod:`voxnerf.cameras.rules`' (those of ``POST /render``); a refusal is a RunError
     ``FILE: KEY: why``.
     """
     try:
@@ -150,7 +150,7 @@ RENDER_FLAG_MODES = {
 }
 DEFAULT_PATH_SECONDS = 10.0
 DEFAULT_PATH_FPS = 30.0
-# Arguments of voxnerf.camera_path's functions, by the flag that gives them.
+# Arguments of voxnerf.cameras.paths's functions, by the flag that gives them.
 PATH_ARG_FLAGS = {"n_frames": "--frames", "fps": "--fps", "radius": "--radius", "height": "--height-above",
                   "keyframes": "--keyframes",
                   "poses": "the training cameras", "up": "the training cameras' up axes"}
@@ -173,8 +173,8 @@ def _check_render_flags(args: argparse.Namespace, mode: str) -> None:
 
 
 def _render_image(args: argparse.Namespace, mode: str) -> int:
-    from voxnerf.outputs import encode_files, format_of, write_files
-    from voxnerf.render import load_model, render
+    from voxnerf.inference.encoding import encode_files, format_of, write_files
+    from voxnerf.inference.render import load_model, render
 
     out = Path(args.out)
     try:
@@ -199,8 +199,8 @@ def _render_image(args: argparse.Namespace, mode: str) -> int:
 
 def _run_scene(args: argparse.Namespace, trained):
     """The scene the run trained on (``--scene`` overrides), loaded without its images, its cameras as trained."""
-    from voxnerf.render import scene_as_trained
-    from voxnerf.scene import load_scene
+    from voxnerf.data.scene import load_scene
+    from voxnerf.inference.render import scene_as_trained
 
     scene_dir = args.scene or trained.scene_dir
     if not scene_dir:
@@ -242,8 +242,8 @@ def _scene_frame(args: argparse.Namespace, trained) -> tuple[np.ndarray, Intrins
 
 def _frame_count(args: argparse.Namespace) -> tuple[int, float]:
     """Frames and fps of a generated path: ``--frames``, or ``--seconds`` (default 10) at ``--fps`` (30)."""
-    from voxnerf.camera_path import MAX_FRAMES, check_frame_count
-    from voxnerf.camera_rules import as_finite
+    from voxnerf.cameras.paths import MAX_FRAMES, check_frame_count
+    from voxnerf.cameras.rules import as_finite
 
     fps = DEFAULT_PATH_FPS if args.fps is None else args.fps
     if args.frames is not None and args.seconds is not None:
@@ -265,8 +265,8 @@ def _training_poses(args: argparse.Namespace, trained) -> np.ndarray:
 
 def _generated_path(args: argparse.Namespace, mode: str, trained):
     """The ``--path interpolate`` or ``--path orbit`` camera path of the run's training cameras
-    (:func:`voxnerf.camera_path.generated_path`, the rule of the service's video jobs too)."""
-    from voxnerf.camera_path import CameraPathError, generated_path
+    (:func:`voxnerf.cameras.paths.generated_path`, the rule of the service's video jobs too)."""
+    from voxnerf.cameras.paths import CameraPathError, generated_path
 
     n_frames, fps = _frame_count(args)
     camera = _sized(args, trained.default_intrinsics)
@@ -281,9 +281,9 @@ def _render_camera_path(args: argparse.Namespace, mode: str) -> int:
     """Render ``--camera-path`` or ``--path`` to a video or a frames directory, with a progress bar."""
     from tqdm import tqdm
 
-    from voxnerf.camera_path import read_nerfstudio
-    from voxnerf.render import load_model
-    from voxnerf.video import check_request, format_of, render_path
+    from voxnerf.cameras.paths import read_nerfstudio
+    from voxnerf.inference.render import load_model
+    from voxnerf.inference.video import check_request, format_of, render_path
 
     out = Path(args.out)
     if out.suffix.lower() in (".png", ".exr"):
@@ -308,9 +308,9 @@ def _render_camera_path(args: argparse.Namespace, mode: str) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from voxnerf.export import export_geometry
-    from voxnerf.render import load_model, scene_as_trained
-    from voxnerf.scene import load_scene
+    from voxnerf.data.scene import load_scene
+    from voxnerf.inference.export import export_geometry
+    from voxnerf.inference.render import load_model, scene_as_trained
 
     targets = [(kind, path) for kind, path in (("mesh", args.mesh), ("pointcloud", args.pointcloud)) if path]
     if not targets:
@@ -351,7 +351,7 @@ def _synth(args: argparse.Namespace) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    from voxnerf.importers import PaperSplitRule, describe, import_colmap, import_scannet
+    from voxnerf.data.importers import PaperSplitRule, describe, import_colmap, import_scannet
 
     splits = PaperSplitRule() if args.splits == "paper" else None
     if args.layout == "colmap":

@@ -72,7 +72,7 @@ class TrainConfig(BaseModel):
     compile: bool = True
     hash_kernel: bool = Field(
         default=True,
-        description="on the CPU, run the hash encoding through the C kernel of voxnerf/hash_kernel.py where it "
+        description="on the CPU, run the hash encoding through the C kernel of voxnerf/model/hash_kernel.py where it "
         "builds (the same features, a cheaper backward); False keeps the pure-PyTorch encoding",
     )
 
@@ -144,7 +144,7 @@ class TrainConfig(BaseModel):
     pose_refinement: PoseRefinementMode = Field(
         default="auto",
         description="'so3xr3': a rotation and a translation per training image, learnt with the field (nerfacto's "
-        "camera optimiser, voxnerf/pose_refinement.py) for scans whose poses drift (SLAM, tracking, SfM); a "
+        "camera optimiser, voxnerf/cameras/pose_refinement.py) for scans whose poses drift (SLAM, tracking, SfM); a "
         "rendered pose takes the corrections of its nearest training cameras; the refined poses go to "
         "refined_poses.json. 'auto': so3xr3 for a captured scan, none for a synthetic scene (exact poses)",
     )
@@ -152,7 +152,7 @@ class TrainConfig(BaseModel):
         default="auto",
         description="the colour camera's focal lengths are the stated ones times this; 'auto': measured for a "
         "captured scan with a mesh prior (the training images' agreement through the prior at scales of the stated "
-        "focal length, voxnerf/focal_check.py) and used when it clearly beats the stated one, 1 for a synthetic "
+        "focal length, voxnerf/prior/focal_check.py) and used when it clearly beats the stated one, 1 for a synthetic "
         "scene; renders of the scene's own views use it, and the depth maps keep the stated camera "
         "(docs/benchmarks.md, 'Eleventh measurement')",
     )
@@ -199,7 +199,7 @@ class TrainConfig(BaseModel):
         default=True,
         description="remove the sampler octree's leaves that the training frames' sensor depth shows empty (rays "
                     "cross them well before their measured depth and no measured point lies in them): outliers and "
-                    "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.octree_carving; "
+                    "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.prior.carving; "
                     "measured: docs/benchmarks.md, 'Ninth measurement')",
     )
     occgrid_seed: bool = Field(

@@ -7,8 +7,9 @@ import os
 
 import torch
 
-from voxnerf import hash_kernel, octree
 from voxnerf.errors import VoxNeRFError
+from voxnerf.model import hash_kernel
+from voxnerf.prior import octree
 
 
 def resolve_device(name: str = "auto") -> torch.device:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from voxnerf.errors import TrainingDiverged
 from voxnerf.training.budget import Budget
 from voxnerf.training.callbacks import DEFAULT_EVAL_SECONDS_PER_RAY, ProgressCallback
-from voxnerf.training.evals import eval_views_of
+from voxnerf.training.eval_passes import eval_views_of
 from voxnerf.training.pixels import TrainingPixels
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
 from voxnerf.training.run import REPORT, train

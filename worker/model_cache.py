@@ -9,7 +9,7 @@ from pathlib import Path
 from app.core.settings import get_settings
 from voxnerf.errors import RunError
 from voxnerf.files import CHECKPOINT
-from voxnerf.render import TrainedModel, load_model
+from voxnerf.inference.render import TrainedModel, load_model
 
 
 class ModelCache:

@@ -27,7 +27,7 @@ from kombu.transport import filesystem, virtual
 from kombu.utils.encoding import bytes_to_str, str_to_bytes
 from kombu.utils.json import dumps, loads
 
-from voxnerf.image_io import write_atomic
+from voxnerf.data.image_io import write_atomic
 
 Binding = filesystem.exchange_queue_t  # (routing_key, pattern, queue) of a queue bound to an exchange
 
@@ -91,7 +91,7 @@ class Channel(filesystem.Channel):
     def _edit_table(self, exchange, edit) -> None:
         """Replace the bindings of ``exchange`` by ``edit(bindings)``: read and edit under one exclusive lock, so
         no other process's change between the read and the write is lost, and write the new table whole
-        (:func:`~voxnerf.image_io.write_atomic`: a temporary file renamed over the old one)."""
+        (:func:`~voxnerf.data.image_io.write_atomic`: a temporary file renamed over the old one)."""
         path = self._exchange_file(exchange)
         self.control_folder.mkdir(parents=True, exist_ok=True)
         try:

@@ -20,7 +20,7 @@ from celery import Celery
 from app.core.settings import Settings, get_settings
 
 TRAIN_TASK = "voxnerf.train"
-RENDER_TASK = "voxnerf.render"
+RENDER_TASK = "voxnerf.inference.render"
 OUTPUT_TASK = "voxnerf.output"
 TRAIN_QUEUE = "train"
 RENDER_QUEUE = "render"

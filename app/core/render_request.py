@@ -1,7 +1,7 @@
 """The render request: the body of ``POST /render``, and what the render task receives and parses again.
 
-The pose and intrinsics rules are the engine's (:mod:`voxnerf.camera_rules`), the output names and media types
-those of :mod:`voxnerf.outputs`; both modules are torch-free, so the API process can validate requests.
+The pose and intrinsics rules are the engine's (:mod:`voxnerf.cameras.rules`), the output names and media types
+those of :mod:`voxnerf.inference.encoding`; both modules are torch-free, so the API process can validate requests.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from app.core.jobstore import ID_RE
-from voxnerf.camera_rules import (
+from voxnerf.cameras.rules import (
     CAMERA_MODELS,
     COEFFICIENT_KEYS,
     CameraError,
@@ -21,7 +21,7 @@ from voxnerf.camera_rules import (
     resolve_lens,
     validate_pose,
 )
-from voxnerf.outputs import MEDIA_TYPES, OUTPUT_NAMES
+from voxnerf.inference.encoding import MEDIA_TYPES, OUTPUT_NAMES
 
 OutputName = Literal[tuple(OUTPUT_NAMES)]  # rgb, depth, opacity
 FormatName = Literal[tuple(MEDIA_TYPES)]  # png, exr
@@ -41,7 +41,7 @@ class RenderRequest(BaseModel):
     Without ``camera_model`` the view is a pinhole: for a scene trained through a lens, its undistorted view.
     ``camera_model`` ``OPENCV`` (``k1 k2 k3 p1 p2``) or ``OPENCV_FISHEYE`` (``k1 k2 k3 k4``) renders through
     that lens, as nerfstudio defines it; a coefficient left out is the trained camera's when it has that model,
-    else 0 (:func:`voxnerf.camera_rules.resolve_intrinsics`, the rule of ``voxnerf render`` too).
+    else 0 (:func:`voxnerf.cameras.rules.resolve_intrinsics`, the rule of ``voxnerf render`` too).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -76,7 +76,7 @@ class RenderRequest(BaseModel):
     @field_validator("transform_matrix")
     @classmethod
     def _pose(cls, value: list[list[float]]) -> list[list[float]]:
-        """The engine's pose rule (:func:`voxnerf.camera_rules.validate_pose`); small deviations of the
+        """The engine's pose rule (:func:`voxnerf.cameras.rules.validate_pose`); small deviations of the
         rotation are re-orthonormalised."""
         try:
             return validate_pose(value).tolist()
@@ -122,7 +122,7 @@ class RenderRequest(BaseModel):
 
     def intrinsics(self, default: Intrinsics, max_pixels: int | None = None) -> Intrinsics:
         """The camera to render, filling what the request leaves out from ``default`` (see the class doc);
-        raises :class:`voxnerf.camera_rules.CameraError` when the result is not a usable camera or has more
+        raises :class:`voxnerf.cameras.rules.CameraError` when the result is not a usable camera or has more
         than ``max_pixels`` pixels."""
         return resolve_intrinsics(
             default,

@@ -25,7 +25,7 @@ from pathlib import Path
 import redis
 
 from app.core.settings import Settings
-from voxnerf.image_io import write_atomic
+from voxnerf.data.image_io import write_atomic
 
 POLL_INTERVAL_S = 0.005
 REDIS_KEY_PREFIX = "voxnerf:render:"

@@ -26,7 +26,7 @@ from app.core.render_request import RenderRequest
 from app.core.render_results import receive_outcome
 from app.core.settings import Settings
 from app.deps import CeleryDep, SettingsDep
-from voxnerf.outputs import MEDIA_TYPES
+from voxnerf.inference.encoding import MEDIA_TYPES
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["render"])

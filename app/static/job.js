@@ -184,7 +184,7 @@ function fileStem(path) {
 }
 
 // "split/view name" -> the frame's ground-truth image URL, from the scene's cameras (GET /jobs/{id}/cameras).
-// A view is named as voxnerf.evaluation.view_names names it: its file's stem, or stem-<frame index> when
+// A view is named as voxnerf.inference.evaluation.view_names names it: its file's stem, or stem-<frame index> when
 // several frames of the split share that stem.
 function truthUrls(cameras) {
   const urls = new Map();

@@ -1,5 +1,5 @@
 """Score a peer's renders (``nerfacto_run.py``'s output) against the scene's held-out images with the
-engine's own metrics (``voxnerf.metrics``: PSNR, SSIM), in ``error_vs_runtime.py``'s CSV layout.
+engine's own metrics (``voxnerf.inference.metrics``: PSNR, SSIM), in ``error_vs_runtime.py``'s CSV layout.
 
     .venv/bin/python benchmarks/peer/score_renders.py SCENE --out PEER_OUT [--config nerfacto]
 
@@ -20,10 +20,10 @@ from pathlib import Path
 
 import torch
 
+from voxnerf.data.image_io import read_rgb, write_atomic
+from voxnerf.data.scene import Scene, load_scene
 from voxnerf.errors import SceneError
-from voxnerf.image_io import read_rgb, write_atomic
-from voxnerf.metrics import evaluate_images
-from voxnerf.scene import Scene, load_scene
+from voxnerf.inference.metrics import evaluate_images
 
 RENDER_DIR_FORMAT = "{:g}s"
 """Render directory of one evaluation time, as nerfacto_run.py names it."""

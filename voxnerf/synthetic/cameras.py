@@ -13,13 +13,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from voxnerf.camera_path import look_at
+from voxnerf.cameras.paths import look_at
 from voxnerf.synthetic.dimensions import ROOM_SIZE
 
 
 def look_at_c2w(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
     """Camera-to-world [4, 4] (OpenGL: -Z along ``forward``, +Y toward world +Z, +X right), no roll: the rule of
-    :func:`voxnerf.camera_path.look_at` with world +Z up."""
+    :func:`voxnerf.cameras.paths.look_at` with world +Z up."""
     position = np.asarray(position, dtype=np.float64)
     return look_at(position, position + np.asarray(forward, dtype=np.float64), np.array([0.0, 0.0, 1.0]))
 

@@ -1,5 +1,5 @@
 """Ray casting the room: closest hits with open3d, Lambertian shading with shadow rays, pinhole views (optionally
-through an OpenCV lens, :mod:`voxnerf.lens`: each pixel's ray goes through the inverse distortion).
+through an OpenCV lens, :mod:`voxnerf.cameras.lens`: each pixel's ray goes through the inverse distortion).
 
 Cameras are camera-to-world in the OpenGL / nerfstudio convention (camera looks along -Z, +Y up, +X right).
 Images are Lambertian: ambient light plus the room's point lights with shadow rays (by default; a
@@ -14,8 +14,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from voxnerf.camera_rules import Lens
-from voxnerf.lens import LensBatch, lens_directions
+from voxnerf.cameras.lens import LensBatch, lens_directions
+from voxnerf.cameras.rules import Lens
 from voxnerf.synthetic.geometry import RoomGeometry
 from voxnerf.synthetic.textures import PATTERNS
 

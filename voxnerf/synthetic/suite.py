@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from voxnerf.image_io import write_atomic
+from voxnerf.data.image_io import write_atomic
 from voxnerf.synthetic.cameras import split_frames
 from voxnerf.synthetic.writer import RoomSpec, make_room_scene, written_by_this_writer
 

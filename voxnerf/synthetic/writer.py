@@ -13,8 +13,8 @@ import imageio.v3 as iio
 import numpy as np
 import trimesh
 
-from voxnerf.camera_rules import COEFFICIENT_KEYS, MODEL_COEFFICIENTS, CameraError, Lens, lens_of
-from voxnerf.image_io import build_dir_atomic
+from voxnerf.cameras.rules import COEFFICIENT_KEYS, MODEL_COEFFICIENTS, CameraError, Lens, lens_of
+from voxnerf.data.image_io import build_dir_atomic
 from voxnerf.synthetic.cameras import FrameSplits, camera_path, split_frames
 from voxnerf.synthetic.dimensions import ROOM_SIZE
 from voxnerf.synthetic.geometry import RoomGeometry

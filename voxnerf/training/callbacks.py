@@ -15,7 +15,7 @@ import torch
 from tqdm import tqdm
 
 from voxnerf.config import TrainConfig
-from voxnerf.model import VoxNeRFModel
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.budget import Budget, Clock, TrainingProgress
 from voxnerf.training.loop import Callback, LoopState
 from voxnerf.training.records import LossSeries, ProgressEvent, StageRecord, TrainReport

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
+from voxnerf.data.image_io import write_atomic
+from voxnerf.data.scene import Scene
 from voxnerf.errors import RunError, TrainingDiverged
-from voxnerf.image_io import write_atomic
-from voxnerf.model import VoxNeRFModel
-from voxnerf.scene import Scene
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.budget import Budget
 from voxnerf.training.records import EvalRecord, TrainReport
 

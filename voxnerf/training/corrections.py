@@ -2,7 +2,8 @@
 
 A captured scan carries the errors of its capture: poses from tracking or structure from motion drift along the
 path, and auto-exposure and white balance change from frame to frame. Per-image appearance
-(:mod:`voxnerf.appearance`) and pose refinement (:mod:`voxnerf.pose_refinement`) learn them. A synthetic scene
+(:mod:`voxnerf.model.appearance`) and pose refinement (:mod:`voxnerf.cameras.pose_refinement`) learn them. A
+synthetic scene
 (rendered images with exact poses, transforms.json ``"synthetic": true``) has no pose error, and refining its
 poses only moves what was right. ``auto`` follows the tuning suite (docs/benchmarks.md): the pair paid on the
 real scan, and on the synthetic rooms it cost: on two of them at 120 s, and on the mean of all six, on both
@@ -17,7 +18,7 @@ import time
 from dataclasses import dataclass
 
 from voxnerf.config import TrainConfig
-from voxnerf.scene import Scene
+from voxnerf.data.scene import Scene
 from voxnerf.training.records import StageRecord
 
 # What ``auto`` turns on, per config field (the field's name is also the checkpoint's key for its state).

@@ -1,11 +1,11 @@
 """The colour camera's focal length for training: ``focal_scale`` ``auto``, checked against the prior.
 
 ``auto`` measures, on a captured scan with a mesh prior and one pinhole camera for its training images, how
-well those images agree through the prior at scales of the stated focal length (:mod:`voxnerf.focal_check`),
+well those images agree through the prior at scales of the stated focal length (:mod:`voxnerf.prior.focal_check`),
 and takes the best scale when it removes at least ``MIN_GAIN`` of the stated focal length's error and lies
 inside the scales tried; otherwise, and on a synthetic scene (exact intrinsics), the stated focal length stays.
 A number is used as given. The scene that training, its evaluations and every later render of its views use
-is :func:`voxnerf.scene.with_focal_scale` of the loaded one; the depth maps keep the stated camera.
+is :func:`voxnerf.data.scene.with_focal_scale` of the loaded one; the depth maps keep the stated camera.
 """
 
 from __future__ import annotations
@@ -16,12 +16,12 @@ from dataclasses import astuple, dataclass
 import numpy as np
 import torch
 
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.rules import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.focal_check import FocalCheck, check_focal
-from voxnerf.prior import GeometryPrior
-from voxnerf.pseudo_depth import MeshCaster
-from voxnerf.scene import Scene, with_focal_scale
+from voxnerf.data.scene import Scene, with_focal_scale
+from voxnerf.prior.focal_check import FocalCheck, check_focal
+from voxnerf.prior.loading import GeometryPrior
+from voxnerf.prior.pseudo_depth import MeshCaster
 from voxnerf.training import setup_cache
 from voxnerf.training.records import StageRecord
 

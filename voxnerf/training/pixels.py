@@ -8,12 +8,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from voxnerf.cameras import camera_rays
+from voxnerf.cameras.lens import LensBatch
+from voxnerf.cameras.rays import camera_rays
 from voxnerf.config import TrainConfig
-from voxnerf.lens import LensBatch
-from voxnerf.model import VoxNeRFModel
-from voxnerf.samplers import RayBundle
-from voxnerf.scene import Scene, SceneTransform
+from voxnerf.data.scene import Scene, SceneTransform
+from voxnerf.model.samplers import RayBundle
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 
 PixelIndex = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # img, py, px [R] each
 MAX_DIRECTION_TABLE_BYTES = 256 * 2**20  # beyond this the lens's inverse runs per batch instead

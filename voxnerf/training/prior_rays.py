@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from voxnerf.model import VoxNeRFModel
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.pseudo_depth import PriorDepthRenderer
-from voxnerf.samplers import RayBundle
+from voxnerf.model.samplers import RayBundle
+from voxnerf.model.voxnerf_model import VoxNeRFModel
+from voxnerf.prior.octree import SparseVoxelOctree
+from voxnerf.prior.pseudo_depth import PriorDepthRenderer
 
 BANK_PER_STEP_RAY = 128  # rays cast at set-up per prior ray of a step (the bank they are drawn from)
 MAX_BANK = 524_288

@@ -26,15 +26,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from voxnerf.cameras.pose_refinement import refined_frames
 from voxnerf.config import TrainConfig
+from voxnerf.data.image_io import write_atomic
+from voxnerf.data.scene import Scene
 from voxnerf.devices import compute_environment, resolve_device
 from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.files import CHECKPOINT, REFINED_POSES, REPORT
-from voxnerf.image_io import write_atomic
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.pose_refinement import refined_frames
-from voxnerf.prior import GeometryPrior
-from voxnerf.scene import Scene
+from voxnerf.prior.loading import GeometryPrior
+from voxnerf.prior.octree import SparseVoxelOctree
 from voxnerf.training import stages
 from voxnerf.training.budget import Budget, TrainingProgress
 from voxnerf.training.callbacks import (
@@ -53,7 +53,7 @@ from voxnerf.training.callbacks import (
 )
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
 from voxnerf.training.corrections import corrections_stage
-from voxnerf.training.evals import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
+from voxnerf.training.eval_passes import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
 from voxnerf.training.focal import focal_stage
 from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.pixels import TrainingPixels, training_pixels

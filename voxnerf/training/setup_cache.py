@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from voxnerf import native
-from voxnerf.image_io import write_atomic
+from voxnerf.data.image_io import write_atomic
 
 MAX_BYTES = 2 * 1024**3
 PerPixel = tuple[torch.Tensor, torch.Tensor]  # t float32 [N, H, W] (NaN where invalid), ok bool [N, H, W]

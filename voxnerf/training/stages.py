@@ -15,21 +15,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from voxnerf import hash_kernel, lens, native
-from voxnerf.appearance import ImageAppearance
-from voxnerf.camera_rules import Intrinsics
+from voxnerf import native
+from voxnerf.cameras import lens
+from voxnerf.cameras.pose_refinement import PoseRefinement
+from voxnerf.cameras.rules import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.depth_fusion import DepthNoise, DepthView, FusedPrior, FusionError, fit_noise, fuse_depth_prior
+from voxnerf.data.image_io import write_atomic
+from voxnerf.data.scene import Scene, SceneTransform, load_scene, read_depth_map
 from voxnerf.errors import SceneError
 from voxnerf.files import FUSED_PRIOR, TRANSFORMS
-from voxnerf.image_io import write_atomic
-from voxnerf.model import VoxNeRFModel
-from voxnerf.octree import SparseVoxelOctree, coverage_octree
-from voxnerf.octree_carving import empty_leaves, remove_empty
-from voxnerf.pose_refinement import PoseRefinement
-from voxnerf.prior import GeometryPrior, load_prior, prior_from_mesh
-from voxnerf.pseudo_depth import PriorDepthRenderer
-from voxnerf.scene import Scene, SceneTransform, load_scene, read_depth_map
+from voxnerf.model import hash_kernel
+from voxnerf.model.appearance import ImageAppearance
+from voxnerf.model.voxnerf_model import VoxNeRFModel
+from voxnerf.prior.carving import empty_leaves, remove_empty
+from voxnerf.prior.depth_fusion import DepthNoise, DepthView, FusedPrior, FusionError, fit_noise, fuse_depth_prior
+from voxnerf.prior.loading import GeometryPrior, load_prior, prior_from_mesh
+from voxnerf.prior.octree import SparseVoxelOctree, coverage_octree
+from voxnerf.prior.pseudo_depth import PriorDepthRenderer
 from voxnerf.training import setup_cache
 from voxnerf.training.pixels import TrainingPixels, per_pixel, rays_in_chunks, sensor_ray_distance
 from voxnerf.training.prior_rays import PriorRayBank, bank_size, prior_ray_bank, seen_by
@@ -37,7 +39,7 @@ from voxnerf.training.records import EvalRecord, StageRecord
 from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, PAPER_BETA, LossFn
 
 MIN_PRIOR_COVERAGE = 0.05  # below this fraction of training pixels seeing the prior, the report warns
-COVERAGE_RAYS = 65_536  # training rays that choose the sampler octree's leaf (voxnerf.octree.coverage_octree)
+COVERAGE_RAYS = 65_536  # training rays that choose the sampler octree's leaf (voxnerf.prior.octree.coverage_octree)
 
 
 def seed_everything(seed: int) -> None:
@@ -147,7 +149,7 @@ def hash_kernel_stage(cfg: TrainConfig, device: torch.device) -> StageRecord:
         return _record("hash_kernel", False, "disabled (--no-hash-kernel): the hash encoding stays in PyTorch", t0)
     if hash_kernel.available():
         return _record("hash_kernel", True,
-                       "the hash encoding runs in its C kernel (voxnerf/hashgrid.c; built once, cached)", t0)
+                       "the hash encoding runs in its C kernel (voxnerf/model/hashgrid.c; built once, cached)", t0)
     return _record("hash_kernel", False, f"C kernel unavailable ({hash_kernel.unavailable_reason()}): the hash "
                    "encoding stays in PyTorch", t0)
 
@@ -499,7 +501,7 @@ class CarvingStage:
 def carving_stage(cfg: TrainConfig, octree: SparseVoxelOctree | None, pixels: TrainingPixels,
                   target: DepthTargetStage, scale: float) -> CarvingStage:
     """The sampler octree less the leaves that the training frames' sensor depth shows empty
-    (:mod:`voxnerf.octree_carving`): each measured ray crosses empty space up to ``CARVE_MARGIN_LEAVES`` leaves
+    (:mod:`voxnerf.prior.carving`): each measured ray crosses empty space up to ``CARVE_MARGIN_LEAVES`` leaves
     plus ``CARVE_MARGIN_SIGMAS`` times its depth noise (``beta / DEPTH_BETA_PER_SIGMA``, per pixel where the
     noise was measured) before its depth. ``scale``: the scene's normalisation (scene units -> normalised)."""
     t0 = time.perf_counter()

@@ -9,11 +9,11 @@ from typing import NamedTuple
 
 import torch
 
+from voxnerf.cameras.pose_refinement import moved_rays, pose_penalty
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
-from voxnerf.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss
-from voxnerf.model import VoxNeRFModel
-from voxnerf.pose_refinement import moved_rays, pose_penalty
+from voxnerf.model.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.pixels import TrainingPixels, sample_batch
 from voxnerf.training.prior_rays import PriorRayBank
 

@@ -5,7 +5,7 @@ of each training image as well as the scene: the views between and beyond them t
 on (docs/benchmarks.md, the seventh measurement). An L2 penalty on the parameters is the Gaussian prior of a
 maximum a posteriori fit; against a mean squared error it weighs ``sigma^2 / tau^2`` for image noise of variance
 ``sigma^2`` and a prior of variance ``tau^2``. ``auto`` therefore sets the decay to ``NOISE_DECAY * sigma^2``,
-sigma measured on the training images (:mod:`voxnerf.image_noise`) and ``NOISE_DECAY`` (``1 / tau^2``) chosen on
+sigma measured on the training images (:mod:`voxnerf.data.image_noise`) and ``NOISE_DECAY`` (``1 / tau^2``) chosen on
 the tuning suite: the capture-like rooms' sensor noise gets a decay that keeps the features from fitting it.
 Clean images (rendered rooms, the real redkitchen after ``--downscale 2``) read 0.3-0.8 of 8-bit levels, which
 is the measure's own floor (rounding to 8 bits and fine texture), not noise: below ``NOISE_FLOOR`` the run has
@@ -18,8 +18,8 @@ import time
 from dataclasses import dataclass
 
 from voxnerf.config import TrainConfig
-from voxnerf.image_noise import images_noise_sigma
-from voxnerf.scene import Scene
+from voxnerf.data.image_noise import images_noise_sigma
+from voxnerf.data.scene import Scene
 from voxnerf.training.records import StageRecord
 
 # 1 / tau^2 of the docstring: the capture-like rooms' noise (sigma 7 / 255) gets a decay of 3e-7

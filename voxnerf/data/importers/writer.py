@@ -13,9 +13,9 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from voxnerf.data.image_io import build_dir_atomic, image_size, write_atomic
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
-from voxnerf.image_io import build_dir_atomic, image_size, write_atomic
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplying a camera-to-world pose by this flips the camera's Y and Z axes: OpenCV (x right, y down,

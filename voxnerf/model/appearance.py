@@ -3,8 +3,8 @@
 The corrections are held at zero mean over the training images (log-gains and biases alike), so the field
 learns the images' average exposure and white balance, not that of whichever image it fitted first. Exposure
 drifts slowly along a scan's path, so a rendered view takes the corrections of its nearest training cameras
-(:meth:`ImageAppearance.view_colour`, :mod:`voxnerf.neighbours`): learnt from the training images alone. The
-half-image protocol of :func:`voxnerf.metrics.half_image_pairs` scores every run beside the plain metrics.
+(:meth:`ImageAppearance.view_colour`, :mod:`voxnerf.cameras.neighbours`): learnt from the training images alone. The
+half-image protocol of :func:`voxnerf.inference.metrics.half_image_pairs` scores every run beside the plain metrics.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from voxnerf.neighbours import blend, checked_cameras, nearest_cameras
+from voxnerf.cameras.neighbours import blend, checked_cameras, nearest_cameras
 
 
 class ImageAppearance(nn.Module):

@@ -17,7 +17,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from voxnerf.camera_rules import (
+from voxnerf.cameras.lens import undistort
+from voxnerf.cameras.rules import (
     COEFFICIENT_KEYS,
     OPENCV,
     OPENCV_FISHEYE,
@@ -34,10 +35,9 @@ from voxnerf.camera_rules import (
     short_repr,
     validate_pose_deviation,
 )
+from voxnerf.data.image_io import image_size, read_depth, read_rgb
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
-from voxnerf.image_io import image_size, read_depth, read_rgb
-from voxnerf.lens import undistort
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION_KEYS = COEFFICIENT_KEYS  # k1 k2 k3 k4 p1 p2, nerfstudio's (OpenCV's) names
@@ -177,7 +177,7 @@ def _fail(path: Path, message: str, key: str | None = None) -> SceneError:
 
 
 def _checked(rule: Callable, value, path: Path, key: str):
-    """``rule(value, key)`` of :mod:`voxnerf.camera_rules`, its CameraError as a SceneError naming ``path``."""
+    """``rule(value, key)`` of :mod:`voxnerf.cameras.rules`, its CameraError as a SceneError naming ``path``."""
     try:
         return rule(value, key)
     except CameraError as err:
@@ -256,7 +256,7 @@ def _read_intrinsics(source: dict, fallback: dict, path: Path, where: str) -> In
 
 
 def _lens_checked(model: str, coefficients: dict, path: Path, where: str, context: str = "") -> Lens | None:
-    """:func:`voxnerf.camera_rules.lens_of`, its CameraError as a SceneError naming the key."""
+    """:func:`voxnerf.cameras.rules.lens_of`, its CameraError as a SceneError naming the key."""
     try:
         return lens_of(model, coefficients)
     except CameraError as err:
@@ -295,7 +295,7 @@ def _check_camera_model(meta: dict, frame: dict, path: Path, where: str) -> tupl
 
 
 def _read_pose(value, path: Path, key: str, reorthonormalised: list[tuple[str, float]]) -> np.ndarray:
-    """The pose rule of :func:`voxnerf.camera_rules.validate_pose`; a 3x4 matrix gets its last row added.
+    """The pose rule of :func:`voxnerf.cameras.rules.validate_pose`; a 3x4 matrix gets its last row added.
 
     Appends ``(key, deviation)`` to ``reorthonormalised`` when the repair is large enough to warn about.
     """
@@ -542,7 +542,7 @@ def load_scene(path: str | Path, *, downscale: int = 1, load_images: bool = True
 
 def with_focal_scale(scene: Scene, scale: float) -> Scene:
     """``scene`` with every frame's colour focal lengths times ``scale`` (principal point, size and lens kept), as
-    a focal check measured them (:mod:`voxnerf.focal_check`); ``scene`` itself when ``scale`` is 1.
+    a focal check measured them (:mod:`voxnerf.prior.focal_check`); ``scene`` itself when ``scale`` is 1.
 
     The depth maps keep the camera they were measured through (``depth_intrinsics``, else the stated colour
     camera), so the loaded training depth is registered again to the corrected images.
@@ -651,7 +651,7 @@ def inspect_scene(path: str | Path) -> dict:
 
     Returns :meth:`Scene.summary` with the prior's kind and (given or estimated) sigma filled in.
     """
-    from voxnerf.prior import load_prior
+    from voxnerf.prior.loading import load_prior
 
     scene = load_scene(path, load_images=False)
     for frame in scene.frames:

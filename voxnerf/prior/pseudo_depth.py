@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.prior import GeometryPrior
+from voxnerf.prior.loading import GeometryPrior
+from voxnerf.prior.octree import SparseVoxelOctree
 
 
 class MeshCaster:

@@ -1,8 +1,8 @@
 """Cameras and ray generation (OpenGL / nerfstudio convention: camera looks along -Z, +Y up).
 
-A camera is a pinhole, or a pinhole behind an OpenCV lens (:mod:`voxnerf.lens`): a pixel's ray then goes
+A camera is a pinhole, or a pinhole behind an OpenCV lens (:mod:`voxnerf.cameras.lens`): a pixel's ray then goes
 through the lens's inverse distortion. :class:`Intrinsics` lives in the torch-free
-:mod:`voxnerf.camera_rules` with the pose and intrinsics rules; it is re-exported here.
+:mod:`voxnerf.cameras.rules` with the pose and intrinsics rules; it is re-exported here.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from voxnerf.camera_rules import Intrinsics
-from voxnerf.lens import LensBatch, lens_directions
+from voxnerf.cameras.lens import LensBatch, lens_directions
+from voxnerf.cameras.rules import Intrinsics
 
 __all__ = ["Intrinsics", "camera_rays", "image_rays"]
 

@@ -14,7 +14,7 @@ the least error over all pairs is the measured one. The geometry keeps the state
 depth maps were measured through it, not through the colour camera.
 
 Everything here is in the scene's own units (poses and mesh alike); the mesh is cast by
-:class:`voxnerf.pseudo_depth.MeshCaster`, as the prior's pseudo depth is.
+:class:`voxnerf.prior.pseudo_depth.MeshCaster`, as the prior's pseudo depth is.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from voxnerf.camera_rules import Intrinsics
-from voxnerf.neighbours import nearest_cameras
-from voxnerf.pseudo_depth import MeshCaster
+from voxnerf.cameras.neighbours import nearest_cameras
+from voxnerf.cameras.rules import Intrinsics
+from voxnerf.prior.pseudo_depth import MeshCaster
 
 COARSE_SCALES = tuple(np.round(np.arange(0.80, 1.2001, 0.04), 4))  # first pass, the stated focal among them
 FINE_STEP = 0.01  # second pass: every FINE_STEP within one coarse step of the coarse minimum

@@ -3,7 +3,7 @@
 Positions are in normalised units inside ``[-1, 1]^3`` (the canonical box); the field maps them to
 ``[0, 1]^3`` itself. Pure PyTorch, vectorised across levels, on CPU and CUDA alike (tiny-cuda-nn is not
 integrated: it could not be built or tested here). On the CPU the encoding may instead run through
-:mod:`voxnerf.hash_kernel` (``HashEncoding.use_kernel``), a C kernel with the same arithmetic and a cheaper
+:mod:`voxnerf.model.hash_kernel` (``HashEncoding.use_kernel``), a C kernel with the same arithmetic and a cheaper
 backward; the PyTorch path stays the reference and the fallback.
 """
 
@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from voxnerf.hash_kernel import hash_encode
+from voxnerf.model.hash_kernel import hash_encode
 
 # Spatial-hash primes of instant-ngp (Teschner et al.); the first axis uses 1.
 HASH_PRIMES = (1, 2654435761, 805459861)
@@ -70,7 +70,8 @@ class HashEncoding(nn.Module):
         # [levels * features] weight of each level's features (coarse-to-fine training ramps it up; all ones
         # otherwise, and always in a saved model: it is not part of the state dict).
         self.register_buffer("level_weight", torch.ones(levels * features), persistent=False)
-        # Set by voxnerf.model.field_for where voxnerf.hash_kernel is available: CPU float32 positions then go
+        # Set by voxnerf.model.voxnerf_model.field_for where voxnerf.model.hash_kernel is available: CPU float32
+        # positions then go
         # through its C kernel (the same features; a cheaper backward into the table, and the positions' own).
         self.use_kernel = False
 
@@ -203,7 +204,7 @@ class RadianceField(nn.Module):
         rgb = torch.sigmoid(self.color_mlp(torch.cat([sh, h[:, 1:]], dim=-1)))
         return density, rgb
 
-    # The same field split for inference (voxnerf.inference): the colour MLP's first layer is linear in
+    # The same field split for inference (voxnerf.inference.fast_path): the colour MLP's first layer is linear in
     # cat([SH(d), geo]), so its direction part is computed once per ray instead of once per sample.
 
     def geometry(self, positions: Tensor) -> tuple[Tensor, Tensor]:

@@ -6,11 +6,11 @@ Conventions (OpenCV's): normalised camera coordinates, x right, y down, z forwar
 ``(px, py)`` of a camera ``fl_x fl_y cx cy`` has the *distorted* coordinates ``((px - cx) / fl_x,
 (py - cy) / fl_y)``; the *undistorted* coordinates of a point ``(X, Y, Z)`` in front of the camera are
 ``(X / Z, Y / Z)``. Coefficient tensors are ``[..., 6]`` in the order ``(k1, k2, k3, k4, p1, p2)``
-(:data:`voxnerf.camera_rules.COEFFICIENT_KEYS`); they broadcast against the points' leading dimensions.
+(:data:`voxnerf.cameras.rules.COEFFICIENT_KEYS`); they broadcast against the points' leading dimensions.
 Every function keeps its input's dtype (float32 in training, float64 in the synthetic generator) and device,
 and returns finite values for any finite input: Newton steps are guarded, radii clamped.
-The torch-free description of a lens (:class:`voxnerf.camera_rules.Lens`) and its rules live in
-:mod:`voxnerf.camera_rules`.
+The torch-free description of a lens (:class:`voxnerf.cameras.rules.Lens`) and its rules live in
+:mod:`voxnerf.cameras.rules`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from voxnerf.camera_rules import OPENCV, OPENCV_FISHEYE, Lens
+from voxnerf.cameras.rules import OPENCV, OPENCV_FISHEYE, Lens
 
 PINHOLE_CODE, OPENCV_CODE, FISHEYE_CODE = 0, 1, 2
 MODEL_CODES = {OPENCV: OPENCV_CODE, OPENCV_FISHEYE: FISHEYE_CODE}

@@ -3,7 +3,7 @@
 A scan's per-image errors (pose drift, auto-exposure) change slowly along its path, so a view the scan did not
 train on carries about the error of the training cameras near it. :func:`nearest_cameras` finds them and
 weighs them by inverse distance; pose refinement and per-image appearance blend their learnt corrections with
-these weights (:mod:`voxnerf.pose_refinement`, :mod:`voxnerf.appearance`).
+these weights (:mod:`voxnerf.cameras.pose_refinement`, :mod:`voxnerf.model.appearance`).
 """
 
 from __future__ import annotations

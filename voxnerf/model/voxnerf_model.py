@@ -1,6 +1,6 @@
 """The trained model: field + samplers + the scene box, and rendering of ray batches with it.
 
-All geometry here is in normalised units (see :class:`voxnerf.scene.SceneTransform`).
+All geometry here is in normalised units (see :class:`voxnerf.data.scene.SceneTransform`).
 """
 
 from __future__ import annotations
@@ -10,15 +10,15 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from voxnerf import hash_kernel
-from voxnerf.appearance import ImageAppearance
+from voxnerf.cameras.pose_refinement import PoseRefinement
 from voxnerf.config import TrainConfig
-from voxnerf.field import RadianceField
-from voxnerf.octree import SparseVoxelOctree
-from voxnerf.pose_refinement import PoseRefinement
-from voxnerf.rendering import volume_render
-from voxnerf.samplers import OccGridSampler, OccupancyGrid, RayBundle, UniformSampler, VoxNeRFSampler
-from voxnerf.scene import SceneTransform
+from voxnerf.data.scene import SceneTransform
+from voxnerf.model import hash_kernel
+from voxnerf.model.appearance import ImageAppearance
+from voxnerf.model.field import RadianceField
+from voxnerf.model.samplers import OccGridSampler, OccupancyGrid, RayBundle, UniformSampler, VoxNeRFSampler
+from voxnerf.model.volume_rendering import volume_render
+from voxnerf.prior.octree import SparseVoxelOctree
 
 # Closest distance a ray is sampled from its origin, normalised units (about 1 cm in a 4 m room).
 NEAR_MIN = 0.005
@@ -58,7 +58,7 @@ class VoxNeRFModel:
     has no prior or the sampler does not use it. ``appearance`` (config ``appearance='affine'``) corrects the
     training images' colours, and a rendered view's as its nearest training cameras' were; ``pose_refinement``
     (config ``pose_refinement='so3xr3'``) corrects the training images' rays, and a rendered pose by its nearest
-    training cameras' corrections (both applied by :func:`voxnerf.render.render_normalized`).
+    training cameras' corrections (both applied by :func:`voxnerf.inference.render.render_normalized`).
     """
 
     config: TrainConfig

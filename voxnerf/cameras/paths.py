@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from voxnerf.camera_rules import (
+from voxnerf.cameras.rules import (
     ROTATION_TOLERANCE,
     CameraError,
     Intrinsics,
@@ -87,7 +87,7 @@ class CameraPathError(VoxNeRFError, ValueError):
 
 
 def _checked(rule, value, key: str):
-    """``rule(value, key)`` of :mod:`voxnerf.camera_rules`, its CameraError as a CameraPathError naming ``key``."""
+    """``rule(value, key)`` of :mod:`voxnerf.cameras.rules`, its CameraError as a CameraPathError naming ``key``."""
     try:
         return rule(value, key)
     except CameraError as err:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from voxnerf.octree import SparseVoxelOctree
+from voxnerf.prior.octree import SparseVoxelOctree
 
 # Gaussian CDF at -3 and +3 standard deviations: the importance window of the paper.
 _PHI_LO = 0.5 * math.erfc(3.0 / math.sqrt(2.0))

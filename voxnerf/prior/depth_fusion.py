@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.rules import Intrinsics
 
 # OpenGL camera axes (x right, y up, looking along -z) to OpenCV's (x right, y down, looking along +z).
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])

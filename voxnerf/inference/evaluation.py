@@ -10,13 +10,13 @@ from pathlib import Path, PurePosixPath
 
 import torch
 
-from voxnerf.cameras import Intrinsics
+from voxnerf.cameras.rays import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.image_io import encode_png, write_atomic
-from voxnerf.inference import FAST
-from voxnerf.metrics import LPIPS, LPIPS_UNAVAILABLE, evaluate_images, half_image_pairs
-from voxnerf.model import VoxNeRFModel
-from voxnerf.render import render_normalized, resolved_render_path
+from voxnerf.data.image_io import encode_png, write_atomic
+from voxnerf.inference.fast_path import FAST
+from voxnerf.inference.metrics import LPIPS, LPIPS_UNAVAILABLE, evaluate_images, half_image_pairs
+from voxnerf.inference.render import render_normalized, resolved_render_path
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 
 
 class EvaluationStopped(Exception):
@@ -85,7 +85,7 @@ def evaluate_views(
     should_stop: Callable[[], bool] | None = None,
     half_image: bool = False,
 ) -> dict[str, dict]:
-    """Render every view of every split (on the render ``path``, see :func:`voxnerf.render.render_normalized`)
+    """Render every view of every split (on the render ``path``, see :func:`voxnerf.inference.render.render_normalized`)
     and score it.
 
     Returns ``{split: {"psnr", "ssim", "lpips" (None if unavailable or not asked), "lpips_note"?, "renderer",
@@ -94,7 +94,8 @@ def evaluate_views(
     A model with pose refinement adds ``"poses"``, saying how the views' poses were moved, and one with per-image
     appearance ``"colours"``.
     ``half_image`` adds ``"half": {"psnr", "ssim", "lpips"}``, the means of the half-image protocol
-    (:func:`voxnerf.metrics.half_image_pairs`: colour affine fitted on each view's left half, scored on its right).
+    (:func:`voxnerf.inference.metrics.half_image_pairs`: colour affine fitted on each view's left half, scored on its
+    right).
     Writes ``out_dir/<split>/<name>.png`` when ``out_dir`` is given. Raises EvaluationStopped when
     ``should_stop()`` (asked before each view) returns True.
     """

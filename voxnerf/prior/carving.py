@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from voxnerf.octree import SparseVoxelOctree, morton_decode
+from voxnerf.prior.octree import SparseVoxelOctree, morton_decode
 
 MIN_FREE_VOTES = 2  # distinct rays that must cross a leaf before it is carved
 MAX_LEAVES_PER_RAY = 32  # leaves one ray votes for at most (a ray crossing more leaves them unvoted)

@@ -10,15 +10,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from voxnerf.camera_rules import CameraError, validate_pose
-from voxnerf.cameras import Intrinsics, image_rays
+from voxnerf.cameras.rays import Intrinsics, image_rays
+from voxnerf.cameras.rules import CameraError, validate_pose
+from voxnerf.data.scene import Scene, with_focal_scale
 from voxnerf.devices import resolve_device
 from voxnerf.errors import RunError
 from voxnerf.files import CHECKPOINT
-from voxnerf.inference import FAST, render_rays_fast
-from voxnerf.model import VoxNeRFModel
-from voxnerf.outputs import OUTPUT_NAMES
-from voxnerf.scene import Scene, with_focal_scale
+from voxnerf.inference.encoding import OUTPUT_NAMES
+from voxnerf.inference.fast_path import FAST, render_rays_fast
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.checkpoint import load_checkpoint
 
 OUTPUTS = OUTPUT_NAMES
@@ -32,7 +32,7 @@ class TrainedModel:
 
     ``default_intrinsics`` is the first training camera as trained, its lens included (a checkpoint from before
     lenses has none). A render that names no lens is the *undistorted* pinhole view of it: see :func:`render`
-    and :func:`voxnerf.camera_rules.resolve_intrinsics` (the rule of the CLI's pose file and ``POST /render``).
+    and :func:`voxnerf.cameras.rules.resolve_intrinsics` (the rule of the CLI's pose file and ``POST /render``).
     """
 
     model: VoxNeRFModel
@@ -94,8 +94,8 @@ def render_normalized(
     path: str = "auto",
 ) -> dict[str, Tensor]:
     """Render one view whose pose is already in normalised units (a model that refined the training poses moves
-    it by its nearest training cameras' corrections first, :mod:`voxnerf.pose_refinement`; one that learnt
-    per-image appearance gives it their colour correction, :mod:`voxnerf.appearance`).
+    it by its nearest training cameras' corrections first, :mod:`voxnerf.cameras.pose_refinement`; one that learnt
+    per-image appearance gives it their colour correction, :mod:`voxnerf.model.appearance`).
 
     Args:
         c2w: [4, 4] camera-to-world (OpenGL axes), normalised units.
@@ -104,7 +104,7 @@ def render_normalized(
         outputs: subset of ("rgb", "depth", "opacity"); "depth" is z-depth in normalised units.
         chunk: rays per forward pass (default: :data:`FAST_CHUNK` on the fast path, the config's eval_chunk
             on the full one).
-        path: ``"fast"`` (:mod:`voxnerf.inference`: front to back, rays stop when opaque, no compiling),
+        path: ``"fast"`` (:mod:`voxnerf.inference.fast_path`: front to back, rays stop when opaque, no compiling),
             ``"full"`` (every sample of every ray, compiled when the config says so: the training-time path) or
             ``"auto"`` (:func:`resolved_render_path`).
     Returns:
@@ -177,7 +177,7 @@ def render(
 
     Args:
         c2w: [4, 4] camera-to-world, OpenGL axes (as in transforms.json), scene units; checked by
-            :func:`voxnerf.camera_rules.validate_pose` (the rule of the CLI and the REST API): RunError
+            :func:`voxnerf.cameras.rules.validate_pose` (the rule of the CLI and the REST API): RunError
             ``c2w: <why>`` when it is refused, re-orthonormalised when slightly off.
         intrinsics: default: the scene's first training camera at the trained resolution, undistorted (a
             pinhole with its focal lengths and principal point, even when it was trained through a lens);

@@ -1,9 +1,9 @@
 """Importers: other capture layouts written as docs/scene-format.md scenes (``voxnerf import``, and uploads).
 
-- :func:`import_colmap`: a COLMAP sparse model and its images (:mod:`voxnerf.importers.colmap`);
-- :func:`import_scannet`: ScanNet's exported frames (:mod:`voxnerf.importers.scannet`);
+- :func:`import_colmap`: a COLMAP sparse model and its images (:mod:`voxnerf.data.importers.colmap`);
+- :func:`import_scannet`: ScanNet's exported frames (:mod:`voxnerf.data.importers.scannet`);
 - ``splits=PaperSplitRule()``: the paper's train / interpolation / extrapolation splits
-  (:mod:`voxnerf.importers.splits`), the same rule for every importer.
+  (:mod:`voxnerf.data.importers.splits`), the same rule for every importer.
 
 Each returns a JSON-able summary: ``format``, ``frames``, ``skipped`` (count per reason), ``camera_models``,
 ``depth_frames``, ``prior`` (file, points, sigma and its rule; None without one), ``splits`` (the rule's
@@ -16,9 +16,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path, PurePosixPath
 
-from voxnerf.importers.colmap import import_colmap
-from voxnerf.importers.scannet import import_scannet
-from voxnerf.importers.splits import PaperSplitRule, paper_splits
+from voxnerf.data.importers.colmap import import_colmap
+from voxnerf.data.importers.scannet import import_scannet
+from voxnerf.data.importers.splits import PaperSplitRule, paper_splits
 
 __all__ = ["LAYOUTS", "PaperSplitRule", "describe", "detect_layout", "import_colmap", "import_scannet",
            "paper_splits", "run_import"]

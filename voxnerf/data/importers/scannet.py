@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from voxnerf.data.image_io import image_size, read_png_header
+from voxnerf.data.importers import writer
+from voxnerf.data.importers.splits import PaperSplitRule, SplitError, split_keys
 from voxnerf.errors import SceneError
-from voxnerf.image_io import image_size, read_png_header
-from voxnerf.importers import writer
-from voxnerf.importers.splits import PaperSplitRule, SplitError, split_keys
 
 DEPTH_UNIT_SCALE = 0.001
 COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -190,7 +190,7 @@ def _write_frame(root: Path, frame: _Frame, size: tuple[int, int]) -> dict:
 def import_scannet(src: str | Path, out: str | Path, splits: PaperSplitRule | None = None) -> dict:
     """Write the ScanNet export under ``src`` as a scene at ``out`` (absent or empty); returns the summary.
 
-    ``splits``: write the paper's splits (:mod:`voxnerf.importers.splits`), else no split keys. Raises
+    ``splits``: write the paper's splits (:mod:`voxnerf.data.importers.splits`), else no split keys. Raises
     SceneError naming the file at fault; on any error nothing is left at ``out``.
     """
     src, out = Path(src), Path(out)

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from voxnerf.data.importers import writer
+from voxnerf.data.importers.splits import PaperSplitRule, SplitError, split_keys
 from voxnerf.errors import SceneError
-from voxnerf.importers import writer
-from voxnerf.importers.splits import PaperSplitRule, SplitError, split_keys
 
 PLY_NAME = "sparse_pc.ply"
 SIGMA_SAMPLE_POINTS = 20_000
@@ -251,7 +251,7 @@ def import_colmap(
     """Write the COLMAP model under ``src`` as a scene at ``out`` (absent or empty); returns the summary.
 
     ``images``: the image folder (default ``src/images``); ``splits``: write the paper's splits
-    (:mod:`voxnerf.importers.splits`), else no split keys. Raises SceneError naming the file at fault; on any
+    (:mod:`voxnerf.data.importers.splits`), else no split keys. Raises SceneError naming the file at fault; on any
     error nothing is left at ``out``.
     """
     src, out = Path(src), Path(out)

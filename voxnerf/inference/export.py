@@ -3,14 +3,14 @@
 Views: every training camera of the scene the run trained on, each also shifted by :data:`OFFSET_OF_EXTENT` of
 the scene box along :data:`OFFSET_DIRECTIONS` (its own right/left/up/down, same orientation). Every view is a
 pinhole (lenses left out) at the trained resolution, scaled down so that its longer side is at most
-:data:`MAX_RENDER_SIDE` pixels, rendered with :func:`voxnerf.render.render` (rgb, z-depth in scene units,
+:data:`MAX_RENDER_SIDE` pixels, rendered with :func:`voxnerf.inference.render.render` (rgb, z-depth in scene units,
 opacity). Pixels with opacity below ``min_opacity``, or any non-finite output, carry no surface. Colours are the
 rendered rgb (composited over the model's background; a surface a training view saw is opaque, so it shows
 little of it).
 (An orbit looking inward at the cameras' centre was left out: inside a room it crosses the unobserved middle,
 whose floaters put its depth decimetres off; docs/engine.md, Geometry export.)
 
-- ``mesh``: TSDF fusion of the views' depth and colour (:func:`voxnerf.depth_fusion.fuse_tsdf`, open3d's tensor
+- ``mesh``: TSDF fusion of the views' depth and colour (:func:`voxnerf.prior.depth_fusion.fuse_tsdf`, open3d's tensor
   VoxelBlockGrid, truncation :data:`TRUNCATION_VOXELS` voxels, voxels seen by fewer than :data:`MIN_VIEWS` views
   left out), marching cubes, vertex colours; canonical vertex/face order.
 - ``pointcloud``: each view's valid pixels back-projected to world points with colours and normals (from the
@@ -33,12 +33,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from voxnerf.camera_rules import Intrinsics
-from voxnerf.depth_fusion import DepthView, FusionError, fuse_tsdf, point_map
+from voxnerf.cameras.rules import Intrinsics
+from voxnerf.data.image_io import write_atomic
+from voxnerf.data.scene import Scene, load_scene
 from voxnerf.errors import RunError
-from voxnerf.image_io import write_atomic
-from voxnerf.render import TrainedModel, render, scene_as_trained
-from voxnerf.scene import Scene, load_scene
+from voxnerf.inference.render import TrainedModel, render, scene_as_trained
+from voxnerf.prior.depth_fusion import DepthView, FusionError, fuse_tsdf, point_map
 
 EXPORT_KINDS = ("mesh", "pointcloud")
 MAX_RENDER_SIDE = 320  # pixels: the longer side of every rendered view

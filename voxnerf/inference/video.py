@@ -5,7 +5,8 @@
   sizes are refused (not padded or resized, so every pixel of the video is a rendered one). Only ``rgb`` goes
   into a video. The video is written to a temporary name beside ``out`` and renamed when complete.
 - Frames directory: ``frame_00000.png`` (rgb), ``frame_00000_depth.png`` (16-bit, the run's depth unit) and
-  ``frame_00000_opacity.png`` (8-bit) as :mod:`voxnerf.outputs` encodes a single render; or with ``fmt="exr"``
+  ``frame_00000_opacity.png`` (8-bit) as :mod:`voxnerf.inference.encoding` encodes a single render; or with
+  ``fmt="exr"``
   one ``frame_00000.exr`` per frame holding channels R G B (Z, A). The directory is built beside ``out`` and
   renamed when complete; ``out`` must be absent or empty.
 
@@ -28,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from voxnerf.camera_path import CameraPath
+from voxnerf.cameras.paths import CameraPath
+from voxnerf.data.image_io import build_dir_atomic, write_atomic
 from voxnerf.errors import RunError
-from voxnerf.image_io import build_dir_atomic, write_atomic
-from voxnerf.outputs import OUTPUT_NAMES, encode_files
-from voxnerf.render import TrainedModel, render
+from voxnerf.inference.encoding import OUTPUT_NAMES, encode_files
+from voxnerf.inference.render import TrainedModel, render
 
 VIDEO_SUFFIX = ".mp4"
 FORMATS = ("mp4", "png", "exr")

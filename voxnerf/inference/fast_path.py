@@ -1,9 +1,9 @@
 """The fast inference path: the trained sampler's intervals, evaluated front to back with bounded skipping.
 
-The full path (:meth:`voxnerf.model.VoxNeRFModel.render_rays`) evaluates density and colour at every sample of
-every ray. This path takes the same intervals from the same sampler and composites them with the same rule
-(:mod:`voxnerf.rendering`), but walks the samples front to back, one column of the dense ``[R, S]`` packing at a
-time, and evaluates only what can change the pixel:
+The full path (:meth:`voxnerf.model.voxnerf_model.VoxNeRFModel.render_rays`) evaluates density and colour at every
+sample of every ray. This path takes the same intervals from the same sampler and composites them with the same rule
+(:mod:`voxnerf.model.volume_rendering`), but walks the samples front to back, one column of the dense ``[R, S]``
+packing at a time, and evaluates only what can change the pixel:
 
 - a ray stops once its transmittance is below ``min_transmittance`` (early ray termination): what it leaves
   out weighs less than that in total;
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from voxnerf.field import spherical_harmonics, trunc_exp
-from voxnerf.rendering import MAX_OPTICAL_DEPTH
-from voxnerf.samplers import RayBundle
+from voxnerf.model.field import spherical_harmonics, trunc_exp
+from voxnerf.model.samplers import RayBundle
+from voxnerf.model.volume_rendering import MAX_OPTICAL_DEPTH
 
 
 @dataclass(frozen=True)
@@ -255,7 +255,7 @@ class _Composite:
 
     def finish(self, near: Tensor, far: Tensor, background: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(rgb [B, 3], opacity [B], depth [B]): the residual light is the background's and lies at ``far``,
-        depth clamped to [near, far] (as :func:`voxnerf.rendering.volume_render` does)."""
+        depth clamped to [near, far] (as :func:`voxnerf.model.volume_rendering.volume_render` does)."""
         opacity = self.weight.clamp(0.0, 1.0)
         residual = 1.0 - opacity
         rgb = self.rgb + residual[:, None] * background

@@ -12,9 +12,9 @@ import numpy as np
 import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.evaluation import EvaluationStopped, EvalView, evaluate_views, view_names
-from voxnerf.model import VoxNeRFModel
-from voxnerf.scene import Scene, SceneTransform
+from voxnerf.data.scene import Scene, SceneTransform
+from voxnerf.inference.evaluation import EvaluationStopped, EvalView, evaluate_views, view_names
+from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.budget import Budget
 from voxnerf.training.records import EvalRecord
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from voxnerf.image_io import (
+from voxnerf.data.image_io import (
     encode_depth_png16,
     encode_exr,
     encode_gray_png8,
@@ -99,7 +99,7 @@ def encode_files(
 
 
 def write_files(files: Mapping[Path, bytes]) -> list[Path]:
-    """Write each file atomically (see :func:`voxnerf.image_io.write_atomic`); the paths, in order."""
+    """Write each file atomically (see :func:`voxnerf.data.image_io.write_atomic`); the paths, in order."""
     for path, data in files.items():
         write_atomic(path, data)
     return list(files)

@@ -12,7 +12,7 @@ blurry field pulls that way).
 A scan's pose errors drift slowly along its path, so a pose the scan gives for any other view (a held-out frame,
 a novel view in the scan's frame) carries about the error of the training cameras near it. Rendering a pose
 therefore moves it by the corrections of its nearest training cameras (:meth:`PoseRefinement.correct_views`,
-weighted by inverse distance, :mod:`voxnerf.neighbours`): the correction the model learnt for that part of the
+weighted by inverse distance, :mod:`voxnerf.cameras.neighbours`): the correction the model learnt for that part of the
 path, from the training images alone.
 """
 
@@ -22,8 +22,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from voxnerf.neighbours import blend, checked_cameras, nearest_cameras
-from voxnerf.scene import SceneTransform
+from voxnerf.cameras.neighbours import blend, checked_cameras, nearest_cameras
+from voxnerf.data.scene import SceneTransform
 
 # Below this squared angle (rad^2) the exponential map uses its Taylor series: sin(a)/a and (1-cos(a))/a^2 lose
 # every digit to cancellation near zero, and their gradients there would be 0/0.
@@ -75,7 +75,7 @@ class PoseRefinement(nn.Module):
 
     def view_corrections(self, c2w: Tensor) -> Tensor:
         """[M, 6] corrections for poses ``c2w`` [M, 4, 4] (normalised units): those of the nearest training
-        cameras, blended by inverse distance (:func:`voxnerf.neighbours.nearest_cameras`). A training camera's
+        cameras, blended by inverse distance (:func:`voxnerf.cameras.neighbours.nearest_cameras`). A training camera's
         own pose gets its own correction."""
         return blend(self.corrections().detach(), *nearest_cameras(self.cameras, c2w))
 
