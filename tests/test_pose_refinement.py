@@ -20,7 +20,7 @@ from voxnerf.data.scene import SceneTransform, load_scene
 from voxnerf.inference import render as render_module
 from voxnerf.inference.render import render_normalized
 from voxnerf.model import hash_kernel
-from voxnerf.model.voxnerf_model import VoxNeRFModel
+from voxnerf.model.voxnerf_model import Batch, VoxNeRFModel
 from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.run import train
 from voxnerf.training.step import make_loss_fn
@@ -119,7 +119,7 @@ def test_a_model_with_pose_refinement_round_trips_and_one_without_loads_as_befor
     assert VoxNeRFModel.from_state_dict(state, torch.device("cpu")).pose_refinement is None
 
 
-class _PatternModel:
+class _PatternModel(VoxNeRFModel):
     """Renders a smooth colour pattern of the point one unit along each ray (so a ray's colour depends on its
     pose), like a field that has learnt a textured wall; ``pose_refinement`` as a real model carries it."""
 
@@ -162,8 +162,8 @@ def test_the_loss_recovers_known_pose_errors():
     starts = torch.rand(512, 4)
     opt = torch.optim.Adam(model.pose_refinement.parameters(), lr=2e-3)
     for _ in range(400):
-        total, *_ = loss_fn(origins, dirs, starts, starts + 0.1, target, None, None, None, image, torch.tensor(0.0),
-                            pose_corrections=model.pose_refinement.corrections())
+        total, *_ = loss_fn(Batch(origins, dirs, starts, starts + 0.1, target, None, None, None, image,
+                                  torch.tensor(0.0), pose_corrections=model.pose_refinement.corrections()))
         opt.zero_grad()
         total.backward()
         opt.step()
@@ -184,7 +184,8 @@ def test_prior_rays_are_not_moved_and_the_regulariser_counts():
     model.render_samples = lambda o, d, *a, **k: seen.append((o, d)) or render(o, d, *a, **k)
     args = (origins, dirs, starts, starts + 0.1, target, None, None, None, image, torch.tensor(0.0), None, None,
             model.pose_refinement.corrections())
-    total, lc, *_ = make_loss_fn(model, TrainConfig(max_iters=1, lambda_pose=0.5), 0.1, 0, 8, n_prior_rays=3)(*args)
+    loss_fn = make_loss_fn(model, TrainConfig(max_iters=1, lambda_pose=0.5), 0.1, 0, 8, n_prior_rays=3)
+    total, lc, *_ = loss_fn(Batch(*args))
     o, d = seen[0]
     torch.testing.assert_close(o[5:], origins[5:])  # the 3 prior rays
     torch.testing.assert_close(d[5:], dirs[5:])

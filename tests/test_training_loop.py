@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from voxnerf.errors import TrainingDiverged
+from voxnerf.model.voxnerf_model import Losses
 from voxnerf.training.budget import Budget
 from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
-from voxnerf.training.step import Losses
 
 
 class FakeClock:

@@ -11,18 +11,21 @@ import torch
 from voxnerf.cameras.pose_refinement import PoseRefinement
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
-from voxnerf.model.losses import color_loss
+from voxnerf.model.losses import PAPER_BETA, color_loss
 from voxnerf.model.samplers import RayBundle
+from voxnerf.model.voxnerf_model import Batch, Losses, VoxNeRFModel
 from voxnerf.training.pixels import TrainingPixels
-from voxnerf.training.step import PAPER_BETA, Batch, Losses, TrainStep, divergence_guard, make_loss_fn
+from voxnerf.training.step import TrainStep, divergence_guard, make_loss_fn
 
 
-class StubModel:
-    """render_samples: colour = mean of the starts, depth = the first start times ``depth_scale``."""
+class StubModel(VoxNeRFModel):
+    """The model's outputs and loss over a stub renderer: colour = mean of the starts, depth = the first start
+    times ``depth_scale``."""
 
     def __init__(self, scale: float = 1.0, depth_scale: float = 1.0) -> None:
         self.transform = SimpleNamespace(scale=scale)
         self.depth_scale = depth_scale
+        self.appearance = self.pose_refinement = None
 
     def render_samples(self, origins, dirs, starts, ends, background=None):
         rgb = starts.mean(-1, keepdim=True).expand(-1, 3)
@@ -46,7 +49,7 @@ def _inputs(rays: int, with_depth: bool, target_beta=None, depth_weight: float =
 def test_without_depth_targets_the_loss_is_the_colour_loss():
     cfg = TrainConfig(max_iters=1)
     args = _inputs(16, with_depth=False)
-    total, lc, ld, lreg, ldist = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(*args)
+    total, lc, ld, lreg, ldist = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(Batch(*args))
     assert total is lc and float(ld) == 0 and float(lreg) == 0 and float(ldist) == 0
     expected = color_loss(args[2].mean(-1, keepdim=True).expand(-1, 3), args[4])
     assert float(lc.detach()) == pytest.approx(float(expected.detach()))
@@ -55,7 +58,7 @@ def test_without_depth_targets_the_loss_is_the_colour_loss():
 def test_depth_and_smoothness_terms_add_with_their_weights():
     cfg = TrainConfig(max_iters=1, lambda_depth=0.5, lambda_smooth=0.25)
     args = _inputs(16 + 2 * 4 * 4, with_depth=True, depth_weight=0.5)
-    total, lc, ld, lreg, _ = make_loss_fn(StubModel(), cfg, PAPER_BETA, 2 * 4 * 4, 4)(*args)
+    total, lc, ld, lreg, _ = make_loss_fn(StubModel(), cfg, PAPER_BETA, 2 * 4 * 4, 4)(Batch(*args))
     assert float(total.detach()) == pytest.approx(float((lc + 0.5 * (ld + 0.25 * lreg)).detach()))
     ld, lreg = ld.detach(), lreg.detach()
     assert float(ld) > 0 and float(lreg) > 0
@@ -65,8 +68,8 @@ def test_the_depth_terms_do_not_depend_on_the_scene_unit():
     """Millimetres: beta 1000x, depths 1000x in scene units (normalised depths the same): the same loss."""
     cfg = TrainConfig(max_iters=1, lambda_smooth=0.5)
     args = _inputs(16 + 4 * 4, with_depth=True)
-    metres = make_loss_fn(StubModel(scale=0.5), cfg, 0.1, 16, 4)(*args)
-    millimetres = make_loss_fn(StubModel(scale=0.5e-3), cfg, 100.0, 16, 4)(*args)
+    metres = make_loss_fn(StubModel(scale=0.5), cfg, 0.1, 16, 4)(Batch(*args))
+    millimetres = make_loss_fn(StubModel(scale=0.5e-3), cfg, 100.0, 16, 4)(Batch(*args))
     for a, b in zip(metres, millimetres, strict=True):
         assert float(a.detach()) == pytest.approx(float(b.detach()), rel=1e-5)
 
@@ -74,9 +77,10 @@ def test_the_depth_terms_do_not_depend_on_the_scene_unit():
 def test_a_per_ray_beta_of_one_is_the_run_beta_and_a_wider_beta_lowers_the_depth_term():
     cfg = TrainConfig(max_iters=1)
     rays = 64
-    plain = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(*_inputs(rays, True))
-    ones = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(*_inputs(rays, True, torch.ones(rays)))
-    wide = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(*_inputs(rays, True, torch.full((rays,), 4.0)))
+    plain = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(Batch(*_inputs(rays, True)))
+    ones = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(Batch(*_inputs(rays, True, torch.ones(rays))))
+    wide_batch = Batch(*_inputs(rays, True, torch.full((rays,), 4.0)))
+    wide = make_loss_fn(StubModel(depth_scale=40.0), cfg, 0.1, 0, 8)(wide_batch)
     assert float(ones[2].detach()) == pytest.approx(float(plain[2].detach()), rel=1e-6)
     # residuals far beyond beta are in the log branch, beta^2 (1/2 + ln(r / beta)), which grows with beta
     assert float(wide[2].detach()) > float(plain[2].detach())
@@ -168,7 +172,7 @@ def test_the_colour_loss_composites_over_the_batch_background():
     cfg = TrainConfig(max_iters=1)
     args = _inputs(16, with_depth=False)
     background = torch.rand(16, 3)
-    _, lc, *_ = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(*args, None, background)
+    _, lc, *_ = make_loss_fn(StubModel(), cfg, 0.1, 0, 8)(Batch(*args, None, background))
     expected = color_loss(0.5 * args[2].mean(-1, keepdim=True).expand(-1, 3) + 0.5 * background, args[4])
     assert float(lc.detach()) == pytest.approx(float(expected.detach()))
 
@@ -177,8 +181,8 @@ def test_losses_zero_the_gradients_then_backpropagate_and_apply_steps():
     log: list = []
     w = torch.tensor(2.0, requires_grad=True)
 
-    def loss_fn(*args):
-        return w * 3, w, w * 0, w * 0, w * 0
+    def loss_fn(batch):
+        return Losses(w * 3, w, w * 0, w * 0, w * 0)
 
     step = TrainStep(StubModel(), StubOptimizer(log), _pixels(False), TrainConfig(max_iters=1), loss_fn, False,
                      None, torch.Generator())
@@ -221,10 +225,10 @@ def test_detached_pose_corrections_still_move_the_rays_but_leave_the_poses_witho
         poses.delta[0, 3] = 0.2
     args = _inputs(8, with_depth=False)
     loss_fn = make_loss_fn(model, TrainConfig(max_iters=1, lambda_pose=0.5), 0.1, 0, 8)
-    total, *_ = loss_fn(*args, None, None, poses.corrections().detach())
+    total, *_ = loss_fn(Batch(*args, None, None, poses.corrections().detach()))
     total.backward()
     assert poses.delta.grad is None
     torch.testing.assert_close(seen[0], args[0] + torch.tensor([0.1, 0.0, 0.0]))  # image 0, held at zero mean
-    total, *_ = loss_fn(*args, None, None, poses.corrections())
+    total, *_ = loss_fn(Batch(*args, None, None, poses.corrections()))
     total.backward()
     assert poses.delta.grad is not None and float(poses.delta.grad.abs().sum()) > 0

@@ -78,10 +78,7 @@ def scene_as_trained(scene: Scene, model: VoxNeRFModel) -> Scene:
 def _view_rays(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`image_rays` of pose ``c2w`` [4, 4] (normalised, float32 on the model's device), moved by the model's
     pose refinement where it has one."""
-    poses = getattr(model, "pose_refinement", None)
-    if poses is not None:
-        c2w = poses.correct_views(c2w[None])[0]
-    return image_rays(c2w, intrinsics)
+    return image_rays(model.view_pose(c2w), intrinsics)
 
 
 @torch.no_grad()
@@ -160,9 +157,8 @@ def _view_outputs(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, part
         if name == "depth":
             tensor = tensor * z_per_t
         result[name] = tensor.view(h, w, 3) if name == "rgb" else tensor.view(h, w)
-    appearance = getattr(model, "appearance", None)
-    if appearance is not None and "rgb" in result:
-        result["rgb"] = appearance.view_colour(result["rgb"], c2w).clamp(0.0, 1.0)
+    if "rgb" in result:
+        result["rgb"] = model.view_colour(result["rgb"], c2w)
     return result
 
 

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+PAPER_BETA = 0.1  # the paper's log-Huber beta, metres; the depth terms compare depths in units of beta / PAPER_BETA
 
 def color_loss(pred: Tensor, target: Tensor) -> Tensor:
     """Mean squared error over rays and channels. pred, target: [R, 3]."""

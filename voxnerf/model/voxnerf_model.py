@@ -1,4 +1,5 @@
-"""The trained model: field + samplers + the scene box, and rendering of ray batches with it.
+"""The model: field + samplers + the scene box; its outputs for a batch of training rays and its loss; rendering of
+ray batches; and the per-image corrections (pose and appearance), applied here for training and rendering alike.
 
 All geometry here is in normalised units (see :class:`voxnerf.data.scene.SceneTransform`).
 """
@@ -6,16 +7,18 @@ All geometry here is in normalised units (see :class:`voxnerf.data.scene.SceneTr
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from voxnerf.cameras.pose_refinement import PoseRefinement
+from voxnerf.cameras.pose_refinement import PoseRefinement, moved_rays, pose_penalty
 from voxnerf.config import TrainConfig
 from voxnerf.data.scene import SceneTransform
 from voxnerf.model import hash_kernel
 from voxnerf.model.appearance import ImageAppearance
 from voxnerf.model.field import RadianceField
+from voxnerf.model.losses import PAPER_BETA, color_loss, depth_loss, depth_smoothness_loss, distortion_loss
 from voxnerf.model.samplers import OccGridSampler, OccupancyGrid, RayBundle, UniformSampler, VoxNeRFSampler
 from voxnerf.model.volume_rendering import volume_render
 from voxnerf.prior.octree import SparseVoxelOctree
@@ -48,6 +51,67 @@ def field_for(config: TrainConfig) -> RadianceField:
                           cfg.hidden_dim, cfg.sh_bands)
     field.encoding.use_kernel = cfg.hash_kernel and hash_kernel.available()
     return field
+
+
+class Batch(NamedTuple):
+    """A batch of training rays and their targets (what :meth:`VoxNeRFModel.loss` takes; ``torch.compile``
+    compiles it as a tuple of tensors). Rays [R, 3] each (normalised units, unit directions), sample intervals
+    [R, S], targets, each ray's training image [R] int64, and lambda_d now (a 0-d tensor: a schedule changes it
+    without recompiling). The last ``LossSettings.n_prior_rays`` rays are prior rays
+    (:mod:`voxnerf.training.prior_rays`); the smoothness patches come just before them."""
+
+    origins: Tensor
+    dirs: Tensor
+    starts: Tensor
+    ends: Tensor
+    target_rgb: Tensor
+    target_t: Tensor | None
+    target_ok: Tensor | None
+    target_beta: Tensor | None  # [R] each ray's beta over the run's (None: the run's beta everywhere)
+    image: Tensor
+    depth_weight: Tensor
+    colour_weight: Tensor | None = None  # [R] each ray's weight in the colour loss (None: image rays 1)
+    background: Tensor | None = None  # [R, 3] each ray's background colour (None: the model's)
+    # [images, 6] the pose corrections moving the image rays (None: no pose refinement); detached on the steps
+    # that leave the poses as they are
+    pose_corrections: Tensor | None = None
+
+
+class Losses(NamedTuple):
+    """Scalar tensors of one step: the total and its colour, depth, smoothness and distortion terms."""
+
+    total: Tensor
+    colour: Tensor
+    depth: Tensor
+    smoothness: Tensor
+    distortion: Tensor
+
+
+@dataclass(frozen=True)
+class LossSettings:
+    """The constants of a run's loss (paper III-D; ``L = L_c + lambda_d (L_d + lambda_s L_reg) + lambda_dist
+    L_dist`` plus the pose regulariser).
+
+    ``depth_units`` turns a ray distance in normalised units into units of ``beta / PAPER_BETA`` (``PAPER_BETA /
+    (beta * scale)`` for ``beta`` in scene units): for the paper's beta = 0.1 m that is metres, and for any other
+    unit (mm, km) the same physical scene gets the same loss, so lambda_d keeps its meaning whatever the scene's
+    units and normalisation."""
+
+    depth_units: float
+    distortion_weight: float = 0.0
+    lambda_pose: float = 0.0
+    lambda_smooth: float = 0.0
+    smooth_scales: int = 1  # scales of the multi-scale depth smoothness
+    n_patch_rays: int = 0  # smoothness patch rays, just before the prior rays
+    patch: int = 8  # side of a smoothness patch, pixels
+    n_prior_rays: int = 0  # prior rays at the end of each batch: depth targets only
+
+    @staticmethod
+    def of(config: TrainConfig, beta: float, scale: float, n_patch_rays: int, patch: int,
+           n_prior_rays: int = 0) -> LossSettings:
+        """The settings of ``config`` for a depth ``beta`` in scene units and the scene's normalisation ``scale``."""
+        return LossSettings(PAPER_BETA / (beta * scale), config.distortion_weight, config.lambda_pose,
+                            config.lambda_smooth, config.smooth_scales, n_patch_rays, patch, n_prior_rays)
 
 
 @dataclass
@@ -123,6 +187,87 @@ class VoxNeRFModel:
         density, rgb = self.field(positions.reshape(-1, 3), dirs[:, None, :].expand(r, s, 3).reshape(-1, 3))
         bg = self.background if background is None else background
         return volume_render(density.view(r, s), rgb.view(r, s, 3), starts, ends, bg)
+
+    # The per-image corrections, one place for training (by training image) and rendering (by view pose).
+
+    def corrected_rays(self, origins: Tensor, dirs: Tensor, image: Tensor, corrections: Tensor | None,
+                       n_image: int) -> tuple[Tensor, Tensor]:
+        """Training rays [R, 3] with the first ``n_image`` (the image rays) moved by their training image's row of
+        the pose ``corrections`` [images, 6] (None: as they are); the rest (prior rays) as they are."""
+        if corrections is None:
+            return origins, dirs
+        if n_image == origins.shape[0]:  # no prior rays: nothing to put back
+            return moved_rays(corrections, origins, dirs, image)
+        moved_o, moved_d = moved_rays(corrections, origins[:n_image], dirs[:n_image], image[:n_image])
+        return torch.cat([moved_o, origins[n_image:]]), torch.cat([moved_d, dirs[n_image:]])
+
+    def corrected_colour(self, rgb: Tensor, image: Tensor) -> Tensor:
+        """Rendered colours [R, 3] of rays of the training images ``image`` [R] as those images saw them (the
+        per-image appearance, where the model learns one)."""
+        return rgb if self.appearance is None else self.appearance(rgb, image)
+
+    def view_pose(self, c2w: Tensor) -> Tensor:
+        """A view's pose [4, 4] moved by its nearest training cameras' pose corrections (where the model refines
+        the training poses)."""
+        return c2w if self.pose_refinement is None else self.pose_refinement.correct_views(c2w[None])[0]
+
+    def view_colour(self, rgb: Tensor, c2w: Tensor) -> Tensor:
+        """A view's rendered colour [..., 3] corrected as its nearest training cameras' appearance was, in [0, 1]
+        (where the model learns per-image appearance)."""
+        return rgb if self.appearance is None else self.appearance.view_colour(rgb, c2w).clamp(0.0, 1.0)
+
+    # Training: the outputs of a batch and its loss.
+
+    def outputs(self, batch: Batch, n_prior_rays: int = 0) -> dict[str, Tensor]:
+        """The rendered outputs of a training batch: the image rays moved by their pose corrections, the field
+        composited over the batch's background (:meth:`render_samples`: ``rgb`` [R, 3], ``depth`` [R] ray
+        distance, ``opacity`` [R], ``weights`` [R, S]), and ``image_rgb`` [R - n_prior_rays, 3], the image rays'
+        colour as their training images saw it (:meth:`corrected_colour`)."""
+        n_image = batch.origins.shape[0] - n_prior_rays
+        origins, dirs = self.corrected_rays(batch.origins, batch.dirs, batch.image, batch.pose_corrections, n_image)
+        out = dict(self.render_samples(origins, dirs, batch.starts, batch.ends, batch.background))
+        out["image_rgb"] = self.corrected_colour(out["rgb"][:n_image], batch.image[:n_image])
+        return out
+
+    def loss(self, batch: Batch, settings: LossSettings) -> Losses:
+        """The differentiable part of a training step (what ``torch.compile`` compiles): :meth:`outputs` and the
+        loss terms (:mod:`voxnerf.model.losses`).
+
+        Colour: the image rays against their pixels (prior rays join with their ``colour_weight``, normalised by
+        the image rays). Depth: log-Huber against ``target_t`` where ``target_ok``, in units of ``beta /
+        PAPER_BETA`` (a ray's ``target_beta`` scales its beta: sensor depth is trusted less far away), plus the
+        multi-scale smoothness of the patch rays, both times ``depth_weight``. Distortion where weighted. With
+        ``pose_corrections`` their regulariser joins; detached corrections (a step that leaves the poses alone)
+        make the step as cheap as one without refinement, since no gradient then flows into the sample
+        positions and directions."""
+        out = self.outputs(batch, settings.n_prior_rays)
+        rgb = out["image_rgb"]
+        n_image = rgb.shape[0]
+        if batch.colour_weight is None:
+            lc = color_loss(rgb, batch.target_rgb[:n_image])
+        else:  # prior rays weighted in (their targets: the mean colour), normalised by the image rays
+            per_ray = ((torch.cat([rgb, out["rgb"][n_image:]]) - batch.target_rgb) ** 2).mean(-1)
+            lc = (per_ray * batch.colour_weight).sum() / n_image
+        total = lc
+        if batch.pose_corrections is not None and settings.lambda_pose > 0:
+            total = total + pose_penalty(batch.pose_corrections, 0.1 * settings.lambda_pose, settings.lambda_pose)
+        ld = lreg = ldist = torch.zeros((), device=batch.origins.device)
+        if settings.distortion_weight > 0:
+            ldist = distortion_loss(out["weights"], batch.starts, batch.ends)
+            total = total + settings.distortion_weight * ldist
+        if batch.target_t is not None:
+            depth = out["depth"] * settings.depth_units
+            ray_beta = PAPER_BETA if batch.target_beta is None else PAPER_BETA * batch.target_beta
+            ld = depth_loss(depth, batch.target_t * settings.depth_units, batch.target_ok, ray_beta)
+            n_patch, patch = settings.n_patch_rays, settings.patch
+            if n_patch:
+                d = depth[n_image - n_patch : n_image].view(-1, patch, patch)
+                m = batch.target_ok[n_image - n_patch : n_image].view(-1, patch, patch)
+                lreg = depth_smoothness_loss(d, m, settings.smooth_scales)
+            total = total + batch.depth_weight * (ld + settings.lambda_smooth * lreg)
+        return Losses(total, lc, ld, lreg, ldist)
+
+    # Rendering.
 
     def compiled_render_samples(self):
         """:meth:`render_samples` through ``torch.compile`` (built once per model; callers keep shapes fixed)."""

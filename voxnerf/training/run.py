@@ -33,6 +33,7 @@ from voxnerf.data.scene import Scene
 from voxnerf.devices import compute_environment, resolve_device
 from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.files import CHECKPOINT, REFINED_POSES, REPORT
+from voxnerf.model.losses import PAPER_BETA
 from voxnerf.prior.loading import GeometryPrior
 from voxnerf.prior.octree import SparseVoxelOctree
 from voxnerf.training import stages
@@ -59,7 +60,7 @@ from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.pixels import TrainingPixels, training_pixels
 from voxnerf.training.prior_rays import PriorRayBank
 from voxnerf.training.records import StageRecord, TrainReport
-from voxnerf.training.step import PAPER_BETA, TrainStep, make_loss_fn
+from voxnerf.training.step import TrainStep, make_loss_fn
 from voxnerf.training.weight_decay import weight_decay_stage
 
 

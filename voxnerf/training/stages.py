@@ -26,6 +26,7 @@ from voxnerf.errors import SceneError
 from voxnerf.files import FUSED_PRIOR, TRANSFORMS
 from voxnerf.model import hash_kernel
 from voxnerf.model.appearance import ImageAppearance
+from voxnerf.model.losses import PAPER_BETA
 from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.prior.carving import empty_leaves, remove_empty
 from voxnerf.prior.depth_fusion import DepthNoise, DepthView, FusedPrior, FusionError, fit_noise, fuse_depth_prior
@@ -36,7 +37,7 @@ from voxnerf.training import setup_cache
 from voxnerf.training.pixels import TrainingPixels, per_pixel, rays_in_chunks, sensor_ray_distance
 from voxnerf.training.prior_rays import PriorRayBank, bank_size, prior_ray_bank, seen_by
 from voxnerf.training.records import EvalRecord, StageRecord
-from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, PAPER_BETA, LossFn
+from voxnerf.training.step import DEPTH_BETA_PER_SIGMA, LossFn
 
 MIN_PRIOR_COVERAGE = 0.05  # below this fraction of training pixels seeing the prior, the report warns
 COVERAGE_RAYS = 65_536  # training rays that choose the sampler octree's leaf (voxnerf.prior.octree.coverage_octree)

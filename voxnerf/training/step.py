@@ -1,120 +1,35 @@
-"""One optimisation step: the batch, the differentiable loss (what ``torch.compile`` compiles), the divergence
-guard and the optimiser update."""
+"""One optimisation step: the batch, the model's loss with the run's settings (what ``torch.compile`` compiles),
+the divergence guard and the optimiser update."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
 
 import torch
 
-from voxnerf.cameras.pose_refinement import moved_rays, pose_penalty
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
-from voxnerf.model.losses import color_loss, depth_loss, depth_smoothness_loss, distortion_loss
-from voxnerf.model.voxnerf_model import VoxNeRFModel
+from voxnerf.model.voxnerf_model import Batch, Losses, LossSettings, VoxNeRFModel
 from voxnerf.training.pixels import TrainingPixels, sample_batch
 from voxnerf.training.prior_rays import PriorRayBank
 
-PAPER_BETA = 0.1  # the paper's log-Huber beta, metres
 DEPTH_BETA_PER_SIGMA = 5.0  # default beta = 5 sigma: the paper's 0.1 m for its 2 cm priors, in any unit
 
-
-class Batch(NamedTuple):
-    """The loss function's arguments, in its order: rays [R, 3] each, sample intervals, targets, each ray's
-    training image [R] int64, and lambda_d now (a 0-d tensor: a schedule changes it without recompiling)."""
-
-    origins: torch.Tensor
-    dirs: torch.Tensor
-    starts: torch.Tensor
-    ends: torch.Tensor
-    target_rgb: torch.Tensor
-    target_t: torch.Tensor | None
-    target_ok: torch.Tensor | None
-    target_beta: torch.Tensor | None  # [R] each ray's beta over the run's (None: the run's beta everywhere)
-    image: torch.Tensor
-    depth_weight: torch.Tensor
-    colour_weight: torch.Tensor | None = None  # [R] each ray's weight in the colour loss (None: image rays 1)
-    background: torch.Tensor | None = None  # [R, 3] each ray's background colour (None: the model's)
-    # [images, 6] the pose corrections moving the image rays (None: no pose refinement); detached on the steps
-    # that leave the poses as they are
-    pose_corrections: torch.Tensor | None = None
-
-
-class Losses(NamedTuple):
-    """Scalar tensors of one step: the total and its colour, depth, smoothness and distortion terms."""
-
-    total: torch.Tensor
-    colour: torch.Tensor
-    depth: torch.Tensor
-    smoothness: torch.Tensor
-    distortion: torch.Tensor
-
-
-LossFn = Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
+LossFn = Callable[[Batch], Losses]
 
 
 def make_loss_fn(model: VoxNeRFModel, cfg: TrainConfig, beta: float, n_patch_rays: int, patch: int,
                  n_prior_rays: int = 0) -> LossFn:
-    """The differentiable part of a step (field, rendering, losses) as one function of fixed-shape tensors.
+    """The model's loss (:meth:`VoxNeRFModel.loss`) with this run's settings, as one function of a batch of
+    fixed-shape tensors (what ``torch.compile`` compiles). ``beta`` is in scene units; the batch's last
+    ``n_prior_rays`` rays are prior rays, the ``n_patch_rays`` before them smoothness patches of side ``patch``."""
+    settings = LossSettings.of(cfg, beta, model.transform.scale, n_patch_rays, patch, n_prior_rays)
 
-    ``beta`` is in scene units. The depth terms compare depths in units of ``beta / 0.1``: for the paper's
-    beta = 0.1 m that is metres, and for any other unit (mm, km) the same physical scene gets the same loss,
-    so lambda_d keeps its meaning whatever the scene's units and normalisation. A ray's ``target_beta`` scales
-    its beta (sensor depth is trusted less far away). The model's ``appearance`` (when it has one) corrects the
-    rendered colour of each ray's training image before the colour loss. With a ``pose_refinement`` the batch's
-    ``pose_corrections`` move each image ray as its training image's row says (the sample intervals stay those
-    of the given pose: a correction is far smaller than the sampling window) and their regulariser joins the
-    loss; detached corrections (a step that leaves the poses alone) make the step as cheap as one without
-    refinement, since no gradient then flows into the sample positions and directions. The batch's last
-    ``n_prior_rays`` rays are prior rays (:mod:`voxnerf.training.prior_rays`): depth targets only, left out of
-    the colour loss; the smoothness patches come just before them.
-    """
-    to_units, lam_dist = PAPER_BETA / (beta * model.transform.scale), cfg.distortion_weight
-    appearance, lam_pose = getattr(model, "appearance", None), cfg.lambda_pose
-
-    def loss_fn(origins, dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, image, depth_weight,
-                colour_weight=None, background=None, pose_corrections=None):
-        n_image = origins.shape[0] - n_prior_rays
-        if pose_corrections is not None:
-            origins, dirs = refined_rays(pose_corrections, origins, dirs, image, n_image)
-        out = model.render_samples(origins, dirs, starts, ends, background)
-        rgb = out["rgb"][:n_image] if appearance is None else appearance(out["rgb"][:n_image], image[:n_image])
-        if colour_weight is None:
-            lc = color_loss(rgb, target_rgb[:n_image])
-        else:  # prior rays weighted in (their targets: the mean colour), normalised by the image rays
-            per_ray = ((torch.cat([rgb, out["rgb"][n_image:]]) - target_rgb) ** 2).mean(-1)
-            lc = (per_ray * colour_weight).sum() / n_image
-        total = lc
-        if pose_corrections is not None and lam_pose > 0:
-            total = total + pose_penalty(pose_corrections, 0.1 * lam_pose, lam_pose)
-        ld = lreg = ldist = torch.zeros((), device=origins.device)
-        if lam_dist > 0:
-            ldist = distortion_loss(out["weights"], starts, ends)
-            total = total + lam_dist * ldist
-        if target_t is not None:
-            depth = out["depth"] * to_units
-            ray_beta = PAPER_BETA if target_beta is None else PAPER_BETA * target_beta
-            ld = depth_loss(depth, target_t * to_units, target_ok, ray_beta)
-            if n_patch_rays:
-                d = depth[n_image - n_patch_rays : n_image].view(-1, patch, patch)
-                m = target_ok[n_image - n_patch_rays : n_image].view(-1, patch, patch)
-                lreg = depth_smoothness_loss(d, m, cfg.smooth_scales)
-            total = total + depth_weight * (ld + cfg.lambda_smooth * lreg)
-        return total, lc, ld, lreg, ldist
+    def loss_fn(batch: Batch) -> Losses:
+        return model.loss(batch, settings)
 
     return loss_fn
-
-
-def refined_rays(corrections: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, image: torch.Tensor,
-                 n_image: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays [R, 3] with the first ``n_image`` (the image rays) moved by their training image's row of the pose
-    ``corrections`` [images, 6]; the rest (prior rays) as they are."""
-    if n_image == origins.shape[0]:  # no prior rays: nothing to put back
-        return moved_rays(corrections, origins, dirs, image)
-    moved_o, moved_d = moved_rays(corrections, origins[:n_image], dirs[:n_image], image[:n_image])
-    return torch.cat([moved_o, origins[n_image:]]), torch.cat([moved_d, dirs[n_image:]])
 
 
 def divergence_guard(losses: Losses, iteration: int) -> float:
@@ -170,12 +85,12 @@ class TrainStep:
     def graphs(self) -> int:
         """How many forms the batches take for a compiled loss function: two where only every
         ``cfg.pose_every``-th one carries the pose corrections with their gradient, else one."""
-        return 2 if getattr(self.model, "pose_refinement", None) is not None and self.cfg.pose_every > 1 else 1
+        return 2 if self.model.pose_refinement is not None and self.cfg.pose_every > 1 else 1
 
     def _pose_corrections(self) -> torch.Tensor | None:
         """The model's pose corrections [images, 6] for this batch: with their gradient on every
         ``cfg.pose_every``-th batch, detached on the others; None without pose refinement."""
-        poses = getattr(self.model, "pose_refinement", None)
+        poses = self.model.pose_refinement
         if poses is None:
             return None
         corrections = poses.corrections()
@@ -210,7 +125,7 @@ class TrainStep:
                      batch.pose_corrections)
 
     def losses(self, batch: Batch) -> Losses:
-        losses = Losses(*self.loss_fn(*batch))
+        losses = self.loss_fn(batch)
         self.optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         return losses
