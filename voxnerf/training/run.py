@@ -2,7 +2,8 @@
 
 It writes ``run_dir/checkpoint.pt`` (atomically: temp file + rename), ``run_dir/report.json`` (config, stages
 that ran and why, timings, the error-against-run-time history, final metrics) and
-``run_dir/eval/<split>/<frame>.png``. The set-up stages are ``stages.py``, the loop ``loop.py``, its periodic
+``run_dir/eval/<split>/<frame>.png``. The set-up stages run in the order of ``setup.py`` (their work is in
+``stages.py``, ``corrections.py``, ``weight_decay.py`` and ``focal.py``), the loop is ``loop.py``, its periodic
 duties ``callbacks.py``.
 
 ``should_stop()`` is asked between set-up stages, at every step and between the final evaluation's views: a
@@ -29,13 +30,10 @@ import torch
 from voxnerf.cameras.pose_refinement import refined_frames
 from voxnerf.config import TrainConfig
 from voxnerf.data.image_io import write_atomic
-from voxnerf.data.scene import Scene
 from voxnerf.devices import compute_environment, resolve_device
 from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.files import CHECKPOINT, REFINED_POSES, REPORT
 from voxnerf.model.losses import PAPER_BETA
-from voxnerf.prior.loading import GeometryPrior
-from voxnerf.prior.octree import SparseVoxelOctree
 from voxnerf.training import stages
 from voxnerf.training.budget import Budget, TrainingProgress
 from voxnerf.training.callbacks import (
@@ -53,15 +51,11 @@ from voxnerf.training.callbacks import (
     present,
 )
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
-from voxnerf.training.corrections import corrections_stage
 from voxnerf.training.eval_passes import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
-from voxnerf.training.focal import focal_stage
 from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
-from voxnerf.training.pixels import TrainingPixels, training_pixels
-from voxnerf.training.prior_rays import PriorRayBank
 from voxnerf.training.records import StageRecord, TrainReport
+from voxnerf.training.setup import SetupContext, run_setup
 from voxnerf.training.step import TrainStep, make_loss_fn
-from voxnerf.training.weight_decay import weight_decay_stage
 
 
 class LeaseLost(RunError):
@@ -105,20 +99,6 @@ class Run:
             raise LeaseLost(f"{self.dir}: another attempt owns this run now; this one stopped without writing")
 
 
-@dataclass
-class Setup:
-    """The set-up stages' products."""
-
-    scene: Scene
-    prior: GeometryPrior | None
-    built: stages.ModelStage
-    pixels: TrainingPixels
-    octree: SparseVoxelOctree | None
-    use_depth: bool
-    depth_beta: float | None = None  # scene units, when the depth loss is used
-    prior_rays: PriorRayBank | None = None
-
-
 def train(
     scene_dir: str | Path,
     run_dir: str | Path,
@@ -150,7 +130,7 @@ def train(
     run = Run(cfg, run_path, device, budget, report, ProgressEvents(on_progress, cfg, budget, report),
               should_stop or never, may_write or always)
     try:
-        setup = _set_up_scene(run, scene_dir, previous)
+        setup = _set_up(run, scene_dir, previous)
     except StoppedInSetUp:
         return _stopped_in_set_up(run, previous)
     return _optimise(run, setup, progress_bar)
@@ -169,108 +149,23 @@ def _stopped_in_set_up(run: Run, previous: dict | None) -> TrainReport:
     return report
 
 
-def _set_up_scene(run: Run, scene_dir: str | Path, previous: dict | None) -> Setup:
-    """Stages load_scene, corrections, weight_decay, prior, focal, hash_kernel, then the model (and the resumed
-    state)."""
-    report, events = run.report, run.events
-    loaded = stages.load_scene_stage(scene_dir, run.cfg)
-    report.scene = loaded.scene.summary()
-    events.stage(loaded.record, 0)
-    corrections = corrections_stage(run.cfg, loaded.scene, previous)
-    decay = weight_decay_stage(corrections.cfg, loaded.scene)
-    run.cfg = cfg = decay.cfg  # "auto" resolved: the report's config says what the run learns
-    report.config = cfg.model_dump()
-    events.stage(corrections.record, 0)
-    events.stage(decay.record, 0)
-    run.stop_point()
-    found, scene = _prior_and_focal(run, loaded.scene)
-    cfg = run.cfg
-    events.stage(stages.hash_kernel_stage(cfg, run.device), 0)
-    run.stop_point()
-    built = stages.model_stage(cfg, scene, found.prior, run.device, previous)
-    if built.resumed:
-        report.history.extend(built.history)
-        report.resumed_from_iteration = built.iteration
-    pixels = training_pixels(scene, built.transform, run.device)
-    run.stop_point()
-    return _set_up_geometry(run, scene, found, built, pixels)
+def _set_up(run: Run, scene_dir: str | Path, previous: dict | None) -> SetupContext:
+    """The set-up stages (:data:`voxnerf.training.setup.SETUP_STAGES`); ``run.cfg`` then holds the resolved
+    config."""
+    ctx = SetupContext(run.cfg, Path(scene_dir), run.dir, run.device, run.report, previous, run.fence)
+    run_setup(ctx, run.events.stage, run.stop_point)
+    run.cfg = ctx.cfg
+    return ctx
 
 
-def _prior_and_focal(run: Run, scene: Scene) -> tuple[stages.PriorStage, Scene]:
-    """Stages prior and focal: (the prior found or fused, the scene seen through the focal length the focal
-    stage settled on, which ``run.cfg`` and the report's config now hold)."""
-    report, events = run.report, run.events
-    run.fence()  # the prior stage may write the fused prior into the run directory
-    found = stages.prior_stage(scene, run.cfg, run.dir)
-    events.stage(found.record, 0)
-    run.stop_point()
-    if found.prior is not None:
-        report.prior = found.prior.summary() | ({"fused": found.fused.summary()} if found.fused else {})
-    if found.warning:
-        report.warnings.append(found.warning)
-    focal = focal_stage(run.cfg, scene, found.prior)
-    run.cfg = focal.cfg  # the focal scale measured: renders of the scene's views use it too
-    report.config = focal.cfg.model_dump()
-    events.stage(focal.record, 0)
-    run.stop_point()
-    return found, focal.scene
-
-
-def _set_up_geometry(run: Run, scene: Scene, found: stages.PriorStage, built: stages.ModelStage,
-                     pixels: TrainingPixels) -> Setup:
-    """Stages octree, pseudo_depth, depth_target, octree_carving, first_hit_cache (the per-pixel caches land in
-    ``pixels``)."""
-    cfg, report, events, iteration = run.cfg, run.report, run.events, built.iteration
-    tree = stages.octree_stage(cfg, built.prior_n, pixels, built.model, run.device)
-    if tree.octree is not None:
-        built.model.octree = tree.octree
-        report.octree = tree.octree.summary()
-    events.stage(tree.record, iteration)
-    run.stop_point()
-    depth = stages.pseudo_depth_stage(cfg, scene, built.prior_n, tree.octree, pixels, built.model, run.device)
-    pixels.pseudo_t = depth.pseudo_t
-    if depth.warning:
-        report.warnings.append(depth.warning)
-    events.stage(depth.record, iteration)
-    run.stop_point()
-    target = stages.depth_target_stage(cfg, scene, found.prior, found.fused, pixels, built.transform)
-    pixels.depth_t, pixels.depth_beta_scale = target.target_t, target.beta_scale
-    if target.summary is not None:
-        report.depth = target.summary
-    events.stage(target.record, iteration)
-    run.stop_point()
-    octree = _carve(run, built, pixels, target, tree.octree, iteration)
-    hits = stages.first_hit_stage(octree, pixels, built.model, cfg.setup_cache)
-    pixels.hit_t, pixels.hit = hits.hit_t, hits.hit
-    events.stage(hits.record, iteration)
-    run.stop_point()
-    use_depth = target.target_t is not None
-    extra = stages.prior_rays_stage(cfg, built.prior_n, use_depth, octree, pixels, built.model, run.device)
-    events.stage(extra.record, iteration)
-    run.stop_point()
-    return Setup(scene, found.prior, built, pixels, octree, use_depth, target.beta, extra.bank)
-
-
-def _carve(run: Run, built: stages.ModelStage, pixels: TrainingPixels, target: stages.DepthTargetStage,
-           octree: SparseVoxelOctree | None, iteration: int) -> SparseVoxelOctree | None:
-    """Stage octree_carving: the sampler octree less the leaves the sensor depth shows empty (the model's too)."""
-    carved = stages.carving_stage(run.cfg, octree, pixels, target, built.transform.scale)
-    if carved.octree is not None:
-        octree = built.model.octree = carved.octree
-        run.report.octree = octree.summary()
-    run.events.stage(carved.record, iteration)
-    run.stop_point()
-    return octree
-
-
-def _patches(cfg: TrainConfig, setup: Setup) -> tuple[bool, int, int]:
+def _patches(cfg: TrainConfig, setup: SetupContext) -> tuple[bool, int, int]:
     """(whether batches carry smoothness patches, patch side, rays of all patches)."""
     use_patches = setup.use_depth and cfg.smooth_patches > 0 and cfg.lambda_smooth > 0
     patch = min(cfg.patch_size, setup.pixels.shape[1], setup.pixels.shape[2])
     return use_patches, patch, cfg.smooth_patches * patch * patch if use_patches else 0
 
 
-def _make_step(run: Run, setup: Setup) -> tuple[TrainStep, stages.CompileStage]:
+def _make_step(run: Run, setup: SetupContext) -> tuple[TrainStep, stages.CompileStage]:
     """The loss (depth beta in the report), the compile stage, the sampler and the batch generator."""
     cfg, model, iteration = run.cfg, setup.built.model, setup.built.iteration
     use_patches, patch, n_patch_rays = _patches(cfg, setup)
@@ -301,7 +196,7 @@ def _progress_evaluator(evaluate: Callable[..., tuple[float, float]]) -> Evaluat
     return progress
 
 
-def _optimise(run: Run, setup: Setup, progress_bar: bool) -> TrainReport:
+def _optimise(run: Run, setup: SetupContext, progress_bar: bool) -> TrainReport:
     cfg, budget, built = run.cfg, run.budget, setup.built
     loop_started = budget.train_seconds
     step, compiled = _make_step(run, setup)
@@ -378,7 +273,7 @@ def _diverged(run: Run, exc: TrainingDiverged, iteration: int) -> TrainingDiverg
     return TrainingDiverged(f"{exc}; {where}")
 
 
-def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None], status: str,
+def _finish(run: Run, setup: SetupContext, views: EvalViews, save: Callable[[int], None], status: str,
             state: LoopState, loop_started: float) -> TrainReport:
     """The train stage, the last checkpoint, the final evaluation and the report (``loop_started``: the budget's
     training seconds when the step was built, before its compilation)."""
@@ -403,7 +298,7 @@ def _finish(run: Run, setup: Setup, views: EvalViews, save: Callable[[int], None
     return report
 
 
-def _write_refined_poses(run: Run, setup: Setup) -> None:
+def _write_refined_poses(run: Run, setup: SetupContext) -> None:
     """``refined_poses.json`` (the training frames' learnt poses, scene units) and their summary in the report."""
     model, scene = setup.built.model, setup.scene
     frames = [scene.frames[i] for i in scene.train_indices]
@@ -414,7 +309,7 @@ def _write_refined_poses(run: Run, setup: Setup) -> None:
     run.report.pose_refinement = model.pose_refinement.summary(model.transform.scale) | {"file": REFINED_POSES}
 
 
-def _final_eval_stage(run: Run, setup: Setup, views: EvalViews, status: str, train_seconds: float,
+def _final_eval_stage(run: Run, setup: SetupContext, views: EvalViews, status: str, train_seconds: float,
                       state: LoopState) -> str:
     """Evaluate every view (when the run succeeded and has views); the run's status: ``cancelled`` when
     ``should_stop()`` interrupted the evaluation (its renders are then dropped)."""
