@@ -173,7 +173,8 @@ class TrainConfig(BaseModel):
         "of it weighs their mean rotation (radians), as nerfacto's regulariser",
     )
     lambda_depth: float = Field(
-        default=0.3, ge=0, description="lambda_d of the paper's total loss (no value in the paper; docs/engine.md, 'Losses')"
+        default=0.3, ge=0,
+        description="lambda_d of the paper's total loss (no value in the paper; docs/engine.md, 'Losses')",
     )
     lambda_smooth: float = Field(
         default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
