@@ -133,8 +133,8 @@ JOB_OPTION_FIELDS = (
 WORKER_SET_FIELDS = frozenset({"device", "checkpoint_every_s", "eval_at_max_seconds"})
 # TrainConfig fields deliberately internal: reachable from neither the REST API nor the CLI, only from the Python
 # API (`train(scene, run, TrainConfig(...))`). The presets own the model's size and the batch; the loss weights,
-# the learning rate and the samplers' knobs are tuned values (docs/performance.md) that a job should not move
-# by accident; evaluation views, background and the final evaluation are fixed so jobs stay comparable.
+# the learning rate and the samplers' knobs are tuned values (docs/engine.md, docs/benchmarks.md) that a job
+# should not move by accident; evaluation views, background and the final evaluation are fixed so jobs stay comparable.
 INTERNAL_TRAIN_FIELDS = frozenset(
     {
         "rays_per_batch",

@@ -14,7 +14,7 @@ hard links to the scene's files (copies only where the temporary folder is on an
 loader refuses symbolic links that lead outside a scene). Results (PSNR, SSIM, LPIPS per evaluation split, steps
 and what each run's report says about its prior and depth) go to a JSON file and a markdown table.
 
-    python benchmarks/depth_sources.py SCENE --seconds 300 --downscale 2 --out docs/bench/depth_sources_redkitchen
+    python benchmarks/depth_sources.py SCENE --seconds 300 --downscale 2 --out /tmp/depth_sources
 
 A synthetic room with depth maps: ``voxnerf synth ROOM --prior points`` first (its prior.ply is variant a's).
 """

@@ -13,7 +13,8 @@ latency through the service, and held-out PSNR of both paths.
    workers on the fast path, then the full path, then the fast path again (``VOXNERF_RENDER_PATH``), so drift in
    the machine's load shows as a difference between the two fast rounds.
 
-Results go to ``--out`` (results.json, table.md); ``--write-docs`` puts the table into docs/performance.md.
+Results go to ``--out`` (results.json, table.md; default benchmarks/results/render_speed/); ``--write-docs`` puts
+the table into docs/performance.md.
 """
 
 from __future__ import annotations
@@ -177,7 +178,7 @@ def main() -> None:
     parser.add_argument("--downscale", type=int, default=2, help="of redkitchen")
     parser.add_argument("--poses", type=int, default=8, help="held-out poses timed in process per scene")
     parser.add_argument("--renders", type=int, default=15, help="timed POST /render per service round")
-    parser.add_argument("--out", type=Path, default=Path("render-speed"))
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "render_speed")
     parser.add_argument("--write-docs", action="store_true", help=f"update the results section of {DOC}")
     args = parser.parse_args()
     results: dict = {"environment": {

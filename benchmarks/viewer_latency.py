@@ -8,8 +8,8 @@ A synthetic room of ``--size`` pixels is uploaded to the real service on its emb
 filesystem queue, SQLite, one train and one render worker) and trained there for ``--room-seconds``. Debian's
 chromium (headless, through playwright) opens the job's viewer and makes ``--drags`` scripted mouse drags,
 each followed by a wait for the full frame; the times are the page's own (``performance.now()`` when the
-camera last moved and when each frame was drawn). Results go to ``--out`` (results.json, table.md);
-``--write-docs`` puts the table into docs/viewer.md.
+camera last moved and when each frame was drawn). Results go to ``--out`` (results.json, table.md;
+default benchmarks/results/viewer_latency/); ``--write-docs`` puts the table into docs/viewer.md.
 """
 
 from __future__ import annotations
@@ -129,7 +129,7 @@ def main() -> None:
     parser.add_argument("--room-seconds", type=float, default=60.0)
     parser.add_argument("--size", default="320x240", help="the room's image size, WIDTHxHEIGHT")
     parser.add_argument("--drags", type=int, default=20)
-    parser.add_argument("--out", type=Path, default=Path("viewer-latency"))
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "viewer_latency")
     parser.add_argument("--write-docs", action="store_true", help=f"update the results section of {DOC}")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))

@@ -16,7 +16,7 @@ MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far
 
 # Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
 # 2^19 hash tables); "cpu" trades samples per ray (8 + 4) and table size for steps per second, chosen with the
-# samples-per-ray sweep (benchmarks/samples_sweep.py; results in docs/benchmarks.md). "cpu" is the default on
+# samples-per-ray sweep (benchmarks/samples_sweep.py; docs/benchmarks.md, 'Samples per ray'). "cpu" is the default on
 # every device: on a GPU "paper" wins interpolation but not extrapolation (docs/cuda.md).
 PRESETS: dict[str, dict] = {
     "cpu": dict(
@@ -154,18 +154,18 @@ class TrainConfig(BaseModel):
         "captured scan with a mesh prior (the training images' agreement through the prior at scales of the stated "
         "focal length, voxnerf/prior/focal_check.py) and used when it clearly beats the stated one, 1 for a synthetic "
         "scene; renders of the scene's own views use it, and the depth maps keep the stated camera "
-        "(docs/benchmarks.md, 'Eleventh measurement')",
+        "(docs/engine.md, 'Levers of sparse-view training'; docs/benchmarks.md, 'The tuning suite')",
     )
     pose_lr: float = Field(
         default=8e-4, gt=0,
         description="learning rate of the pose corrections (on the steps that refine them, pose_every); chosen on "
-        "redkitchen at 300 s among 1e-4 to 1.6e-3 (docs/benchmarks.md)",
+        "redkitchen at 300 s among 1e-4 to 1.6e-3 (docs/engine.md, 'Levers of sparse-view training')",
     )
     pose_every: int = Field(
         default=4, ge=1,
         description="the pose corrections learn on every n-th step; the steps between move the rays as the poses "
         "stand without their gradient, which makes them as cheap as steps without pose refinement "
-        "(docs/benchmarks.md: 1, 2, 4 and 8 on redkitchen)",
+        "(1, 2, 4 and 8 compared on redkitchen: docs/engine.md, 'Levers of sparse-view training')",
     )
     lambda_pose: float = Field(
         default=1e-2, ge=0,
@@ -173,7 +173,8 @@ class TrainConfig(BaseModel):
         "of it weighs their mean rotation (radians), as nerfacto's regulariser",
     )
     lambda_depth: float = Field(
-        default=0.3, ge=0, description="lambda_d of the paper's total loss (no value in the paper; docs/performance.md)"
+        default=0.3, ge=0,
+        description="lambda_d of the paper's total loss (no value in the paper; docs/engine.md, 'Losses')",
     )
     lambda_smooth: float = Field(
         default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
@@ -186,7 +187,7 @@ class TrainConfig(BaseModel):
         default=0,
         ge=0,
         description="s x s patches per batch for the smoothness term; 0 (the default) leaves the term out "
-        "(docs/performance.md weighs it on the real and the synthetic scenes)",
+        "(docs/engine.md, 'Losses', weighs it on the real and the synthetic scenes)",
     )
     patch_size: int = Field(default=8, ge=2)
     smooth_scales: int = Field(default=3, ge=1)
@@ -200,7 +201,7 @@ class TrainConfig(BaseModel):
         description="remove the sampler octree's leaves that the training frames' sensor depth shows empty (rays "
                     "cross them well before their measured depth and no measured point lies in them): outliers and "
                     "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.prior.carving; "
-                    "measured: docs/benchmarks.md, 'Ninth measurement')",
+                    "docs/engine.md, 'Pipeline', step 6)",
     )
     occgrid_seed: bool = Field(
         default=True,

@@ -2,8 +2,8 @@
 
 Why: inductor's backward of the hash encoding zeroes the table's gradient and then makes one atomic float add
 per sample, level, corner and feature. The kernel splits the work by level instead, so each thread adds into
-its own slice of the gradient without atomics while that slice sits in cache (docs/performance.md, "A C kernel
-for the hash encoding", measures both).
+its own slice of the gradient without atomics while that slice sits in cache (docs/performance.md, "Training
+throughput and render time", measures both).
 
 The kernel is plain C, built and loaded by :mod:`voxnerf.native`. Where it cannot be built (no compiler)
 :func:`available` is False and the field keeps its pure-PyTorch path; it is never used on CUDA. Positions

@@ -101,7 +101,7 @@ class DepthWeightSchedule(Callback):
 
 class OccupancyGridUpdate(Callback):
     """Every ``every`` steps, re-estimate the occupancy grid from the field's density (the compiled density
-    when training is compiled, see docs/performance.md); the first two updates are warm-up updates."""
+    when training is compiled, see docs/engine.md, 'Samplers'); the first two updates are warm-up updates."""
 
     def __init__(self, model: VoxNeRFModel, every: int, compiled: bool) -> None:
         self.model, self.every, self.compiled = model, every, compiled

@@ -234,7 +234,7 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
     if prior_n is not None and cfg.sampler != "uniform" and cfg.occgrid_seed:
         model.grid.seed_from_points(torch.from_numpy(prior_n.points).float().to(device))
     # fused: one pass over each parameter per step instead of one per Adam operation (benchmarks/optimizer_step.py;
-    # see docs/performance.md).
+    # docs/performance.md, 'Optimiser step').
     groups = [{"params": list(model.field.parameters()), "lr": cfg.lr, "weight_decay": cfg.field_weight_decay},
               *_corrections(cfg, scene, model, device)]
     optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)

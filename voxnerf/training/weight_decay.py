@@ -2,7 +2,8 @@
 
 A hash grid has far more features than a handful of small images have pixels, so given time it fits the noise
 of each training image as well as the scene: the views between and beyond them then get worse as training goes
-on (docs/benchmarks.md, the seventh measurement). An L2 penalty on the parameters is the Gaussian prior of a
+on (docs/engine.md, 'Levers of sparse-view training'; docs/benchmarks.md, 'The tuning suite'). An L2 penalty
+on the parameters is the Gaussian prior of a
 maximum a posteriori fit; against a mean squared error it weighs ``sigma^2 / tau^2`` for image noise of variance
 ``sigma^2`` and a prior of variance ``tau^2``. ``auto`` therefore sets the decay to ``NOISE_DECAY * sigma^2``,
 sigma measured on the training images (:mod:`voxnerf.data.image_noise`) and ``NOISE_DECAY`` (``1 / tau^2``) chosen on
