@@ -27,7 +27,7 @@ test: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -ra
 
-# Every benchmark of docs/benchmarks.md, alone on the machine (about 2 hours on 2 cores): make bench OUT=DIR
+# Every benchmark whose table of record docs/benchmarks.md keeps, alone on the machine (about 2 hours on 2 cores): make bench OUT=DIR
 bench: $(DEV_STAMP)
 	bash benchmarks/run_all.sh $(or $(OUT),bench_out)
 

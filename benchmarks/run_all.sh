@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Every benchmark of docs/benchmarks.md, one after the other (never two at once: each run needs the whole
+# Every benchmark whose table of record docs/benchmarks.md keeps, one after the other (never two at once: each run needs the whole
 # machine), from a fresh clone: scene generation, the nerfstudio peer, error against run time with the seven
 # configurations and the peer, the samples-per-ray and prior-noise sweeps, and the voxnerf run at the peer's
 # number of rays seen.
