@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 from app.core import outputs, progress
 from app.core.models import JOB_STATES, OUTPUT_KINDS
 from voxnerf.cameras.paths import MAX_FPS
-from voxnerf.config import TrainConfig
+from voxnerf.config import field_info, settings_for
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord
 
 JobState = Literal[JOB_STATES]
@@ -106,76 +106,13 @@ class SceneOut(BaseModel):
 
 # ------------------------------------------------------------------------------------------------ jobs
 
-# The TrainConfig fields a job may set, named as TrainConfig (and the CLI's `voxnerf train` flags) names them.
-JOB_OPTION_FIELDS = (
-    "preset",
-    "sampler",
-    "max_seconds",
-    "max_iters",
-    "depth_loss",
-    "depth_source",
-    "pose_refinement",
-    "appearance",
-    "focal_scale",
-    "downscale",
-    "seed",
-    "compile",
-    "hash_kernel",
-    "eval_at",
-    "eval_every_s",
-    "smooth_patches",
-    "n_importance",
-    "n_rest",
-)
-# TrainConfig fields a job cannot set because the worker's settings set them (VOXNERF_DEVICE,
-# VOXNERF_CHECKPOINT_EVERY_S, VOXNERF_MAX_EVAL_AT_SECONDS): where a job trains, how often it saves and how long
-# its eval_at evaluations may take are the deployment's business.
-WORKER_SET_FIELDS = frozenset({"device", "checkpoint_every_s", "eval_at_max_seconds"})
-# TrainConfig fields deliberately internal: reachable from neither the REST API nor the CLI, only from the Python
-# API (`train(scene, run, TrainConfig(...))`). The presets own the model's size and the batch; the loss weights,
-# the learning rate and the samplers' knobs are tuned values (docs/engine.md, docs/benchmarks.md) that a job
-# should not move by accident; evaluation views, background and the final evaluation are fixed so jobs stay comparable.
-INTERNAL_TRAIN_FIELDS = frozenset(
-    {
-        "rays_per_batch",
-        "hash_levels",
-        "hash_features",
-        "hash_log2_size",
-        "hash_max_resolution",
-        "hidden_dim",
-        "lr_decay_iters",
-        "eval_chunk",
-        "lr",
-        "lambda_depth",
-        "lambda_smooth",
-        "depth_beta",
-        "patch_size",
-        "smooth_scales",
-        "octree_leaf",
-        "occgrid_resolution",
-        "occgrid_update_every",
-        "occgrid_seed",
-        "octree_carving",
-        "lr_schedule",
-        "lr_final",
-        "sh_bands",
-        "distortion_weight",
-        "field_weight_decay",
-        "coarse_to_fine",
-        "coarse_levels",
-        "depth_weight_final",
-        "pose_lr",
-        "pose_every",
-        "lambda_pose",
-        "prior_rays",
-        "prior_ray_colour",
-        "background",
-        "train_background",
-        "setup_cache",
-        "eval_views",
-        "final_eval",
-    }
-)
+# Who may set each TrainConfig setting is said where the setting is defined (voxnerf/config.py, JOB and WORKER):
+# a job's options, named as the flat settings (and the CLI's `voxnerf train` flags) name them; the settings the
+# worker's deployment sets (VOXNERF_DEVICE, VOXNERF_CHECKPOINT_EVERY_S, VOXNERF_MAX_EVAL_AT_SECONDS); the rest are
+# internal, reachable from the Python API and `voxnerf train --set` only.
+JOB_OPTION_FIELDS = settings_for("job")
+WORKER_SET_FIELDS = frozenset(settings_for("worker"))
+INTERNAL_TRAIN_FIELDS = frozenset(settings_for("internal"))
 MAX_JOB_SECONDS = 7 * 24 * 3600
 # Limits the REST API adds to TrainConfig's own: a public endpoint bounds what one request can ask for.
 REST_LIMITS: dict[str, Any] = {
@@ -206,7 +143,7 @@ class _JobOptionsRules(BaseModel):
 
 def _engine_field(name: str) -> Any:
     """TrainConfig's field ``name`` (type, default, limits, description) plus its REST limits, if any."""
-    info = TrainConfig.model_fields[name]
+    info = field_info(name)
     extra = [REST_LIMITS[name]] if name in REST_LIMITS else []
     return Annotated[(info.annotation, info, *extra)]
 

@@ -75,7 +75,7 @@ QUICK_TRAIN_ARGS = ("--no-compile", "--downscale", "2", "--max-iters", "5")
 QUICK_BUDGET = 60.0
 QUICK_SAMPLES = ("--samples", "4,2")
 SPLITS = ("interpolation", "extrapolation", "test")
-PROGRESS_VIEWS = TrainConfig.model_fields["eval_views"].default
+PROGRESS_VIEWS = TrainConfig().evaluation.eval_views
 """Views per split in the trainer's progress evaluations (no run here changes it)."""
 
 

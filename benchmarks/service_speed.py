@@ -121,7 +121,7 @@ def video_in_process(run_dir: Path, scene_dir: Path, frames: int, out: Path) -> 
     """Seconds :func:`render_path` takes for the ``interpolate`` video the outputs worker makes (same path rule),
     after one untimed video."""
     trained = load_model(run_dir, "cpu")
-    scene = scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.downscale),
+    scene = scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.run.downscale),
                                         load_images=False), trained.model)
     intrinsics = resolve_intrinsics(trained.default_intrinsics, width=VIDEO_SIZE[0],
                                     height=VIDEO_SIZE[1]).undistorted()

@@ -51,7 +51,7 @@ def seen_surface(scene, stride: int) -> np.ndarray:
 
 def geometry(run: Path, scene_dir: Path, voxel: float, max_views: int) -> dict[str, float]:
     trained = load_model(run, "cpu")
-    scene = scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.downscale)), trained.model)
+    scene = scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.run.downscale)), trained.model)
     truth = trimesh.load(scene_dir / "gt_mesh.ply", process=False)
     with tempfile.TemporaryDirectory() as tmp:
         export_geometry(trained, Path(tmp) / "mesh.ply", "mesh", scene=scene, voxel_size=voxel)

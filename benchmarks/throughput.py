@@ -47,7 +47,7 @@ def _train_rate(scene: Path, run: Path, compile_step: bool, kernel: bool, iters:
 def _render_seconds(run: Path, compile_render: bool, kernel: bool) -> float:
     """Seconds of one 640x480 render of ``run``'s model, after a warm-up render (which compiles when asked)."""
     trained = load_model(run, "cpu")
-    trained.model.config = trained.model.config.model_copy(update={"compile": compile_render})
+    trained.model.config = trained.model.config.updated(compile=compile_render)
     trained.model.field.encoding.use_kernel = kernel
     intr = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
     c2w = trained.model.transform  # a pose at the scene centre, looking along -Z
@@ -88,7 +88,8 @@ def main() -> int:
     rays = {k: statistics.median(r["rays_per_s"] for r in v) for k, v in rates.items()}
     rend = {k: min(v) for k, v in renders.items()}
     command = " ".join(sys.argv)
-    patches = (f" + {cfg.smooth_patches} patches of {cfg.patch_size}x{cfg.patch_size}" if cfg.smooth_patches
+    loss = cfg.loss
+    patches = (f" + {loss.smooth_patches} patches of {loss.patch_size}x{loss.patch_size}" if loss.smooth_patches
                else " (no smoothness patches)")
     lines = [
         f"Measured {time.strftime('%Y-%m-%d')} on {platform.processor() or platform.machine()}, "
@@ -97,9 +98,11 @@ def main() -> int:
         f"Command: `.venv/bin/python {command}`",
         "",
         f"Scene: {args.scene or 'the synthetic 160x120 room'}, downscale {args.downscale}. "
-        f"Preset `cpu`: {cfg.rays_per_batch} rays{patches} per step, {cfg.n_importance}+{cfg.n_rest} samples "
+        f"Preset `cpu`: {cfg.schedule.rays_per_batch} rays{patches} per step, "
+        f"{cfg.sampling.n_importance}+{cfg.sampling.n_rest} samples "
         f"per ray, hash grid "
-        f"{cfg.hash_levels}x{cfg.hash_features}, 2^{cfg.hash_log2_size} entries per level. Training samples/s "
+        f"{cfg.model.hash_levels}x{cfg.model.hash_features}, 2^{cfg.model.hash_log2_size} entries per level. "
+        "Training samples/s "
         f"are the training loop's (set-up and the compilation of the first step left out); {args.iters} "
         f"iterations per run, median of {args.repeats} alternating runs.",
         "",

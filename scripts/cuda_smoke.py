@@ -56,7 +56,7 @@ def run(root: Path) -> None:
     points = torch.load(root / "prior_points.pt").cuda()
     pts_n = (points.double() - torch.tensor(model.transform.center, device="cuda")) * model.transform.scale
     octree = SparseVoxelOctree.from_points(pts_n.float(), 0.02 * model.transform.scale)
-    vox = VoxNeRFModel(model.config.model_copy(update={"sampler": "voxnerf"}), model.transform, model.aabb,
+    vox = VoxNeRFModel(model.config.updated(sampler="voxnerf"), model.transform, model.aabb,
                        model.field, model.grid, octree)
     scene = load_scene(root / "room", load_images=False)
     c2w = torch.from_numpy(model.transform.c2w_to_normalized(scene.frames[0].c2w)).float()

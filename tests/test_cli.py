@@ -128,3 +128,26 @@ def test_unreadable_checkpoint_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "checkpoint.pt: unreadable checkpoint" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_train_config_takes_the_flags_and_set_by_flat_or_dotted_name_over_them(tmp_path):
+    from voxnerf.cli import build_parser, train_config
+
+    args = build_parser().parse_args([
+        "train", str(tmp_path), "--out", str(tmp_path / "r"), "--max-iters", "3", "--samples", "8,4",
+        "--set", "lr_schedule=budget", "--set", "model.sh_bands=2", "--set", "sampling.n_importance=6",
+        "--set", "eval_at=[5, 10]",
+    ])
+    cfg = train_config(args)
+    assert cfg.run.max_iters == 3 and cfg.schedule.lr_schedule == "budget" and cfg.model.sh_bands == 2
+    assert (cfg.sampling.n_importance, cfg.sampling.n_rest) == (6, 4)  # --set wins over --samples
+    assert cfg.evaluation.eval_at == [5.0, 10.0]
+
+
+def test_a_set_of_an_unknown_dotted_name_is_a_one_line_error(tmp_path, capsys):
+    from voxnerf.cli import main
+
+    code = main(["train", str(tmp_path), "--out", str(tmp_path / "r"), "--max-iters", "1", "--set", "model.lr=0.1"])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "model.lr" in err

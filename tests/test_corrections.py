@@ -48,40 +48,40 @@ def test_the_generator_marks_its_scenes_synthetic(synthetic_room: Path, captured
 
 def test_auto_learns_both_corrections_on_a_captured_scan(captured_room: Path):
     stage = corrections_stage(TrainConfig(), _scene(captured_room), None)
-    assert (stage.cfg.appearance, stage.cfg.pose_refinement) == ("affine", "so3xr3")
+    assert (stage.cfg.corrections.appearance, stage.cfg.corrections.pose_refinement) == ("affine", "so3xr3")
     assert stage.record.name == "corrections" and stage.record.ran
     assert stage.record.why.startswith("appearance affine, pose_refinement so3xr3; auto: a captured scan")
 
 
 def test_auto_leaves_both_out_on_a_synthetic_scene(synthetic_room: Path):
     stage = corrections_stage(TrainConfig(), _scene(synthetic_room), None)
-    assert (stage.cfg.appearance, stage.cfg.pose_refinement) == ("none", "none")
+    assert (stage.cfg.corrections.appearance, stage.cfg.corrections.pose_refinement) == ("none", "none")
     assert not stage.record.ran and "synthetic" in stage.record.why
 
 
 def test_values_other_than_auto_are_used_as_given(synthetic_room: Path, captured_room: Path):
     given = corrections_stage(TrainConfig(appearance="affine", pose_refinement="so3xr3"), _scene(synthetic_room), None)
-    assert (given.cfg.appearance, given.cfg.pose_refinement) == ("affine", "so3xr3")
+    assert (given.cfg.corrections.appearance, given.cfg.corrections.pose_refinement) == ("affine", "so3xr3")
     assert given.record.why.endswith("; as configured")
     mixed = corrections_stage(TrainConfig(appearance="none"), _scene(captured_room), None)
-    assert (mixed.cfg.appearance, mixed.cfg.pose_refinement) == ("none", "so3xr3")
+    assert (mixed.cfg.corrections.appearance, mixed.cfg.corrections.pose_refinement) == ("none", "so3xr3")
     assert mixed.record.why.startswith("pose_refinement so3xr3; auto: a captured scan")
 
 
 def test_a_resumed_run_keeps_what_its_checkpoint_learnt(captured_room: Path):
     previous = {"model": {"field": {}, "appearance": None, "pose_refinement": {"delta": None}}}
     stage = corrections_stage(TrainConfig(), _scene(captured_room), previous)
-    assert (stage.cfg.appearance, stage.cfg.pose_refinement) == ("none", "so3xr3")
+    assert (stage.cfg.corrections.appearance, stage.cfg.corrections.pose_refinement) == ("none", "so3xr3")
     assert "resumed checkpoint" in stage.record.why
     older = corrections_stage(TrainConfig(), _scene(captured_room), {"model": {"field": {}}})  # before corrections
-    assert (older.cfg.appearance, older.cfg.pose_refinement) == ("none", "none")
+    assert (older.cfg.corrections.appearance, older.cfg.corrections.pose_refinement) == ("none", "none")
 
 
 def test_a_single_training_image_has_nothing_to_correct(captured_room: Path):
     scene = _scene(captured_room)
     scene.splits["train"] = scene.splits["train"][:1]
     stage = corrections_stage(TrainConfig(), scene, None)
-    assert (stage.cfg.appearance, stage.cfg.pose_refinement) == ("none", "none")
+    assert (stage.cfg.corrections.appearance, stage.cfg.corrections.pose_refinement) == ("none", "none")
     assert "fewer than 2 training images" in stage.record.why
 
 

@@ -74,7 +74,7 @@ def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_run, 
 
 def test_the_fast_render_path_scores_within_a_fifth_of_a_db_of_the_full_path(trained_run):
     trained = load_model(trained_run, "cpu")
-    scene = load_scene(trained.scene_dir, downscale=trained.model.config.downscale)
+    scene = load_scene(trained.scene_dir, downscale=trained.model.config.run.downscale)
     views = eval_views_of(scene, trained.model.transform)
     fast, full = (evaluate_views(trained.model, views, trained.model.config, lpips=False, path=path)
                   for path in ("fast", "full"))

@@ -96,17 +96,18 @@ def test_the_check_refuses_too_few_images_and_images_that_share_nothing(room: Pa
 def test_the_stage_corrects_a_captured_scan_and_leaves_a_synthetic_one(room: Path, captured: Path):
     prior = load_prior(captured / "prior.ply", 0.02)
     synthetic = focal_stage(micro_config(), load_scene(room), prior)
-    assert synthetic.cfg.focal_scale == 1.0 and not synthetic.record.ran and "synthetic" in synthetic.record.why
+    assert synthetic.cfg.corrections.focal_scale == 1.0
+    assert not synthetic.record.ran and "synthetic" in synthetic.record.why
     scene = load_scene(captured)
     stage = focal_stage(micro_config(), scene, prior)
     assert stage.record.ran and stage.record.name == "focal"
-    assert stage.cfg.focal_scale == pytest.approx(1 / WRONG, abs=0.02)
+    assert stage.cfg.corrections.focal_scale == pytest.approx(1 / WRONG, abs=0.02)
     assert "agree best through the prior" in stage.record.why and "px at full size" in stage.record.why
     i = scene.train_indices[0]
     stated_fl = scene.frames[i].intrinsics.fl_x
-    assert stage.scene.frames[i].intrinsics.fl_x == pytest.approx(stated_fl * stage.cfg.focal_scale)
+    assert stage.scene.frames[i].intrinsics.fl_x == pytest.approx(stated_fl * stage.cfg.corrections.focal_scale)
     given = focal_stage(micro_config(focal_scale=0.95), scene, prior)
-    assert given.cfg.focal_scale == 0.95 and given.record.why.endswith("as configured")
+    assert given.cfg.corrections.focal_scale == 0.95 and given.record.why.endswith("as configured")
 
 
 @pytest.mark.parametrize("prior_kind", ["points", "none"])
@@ -114,7 +115,8 @@ def test_the_stage_needs_a_mesh_prior(captured: Path, prior_kind: str):
     scene = load_scene(captured)
     prior = None if prior_kind == "none" else SimpleNamespace(mesh=None)
     stage = focal_stage(micro_config(), scene, prior)
-    assert stage.cfg.focal_scale == 1.0 and stage.scene is scene and "needs the prior as a mesh" in stage.record.why
+    assert stage.cfg.corrections.focal_scale == 1.0
+    assert stage.scene is scene and "needs the prior as a mesh" in stage.record.why
 
 
 def test_the_stage_leaves_lens_models_and_several_cameras_alone(captured: Path):
@@ -152,7 +154,7 @@ def test_a_corrected_scene_keeps_its_depth_on_the_stated_camera(room: Path):
 
 
 def test_focal_scale_is_checked_by_the_config():
-    assert TrainConfig().focal_scale == "auto"
+    assert TrainConfig().corrections.focal_scale == "auto"
     for bad in (0.3, 3.0, "half"):
         with pytest.raises(pydantic.ValidationError, match="focal_scale"):
             TrainConfig(focal_scale=bad)
@@ -165,13 +167,14 @@ def test_a_run_trains_and_renders_its_views_through_the_measured_focal_length(ca
     scale = report.config["focal_scale"]
     assert focal.ran and scale == pytest.approx(1 / WRONG, abs=0.02)
     trained = load_model(run, "cpu")
-    assert trained.model.config.focal_scale == scale
+    assert trained.model.config.corrections.focal_scale == scale
     stated = load_scene(captured, load_images=False)
     as_trained = scene_as_trained(stated, trained.model)
     i = stated.train_indices[0]
     assert as_trained.frames[i].intrinsics.fl_x == pytest.approx(stated.frames[i].intrinsics.fl_x * scale)
     assert trained.default_intrinsics.fl_x == pytest.approx(stated.intrinsics(i).fl_x * scale)
-    old = SimpleNamespace(config=SimpleNamespace(focal_scale="auto"))  # a checkpoint from before the check
+    # a checkpoint from before the check
+    old = SimpleNamespace(config=SimpleNamespace(corrections=SimpleNamespace(focal_scale="auto")))
     assert scene_as_trained(stated, old) is stated
 
 

@@ -93,9 +93,9 @@ def test_opaque_rays_stop_early_and_lose_less_than_the_bound():
     runner.geometry = lambda x: (evaluated.append(len(x)), geometry(x))[1]
     settings = FastSettings(min_transmittance=1e-4, min_weight=1e-4, skip_empty=False, precision="float32")
     fast = render_rays_fast(model, rays, model.sampler(), settings)
-    samples = len(rays) * model.config.samples_per_ray
+    samples = len(rays) * model.config.sampling.samples_per_ray
     assert sum(evaluated) < 0.5 * samples  # most samples lie behind the first opaque ones
-    bound = settings.min_transmittance + model.config.samples_per_ray * settings.min_weight
+    bound = settings.min_transmittance + model.config.sampling.samples_per_ray * settings.min_weight
     assert (fast["rgb"] - full["rgb"].detach()).abs().max() <= bound + 1e-6
 
 
@@ -105,7 +105,7 @@ def test_samples_below_the_weight_bound_get_no_colour_and_cost_at_most_the_bound
     full = model.render_rays(rays, model.sampler())
     settings = FastSettings(min_transmittance=1e-30, min_weight=1e-2, skip_empty=False, precision="float32")
     fast = render_rays_fast(model, rays, model.sampler(), settings)
-    bound = model.config.samples_per_ray * settings.min_weight
+    bound = model.config.sampling.samples_per_ray * settings.min_weight
     assert (fast["rgb"] - full["rgb"].detach()).abs().max() <= bound
     assert torch.allclose(fast["opacity"], full["opacity"].detach(), atol=1e-6)  # weights are all counted
 

@@ -110,10 +110,10 @@ def test_deleting_a_job_whose_output_is_running_is_409(api):
 
 def test_every_job_trains_under_the_wall_clock_cap(tmp_path):
     settings = Settings(_env_file=None, data_dir=tmp_path, max_job_seconds=60.0, max_eval_at_seconds=5.0)
-    assert job_config(settings, {"max_iters": 10}).max_seconds == 60.0  # a max_iters-only job included
-    assert job_config(settings, {"max_seconds": 3600}).max_seconds == 60.0
-    assert job_config(settings, {"max_seconds": 10}).max_seconds == 10.0
-    assert job_config(settings, {"max_iters": 10}).eval_at_max_seconds == 5.0
+    assert job_config(settings, {"max_iters": 10}).run.max_seconds == 60.0  # a max_iters-only job included
+    assert job_config(settings, {"max_seconds": 3600}).run.max_seconds == 60.0
+    assert job_config(settings, {"max_seconds": 10}).run.max_seconds == 10.0
+    assert job_config(settings, {"max_iters": 10}).evaluation.eval_at_max_seconds == 5.0
 
 
 class Clock:

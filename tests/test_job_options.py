@@ -26,7 +26,7 @@ from app.schemas import (
     StageInfo,
 )
 from voxnerf.cli import build_parser
-from voxnerf.config import TrainConfig
+from voxnerf.config import FIELD_SECTIONS, TrainConfig, field_info
 from voxnerf.training.records import EvalRecord, StageRecord
 
 # `voxnerf train` options whose destination is not a TrainConfig field of the same name.
@@ -41,6 +41,9 @@ def _train_subparser() -> argparse.ArgumentParser:
     return subparsers.choices["train"]
 
 
+SETTINGS = {"preset", *FIELD_SECTIONS}  # every TrainConfig setting by its flat name
+
+
 def cli_train_fields() -> set[str]:
     """The TrainConfig fields ``voxnerf train`` flags set (``--no-compile`` sets ``compile``...)."""
     fields: set[str] = set()
@@ -49,7 +52,7 @@ def cli_train_fields() -> set[str]:
         if dest in CLI_NOT_CONFIG:
             continue
         names = CLI_ALIASES.get(dest) or (dest.removeprefix("no_"),)
-        unknown = [n for n in names if n not in TrainConfig.model_fields]
+        unknown = [n for n in names if n not in SETTINGS]
         assert not unknown, f"voxnerf train --{dest.replace('_', '-')} maps to no TrainConfig field; update CLI_ALIASES"
         fields.update(names)
     return fields
@@ -57,14 +60,14 @@ def cli_train_fields() -> set[str]:
 
 def test_every_train_config_field_is_reachable_or_deliberately_internal():
     reachable = set(JOB_OPTION_FIELDS) | WORKER_SET_FIELDS | cli_train_fields()
-    missing = set(TrainConfig.model_fields) - reachable - INTERNAL_TRAIN_FIELDS
+    missing = SETTINGS - reachable - INTERNAL_TRAIN_FIELDS
     assert not missing, (
         f"TrainConfig fields {sorted(missing)} are set by neither the job options, the worker's settings nor "
         "the CLI: expose them (app/schemas.py JOB_OPTION_FIELDS) or add them to INTERNAL_TRAIN_FIELDS with why"
     )
     assert not (INTERNAL_TRAIN_FIELDS & reachable), "a field listed as internal is reachable"
     assert not (set(JOB_OPTION_FIELDS) & WORKER_SET_FIELDS)
-    assert (INTERNAL_TRAIN_FIELDS | WORKER_SET_FIELDS | set(JOB_OPTION_FIELDS)) <= set(TrainConfig.model_fields)
+    assert (INTERNAL_TRAIN_FIELDS | WORKER_SET_FIELDS | set(JOB_OPTION_FIELDS)) <= SETTINGS
 
 
 def test_what_the_cli_can_set_a_job_can_set():
@@ -74,7 +77,7 @@ def test_what_the_cli_can_set_a_job_can_set():
 
 @pytest.mark.parametrize("name", JOB_OPTION_FIELDS)
 def test_job_option_defaults_and_limits_are_the_engines(name: str):
-    option, engine = JobOptions.model_fields[name], TrainConfig.model_fields[name]
+    option, engine = JobOptions.model_fields[name], field_info(name)
     assert option.annotation == engine.annotation
     assert option.get_default(call_default_factory=True) == engine.get_default(call_default_factory=True)
     assert option.description == engine.description
@@ -82,7 +85,7 @@ def test_job_option_defaults_and_limits_are_the_engines(name: str):
 
 
 def test_eval_every_s_default_is_the_engines_60_s():
-    assert JobOptions(max_iters=5).eval_every_s == TrainConfig().eval_every_s == 60.0
+    assert JobOptions(max_iters=5).eval_every_s == TrainConfig().evaluation.eval_every_s == 60.0
     assert "30" not in (JobOptions.model_fields["eval_every_s"].description or "")
 
 
@@ -102,7 +105,7 @@ def test_rest_only_limits():
     with pytest.raises(ValidationError, match="seed"):
         JobOptions(max_iters=5, seed=-1)
     values = JobOptions(max_iters=5, smooth_patches=8, n_importance=16, n_rest=8).model_dump(exclude_none=True)
-    assert TrainConfig(**values).samples_per_ray == 24  # every option is a TrainConfig field
+    assert TrainConfig(**values).sampling.samples_per_ray == 24  # every option is a TrainConfig field
 
 
 def test_job_out_fields_come_from_the_progress_event():

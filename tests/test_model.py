@@ -77,7 +77,7 @@ def test_field_for_follows_the_resolved_preset():
     field = field_for(TrainConfig(max_iters=1, preset="cpu", hash_kernel=False))
     cfg = TrainConfig(max_iters=1, preset="cpu").resolved()
     table = next(p for name, p in field.named_parameters() if "encoding" in name)
-    assert table.numel() <= cfg.hash_levels * 2**cfg.hash_log2_size * cfg.hash_features
+    assert table.numel() <= cfg.model.hash_levels * 2**cfg.model.hash_log2_size * cfg.model.hash_features
     assert field.encoding.use_kernel is False
 
 

@@ -161,6 +161,6 @@ def test_the_cli_pose_file_asks_for_a_lens_as_post_render_does(trained_through_a
 
 def test_a_render_compiles_nothing_even_for_a_run_trained_compiled(tmp_path):
     trained = load_model(write_tiny_run(tmp_path / "run"), "cpu")
-    trained.model.config.compile = True  # as a run trained with torch.compile records it
+    trained.model.config.run.compile = True  # as a run trained with torch.compile records it
     render(trained, _pose(), outputs=("rgb",))
     assert not any("render_samples" in str(key) for key in trained.model._compiled)

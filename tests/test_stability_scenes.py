@@ -21,7 +21,7 @@ import torch
 import trimesh
 from synthetic_fixtures import make_micro_scene
 
-import voxnerf.training.step as step_module
+import voxnerf.model.voxnerf_model as model_module
 from voxnerf.cameras.rays import Intrinsics
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
@@ -362,7 +362,7 @@ def _fault_at(call: int, fault: str, monkeypatch) -> None:
     (``"nan_loss"``) or keep a finite value whose gradient is NaN (``"nan_gradient"``), which poisons the
     weights through the optimiser step. Simulates a numerical fault; everything else is the real engine."""
     calls = [0]
-    real = step_module.color_loss
+    real = model_module.color_loss
 
     class NanGradient(torch.autograd.Function):
         @staticmethod
@@ -380,7 +380,7 @@ def _fault_at(call: int, fault: str, monkeypatch) -> None:
             return value
         return value * float("nan") if fault == "nan_loss" else NanGradient.apply(value)
 
-    monkeypatch.setattr(step_module, "color_loss", faulty)
+    monkeypatch.setattr(model_module, "color_loss", faulty)
 
 
 @pytest.mark.parametrize(("fault", "last_good"), [("nan_loss", 6), ("nan_gradient", 6)])

@@ -51,7 +51,7 @@ def test_throughput_counts_patch_rays_and_leaves_out_compile_time():
                StageRecord(name="train", ran=True, why="", seconds=30.0)]  # set-up included: not the loop's
     cfg = TrainConfig(max_iters=10, rays_per_batch=100, n_importance=6, n_rest=2)
     got = throughput(cfg, 10, 12.0, records, True, 28)
-    assert got == {"rays_per_step": 128, "rays_per_s": 128.0, "samples_per_s": 128.0 * cfg.samples_per_ray,
+    assert got == {"rays_per_step": 128, "rays_per_s": 128.0, "samples_per_s": 128.0 * cfg.sampling.samples_per_ray,
                    "seconds_excluding_compile": 10.0}
     assert throughput(cfg, 10, 12.0, records, False, 28)["rays_per_step"] == 100
 

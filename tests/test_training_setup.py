@@ -29,7 +29,7 @@ def test_the_runner_emits_each_record_keeps_the_report_s_config_and_asks_to_stop
     log = []
 
     def resolve(ctx):
-        ctx.cfg = ctx.cfg.model_copy(update={"field_weight_decay": 0.5})
+        ctx.cfg = ctx.cfg.updated(field_weight_decay=0.005)
         return _record("resolve")
 
     def build(ctx):
@@ -39,8 +39,8 @@ def test_the_runner_emits_each_record_keeps_the_report_s_config_and_asks_to_stop
     ctx = _context(TrainConfig(max_iters=1, field_weight_decay="auto"))
     run_setup(ctx, lambda record, iteration: log.append(("emit", record.name, iteration)),
               lambda: log.append("stop?"), (Stage("resolve", resolve), Stage("build", build)))
-    assert log == [("emit", "resolve", 0), "stop?", ("build", 0.5), "stop?"]
-    assert ctx.report.config["field_weight_decay"] == 0.5 and ctx.cfg.field_weight_decay == 0.5
+    assert log == [("emit", "resolve", 0), "stop?", ("build", 0.005), "stop?"]
+    assert ctx.report.config["field_weight_decay"] == 0.005 and ctx.cfg.schedule.field_weight_decay == 0.005
 
 
 def test_a_stop_between_stages_leaves_the_later_stages_unrun():

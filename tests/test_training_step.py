@@ -137,7 +137,7 @@ def test_a_batch_carries_rays_samples_and_targets(with_caches):
     assert batch.origins.shape == batch.dirs.shape == (rays, 3) and batch.target_rgb.shape == (rays, 3)
     assert float(batch.target_rgb.max()) <= 1.0
     assert batch.image.shape == (rays,) and batch.image.dtype == torch.int64 and int(batch.image.max()) < 2
-    assert float(batch.depth_weight) == pytest.approx(cfg.lambda_depth)
+    assert float(batch.depth_weight) == pytest.approx(cfg.loss.lambda_depth)
     hit_t, training, grad = seen[0]
     assert training and not grad and (hit_t is not None) == with_caches
     if with_caches:

@@ -45,9 +45,10 @@ def test_auto_decays_in_proportion_to_the_training_images_noise(room: Path, tmp_
     for scene in (clean, noisy):
         stage = weight_decay_stage(micro_config(), scene)
         sigma = images_noise_sigma([scene.images[i] for i in scene.train_indices])
-        assert stage.cfg.field_weight_decay == pytest.approx(NOISE_DECAY * sigma**2 if sigma >= NOISE_FLOOR else 0.0)
+        expected = NOISE_DECAY * sigma**2 if sigma >= NOISE_FLOOR else 0.0
+        assert stage.cfg.schedule.field_weight_decay == pytest.approx(expected)
         assert stage.record.name == "weight_decay" and f"{sigma * 255:.2f}/255" in stage.record.why
-        decays.append(stage.cfg.field_weight_decay)
+        decays.append(stage.cfg.schedule.field_weight_decay)
     assert decays[1] > 2 * decays[0]  # the micro room's tiny textured images read as a little noisy themselves
 
 
@@ -59,7 +60,7 @@ def test_clean_images_get_no_decay_at_all():
     for image, decays in zip(images, (False, True), strict=True):
         scene = SimpleNamespace(images=[image, image], train_indices=[0, 1])
         stage = weight_decay_stage(micro_config(), scene)
-        assert (stage.cfg.field_weight_decay > 0) is decays and stage.record.ran is decays
+        assert (stage.cfg.schedule.field_weight_decay > 0) is decays and stage.record.ran is decays
         assert ("clean" in stage.record.why) is not decays
     assert images_noise_sigma([images[0]]) < NOISE_FLOOR < images_noise_sigma([images[1]])
 
@@ -68,7 +69,7 @@ def test_clean_images_get_no_decay_at_all():
                                                    (2e-7, True, "2e-07 on the field's parameters; as configured")])
 def test_a_number_is_used_as_given(room: Path, value, ran, why):
     stage = weight_decay_stage(micro_config(field_weight_decay=value), load_scene(room, load_images=False))
-    assert stage.cfg.field_weight_decay == value and stage.record.ran is ran and stage.record.why == why
+    assert stage.cfg.schedule.field_weight_decay == value and stage.record.ran is ran and stage.record.why == why
 
 
 def test_a_run_reports_the_decay_it_used(room: Path, tmp_path: Path):

@@ -85,7 +85,8 @@ def test_train_task_records_the_report(settings, monkeypatch):
     tasks.train_job(job.id)
     ((scene_dir, run_dir, config, resume),) = seen
     assert scene_dir == settings.scenes_dir / SCENE and run_dir == settings.runs_dir / job.id and resume
-    assert (config.max_iters, config.device, config.checkpoint_every_s) == (50, "auto", settings.checkpoint_every_s)
+    run = config.run
+    assert (run.max_iters, run.device, run.checkpoint_every_s) == (50, "auto", settings.checkpoint_every_s)
     row = jobstore.get_job(settings, job.id)
     assert (row.state, row.stage, row.progress, row.iteration, row.elapsed_s) == ("succeeded", "done", 1.0, 50, 3.0)
     assert row.metrics == {"test": {"psnr": 22.0}} and row.history[0]["final"] and row.loss == 0.2

@@ -19,6 +19,8 @@ from voxnerf.errors import RunError, VoxNeRFError
 if TYPE_CHECKING:
     from pydantic import ValidationError
 
+    from voxnerf.config import TrainConfig
+
 
 def _focal_scale(text: str) -> str | float:
     """``--focal-scale``: ``auto`` or a number (TrainConfig checks its range)."""
@@ -30,9 +32,10 @@ def _focal_scale(text: str) -> str | float:
         raise argparse.ArgumentTypeError(f"expected auto or a number, got {text!r}") from None
 
 
-def _train(args: argparse.Namespace) -> int:
+def train_config(args: argparse.Namespace) -> TrainConfig:
+    """The config of ``voxnerf train``'s flags, each ``--set FIELD=VALUE`` (a flat name, ``lr``, or a dotted one,
+    ``schedule.lr``) winning over them."""
     from voxnerf.config import TrainConfig
-    from voxnerf.training.run import train
 
     values = dict(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
@@ -44,8 +47,14 @@ def _train(args: argparse.Namespace) -> int:
         **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
         **({"smooth_patches": args.smooth_patches} if args.smooth_patches is not None else {}),
     )
-    config = TrainConfig(**(values | dict(args.set or [])))  # --set wins over the flags
-    if config.max_seconds is None and config.max_iters is None:
+    return TrainConfig(**(values | dict(args.set or [])))
+
+
+def _train(args: argparse.Namespace) -> int:
+    from voxnerf.training.run import train
+
+    config = train_config(args)
+    if config.run.max_seconds is None and config.run.max_iters is None:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
     report = train(args.scene, args.out, config, resume=not args.restart)
     for stage in report.stages:
@@ -75,7 +84,7 @@ def _eval(args: argparse.Namespace) -> int:
     scene_dir = args.scene or trained.scene_dir
     if not scene_dir:
         raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
-    scene = scene_as_trained(load_scene(scene_dir, downscale=trained.model.config.downscale), trained.model)
+    scene = scene_as_trained(load_scene(scene_dir, downscale=trained.model.config.run.downscale), trained.model)
     split = args.split or ("test" if scene.splits.get("test") else next(iter(scene.eval_split_names), None))
     if split not in scene.splits or split == "train" and not args.split:
         raise RunError(f"{scene_dir}: no evaluation split {split!r} (have {sorted(scene.splits)})")
@@ -318,7 +327,7 @@ def _export(args: argparse.Namespace) -> int:
     trained = load_model(args.run, args.device)
     scene = None
     if args.scene:
-        scene = scene_as_trained(load_scene(args.scene, downscale=int(trained.model.config.downscale),
+        scene = scene_as_trained(load_scene(args.scene, downscale=int(trained.model.config.run.downscale),
                                             load_images=False), trained.model)
     elif not trained.scene_dir:
         raise RunError(f"{args.run}: the run does not record its scene; pass --scene")
@@ -449,8 +458,9 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--smooth-patches", type=int, metavar="N",
                    help="add the paper's depth-smoothness term on N 8x8 patches per batch (default 0: off)")
     p.add_argument("--set", type=_config_setting, action="append", metavar="FIELD=VALUE",
-                   help="any training-config field (docs/engine.md lists them), e.g. --set lr_schedule=budget "
-                   "--set sh_bands=2; VALUE is read as JSON where it parses (numbers, true, [1, 2]), else as text; "
+                   help="any training-config setting (docs/engine.md lists them), by its name or its dotted name "
+                   "in its component, e.g. --set lr_schedule=budget --set model.sh_bands=2; VALUE is read as JSON "
+                   "where it parses (numbers, true, [1, 2]), else as text; "
                    "repeatable, and it wins over the flags above")
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     p.set_defaults(func=_train)
@@ -599,8 +609,14 @@ def validation_message(exc: ValidationError) -> str:
 
 
 def _field_path(loc: tuple) -> str:
-    """``loc`` as a dotted path of field names and list indices; a union branch's tag is neither."""
-    return ".".join(str(part) for part in loc if isinstance(part, int) or str(part).isidentifier())
+    """``loc`` as a dotted path of field names and list indices; a union branch's tag is neither. A training
+    setting is named by its flat name (``sh_bands``, not ``model.sh_bands``), as the flags and ``--set`` name it."""
+    from voxnerf.config import SECTIONS
+
+    if len(loc) >= 2 and loc[0] in SECTIONS and loc[1] in SECTIONS[loc[0]].model_fields:
+        loc = loc[1:]
+    return ".".join(str(part) for part in loc
+                    if isinstance(part, int) or all(name.isidentifier() for name in str(part).split(".")))
 
 
 def main(argv: list[str] | None = None) -> int:

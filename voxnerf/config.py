@@ -1,10 +1,20 @@
-"""Training configuration: one pydantic model, with presets for a CPU and for the paper's GPU setting."""
+"""Training configuration: one pydantic model nested by component (run, model, sampling, loss, schedule,
+corrections, evaluation), with presets for a CPU and for the paper's GPU setting as data.
+
+Every setting has one name in its component (``schedule.lr``, ``sampling.n_importance``); the names are unique
+across components, so the flat name alone (``lr``, ``n_importance``) says which one is meant. :class:`TrainConfig`
+accepts either form (``TrainConfig(lr=0.02)``, ``TrainConfig(schedule={"lr": 0.02})``,
+``TrainConfig(**{"schedule.lr": 0.02})``), which keeps every earlier config, checkpoint and command working;
+:meth:`TrainConfig.flat` gives the flat form report.json and the service store, and :data:`FIELD_SECTIONS` maps
+each flat name to its component.
+"""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
+from pydantic.fields import FieldInfo
 
 Preset = Literal["cpu", "paper"]
 SamplerName = Literal["voxnerf", "occgrid", "uniform"]
@@ -14,110 +24,158 @@ Appearance = Literal["auto", "none", "affine"]
 PoseRefinementMode = Literal["auto", "none", "so3xr3"]
 MAX_LR = 1.0  # Adam steps of this size already throw a hash grid's features far outside their useful range
 
-# Values that differ between presets. "paper" is the paper's GPU setting (4096 rays, 128 + 128 samples,
-# 2^19 hash tables); "cpu" trades samples per ray (8 + 4) and table size for steps per second, chosen with the
-# samples-per-ray sweep (benchmarks/samples_sweep.py; docs/benchmarks.md, 'Samples per ray'). "cpu" is the default on
-# every device: on a GPU "paper" wins interpolation but not extrapolation (docs/cuda.md).
-PRESETS: dict[str, dict] = {
-    "cpu": dict(
-        rays_per_batch=2048,
-        n_importance=8,
-        n_rest=4,
-        hash_levels=12,
-        hash_features=2,
-        hash_log2_size=17,
-        hash_max_resolution=1024,
-        hidden_dim=64,
-        lr_decay_iters=20_000,
-        eval_chunk=4096,
-    ),
-    "paper": dict(
-        rays_per_batch=4096,
-        n_importance=128,
-        n_rest=128,
-        hash_levels=16,
-        hash_features=2,
-        hash_log2_size=19,
-        hash_max_resolution=2048,
-        hidden_dim=64,
-        lr_decay_iters=30_000,
-        eval_chunk=32_768,
-    ),
+# Values that differ between presets, by component. "paper" is the paper's GPU setting (4096 rays, 128 + 128
+# samples, 2^19 hash tables); "cpu" trades samples per ray (8 + 4) and table size for steps per second, chosen with
+# the samples-per-ray sweep (benchmarks/samples_sweep.py; docs/benchmarks.md, 'Samples per ray'). "cpu" is the
+# default on every device: on a GPU "paper" wins interpolation but not extrapolation (docs/cuda.md).
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "cpu": {
+        "schedule": {"rays_per_batch": 2048, "lr_decay_iters": 20_000},
+        "sampling": {"n_importance": 8, "n_rest": 4},
+        "model": {"hash_levels": 12, "hash_features": 2, "hash_log2_size": 17, "hash_max_resolution": 1024,
+                  "hidden_dim": 64},
+        "evaluation": {"eval_chunk": 4096},
+    },
+    "paper": {
+        "schedule": {"rays_per_batch": 4096, "lr_decay_iters": 30_000},
+        "sampling": {"n_importance": 128, "n_rest": 128},
+        "model": {"hash_levels": 16, "hash_features": 2, "hash_log2_size": 19, "hash_max_resolution": 2048,
+                  "hidden_dim": 64},
+        "evaluation": {"eval_chunk": 32_768},
+    },
 }
+STRICT = {"extra": "forbid", "allow_inf_nan": False}
+# Who may set a setting besides the Python API and ``voxnerf train --set``: a job's REST options (JOB, also the CLI's
+# named flags), the worker's deployment settings (WORKER: where a job trains, how often it saves, how long its
+# eval_at evaluations may take). Unmarked settings are tuned values a job should not move by accident (the presets
+# own the model's size and the batch; loss weights, learning rates and the samplers' knobs were chosen by
+# measurement, docs/engine.md; evaluation views, background and the final evaluation stay fixed so jobs compare).
+JOB = {"audience": "job"}
+WORKER = {"audience": "worker"}
 
 
-class TrainConfig(BaseModel):
-    """Everything a training run depends on; stored in the checkpoint and in report.json.
+class _Section(BaseModel):
+    """A component of the config. A field whose default is None takes the preset's value (see
+    :meth:`TrainConfig.resolved`)."""
 
-    Unknown keys, NaN and infinities in any number, and a learning rate outside (0, 1] are refused with a
-    pydantic ``ValidationError`` naming the field.
-    """
+    model_config = STRICT
 
-    model_config = {"extra": "forbid", "allow_inf_nan": False}
 
-    preset: Preset = "cpu"
-    sampler: SamplerName = "voxnerf"
-    max_seconds: float | None = Field(default=None, gt=0, description="wall-clock bound of the whole command")
-    max_iters: int | None = Field(default=None, gt=0)
-    depth_loss: bool = Field(default=True, description="False leaves the depth terms out (as depth_source 'none')")
-    depth_source: DepthSource = Field(
-        default="auto",
-        description="what the depth loss compares with: 'sensor' (the training frames' depth maps where valid, "
-        "the prior's depth elsewhere), 'prior' (the prior's depth only), 'none'; 'auto' is 'sensor' when the "
-        "training frames have depth maps, else 'prior' when there is a prior, else 'none'",
-    )
-    downscale: int = Field(default=1, ge=1, le=16)
-    device: str = "auto"
-    seed: int = 0
-    compile: bool = True
-    hash_kernel: bool = Field(
+class RunConfig(_Section):
+    """How the command runs: its limits, device, seed, compilation, kernels, caches and checkpoints."""
+
+    max_seconds: float | None = Field(json_schema_extra=JOB, default=None, gt=0,
+                                      description="wall-clock bound of the whole command")
+    max_iters: int | None = Field(json_schema_extra=JOB, default=None, gt=0)
+    downscale: int = Field(json_schema_extra=JOB, default=1, ge=1, le=16)
+    device: str = Field(default="auto", json_schema_extra=WORKER)
+    seed: int = Field(default=0, json_schema_extra=JOB)
+    compile: bool = Field(default=True, json_schema_extra=JOB)
+    hash_kernel: bool = Field(json_schema_extra=JOB,
         default=True,
         description="on the CPU, run the hash encoding through the C kernel of voxnerf/model/hash_kernel.py where it "
         "builds (the same features, a cheaper backward); False keeps the pure-PyTorch encoding",
     )
+    setup_cache: bool = Field(
+        default=True,
+        description="load the set-up's per-pixel ray casts (the prior's depth, the octree's first hits) from "
+        "$VOXNERF_CACHE/setup when an earlier run cast the same rays against the same geometry with the same code",
+    )
+    checkpoint_every_s: float = Field(json_schema_extra=WORKER, default=60.0, gt=0)
 
-    # Preset-dependent fields: None means "take the preset's value" (see resolved()).
-    rays_per_batch: int | None = Field(default=None, gt=0)
-    n_importance: int | None = Field(default=None, ge=1)
-    n_rest: int | None = Field(default=None, ge=1)
+    @field_validator("device")
+    @classmethod
+    def _device(cls, value: str) -> str:
+        if value not in ("auto", "cpu") and not value.startswith("cuda"):
+            raise ValueError("device must be auto, cpu or cuda[:N]")
+        return value
+
+class ModelConfig(_Section):
+    """The radiance field (paper III-B): the hash encoding, the MLPs, and the colour behind every ray."""
+
     hash_levels: int | None = Field(default=None, ge=1, le=32)
     hash_features: int | None = Field(default=None, ge=1, le=8)
     hash_log2_size: int | None = Field(default=None, ge=10, le=24)
     hash_max_resolution: int | None = Field(default=None, ge=16)
     hidden_dim: int | None = Field(default=None, ge=8)
-    lr_decay_iters: int | None = Field(default=None, gt=0)
-    eval_chunk: int | None = Field(default=None, gt=0)
-
-    lr: float = Field(default=1e-2, description="Adam learning rate, in (0, 1]")
-    lr_schedule: LrSchedule = Field(
-        default="iterations",
-        description="'iterations': lr x 0.1 every lr_decay_iters steps; 'budget': lr x lr_final over the run's "
-        "limits (max_seconds less set-up and the final evaluation's share, or max_iters), whichever ends first",
-    )
-    lr_final: float = Field(default=0.1, gt=0, le=1, description="lr at the end over lr at the start ('budget')")
     sh_bands: int = Field(
         default=4, ge=1, le=4,
         description="spherical-harmonic bands of the direction encoding: 4 (16 coefficients, the paper's) to 1 "
         "(a constant: colour independent of the viewing direction)",
     )
+    background: tuple[float, float, float] | Literal["training_mean"] = Field(
+        default="training_mean",
+        description="colour behind the last sample of every ray in renders (sRGB in [0, 1]), or 'training_mean': "
+        "the mean colour of the training images, fixed when training starts. It is what a view shows where it "
+        "looks at space no training view saw (docs/benchmarks.md, 'The tuning suite')",
+    )
+
+class SamplingConfig(_Section):
+    """The samplers (paper III-C): which one, samples per ray, the octree's leaf and carving, the occupancy grid."""
+
+    sampler: SamplerName = Field(default="voxnerf", json_schema_extra=JOB)
+    n_importance: int | None = Field(json_schema_extra=JOB, default=None, ge=1)
+    n_rest: int | None = Field(json_schema_extra=JOB, default=None, ge=1)
+    octree_leaf: Literal["coverage", "sigma"] = Field(
+        default="coverage",
+        description="sampler octree leaf: 'sigma' (the paper) or, for point-cloud priors, the smallest multiple "
+        "of sigma (1-3) that the training rays do not slip through (mesh priors always use sigma)",
+    )
+    octree_carving: bool = Field(
+        default=True,
+        description="remove the sampler octree's leaves that the training frames' sensor depth shows empty (rays "
+                    "cross them well before their measured depth and no measured point lies in them): outliers and "
+                    "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.prior.carving; "
+                    "docs/engine.md, 'Pipeline', step 6)",
+    )
+    occgrid_seed: bool = Field(
+        default=True,
+        description="start the occupancy grid from the prior's cells; False starts it all occupied and lets it "
+        "learn from the field's density alone (nerfacc's grid, the paper's baseline)",
+    )
+    occgrid_resolution: int = Field(default=64, ge=8)
+    occgrid_update_every: int = Field(default=32, ge=1)
+
+    @property
+    def samples_per_ray(self) -> int:
+        return int(self.n_importance) + int(self.n_rest)
+
+class LossConfig(_Section):
+    """The loss (paper III-D): the depth term and its target, smoothness, distortion, prior rays, and the colour
+    behind each training ray."""
+
+    depth_loss: bool = Field(json_schema_extra=JOB, default=True,
+                             description="False leaves the depth terms out (as depth_source 'none')")
+    depth_source: DepthSource = Field(json_schema_extra=JOB,
+        default="auto",
+        description="what the depth loss compares with: 'sensor' (the training frames' depth maps where valid, "
+        "the prior's depth elsewhere), 'prior' (the prior's depth only), 'none'; 'auto' is 'sensor' when the "
+        "training frames have depth maps, else 'prior' when there is a prior, else 'none'",
+    )
+    lambda_depth: float = Field(
+        default=0.3, ge=0,
+        description="lambda_d of the paper's total loss (no value in the paper; docs/engine.md, 'Losses')",
+    )
+    lambda_smooth: float = Field(
+        default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
+    )
+    depth_beta: float | None = Field(
+        default=None, gt=0, description="log-Huber beta in scene units; default 5 x the prior's sigma (paper: 0.1 m), "
+        "and for sensor depth 5 x the depth noise measured at that depth"
+    )
+    smooth_patches: int = Field(json_schema_extra=JOB,
+        default=0,
+        ge=0,
+        description="s x s patches per batch for the smoothness term; 0 (the default) leaves the term out "
+        "(docs/engine.md, 'Losses', weighs it on the real and the synthetic scenes)",
+    )
+    patch_size: int = Field(default=8, ge=2)
+    smooth_scales: int = Field(default=3, ge=1)
     distortion_weight: float = Field(
         default=0.0, ge=0,
         description="weight of mip-NeRF 360's distortion loss (the O(N) form, distances as fractions of each "
         "ray's [near, far]); 0 leaves it out",
     )
-    field_weight_decay: Annotated[float, Field(ge=0, le=1e-2)] | Literal["auto"] = Field(
-        default="auto",
-        description="L2 weight decay of the field's parameters (Adam's coupled form: the coefficient times each "
-        "parameter joins its gradient), which keeps the hash grid's features from fitting the training images' "
-        "noise; 'auto': in proportion to the variance of that noise, measured on the training images "
-        "(voxnerf/training/weight_decay.py); 0 leaves it out",
-    )
-    coarse_to_fine: float = Field(
-        default=0.0, ge=0, le=1,
-        description="fraction of the training limits over which the hash levels are switched on from "
-        "coarse_levels to all (a smooth ramp per level); 0 trains every level from the start",
-    )
-    coarse_levels: int = Field(default=4, ge=1, description="hash levels active at the start of coarse_to_fine")
     depth_weight_final: float = Field(
         default=1.0, gt=0, le=1,
         description="lambda_depth at the end of training over lambda_depth at the start (exponential over the "
@@ -133,7 +191,52 @@ class TrainConfig(BaseModel):
         description="weight of a colour term pulling the prior rays whose surface point no training view sees "
         "towards the training images' mean colour (a neutral guess for what no image shows); 0 leaves it out",
     )
-    appearance: Appearance = Field(
+    train_background: Literal["fixed", "random"] = Field(
+        default="random",
+        description="the colour behind each training ray: 'random' a uniform random colour per ray and step, so a "
+        "ray matches its pixel only where the field is opaque (seen surfaces cannot stay translucent and let the "
+        "background tint them); 'fixed' the ``background`` (docs/benchmarks.md, 'The tuning suite')",
+    )
+
+class ScheduleConfig(_Section):
+    """The optimisation: rays per step, the learning rate and its schedule, weight decay, coarse-to-fine levels."""
+
+    rays_per_batch: int | None = Field(default=None, gt=0)
+    lr: float = Field(default=1e-2, description="Adam learning rate, in (0, 1]")
+    lr_decay_iters: int | None = Field(default=None, gt=0)
+    lr_schedule: LrSchedule = Field(
+        default="iterations",
+        description="'iterations': lr x 0.1 every lr_decay_iters steps; 'budget': lr x lr_final over the run's "
+        "limits (max_seconds less set-up and the final evaluation's share, or max_iters), whichever ends first",
+    )
+    lr_final: float = Field(default=0.1, gt=0, le=1, description="lr at the end over lr at the start ('budget')")
+    field_weight_decay: Annotated[float, Field(ge=0, le=1e-2)] | Literal["auto"] = Field(
+        default="auto",
+        description="L2 weight decay of the field's parameters (Adam's coupled form: the coefficient times each "
+        "parameter joins its gradient), which keeps the hash grid's features from fitting the training images' "
+        "noise; 'auto': in proportion to the variance of that noise, measured on the training images "
+        "(voxnerf/training/weight_decay.py); 0 leaves it out",
+    )
+    coarse_to_fine: float = Field(
+        default=0.0, ge=0, le=1,
+        description="fraction of the training limits over which the hash levels are switched on from "
+        "coarse_levels to all (a smooth ramp per level); 0 trains every level from the start",
+    )
+    coarse_levels: int = Field(default=4, ge=1, description="hash levels active at the start of coarse_to_fine")
+
+    @field_validator("lr")
+    @classmethod
+    def _learning_rate(cls, value: float) -> float:
+        if not 0 < value <= MAX_LR:
+            raise ValueError(
+                f"learning rate must be in (0, {MAX_LR:g}] (VoxNeRF trains at about 1e-2), got {value!r}"
+            )
+        return value
+
+class CorrectionsConfig(_Section):
+    """The per-image corrections of a captured scan: appearance, pose refinement, the focal length's scale."""
+
+    appearance: Appearance = Field(json_schema_extra=JOB,
         default="auto",
         description="'affine': a colour gain and bias per training image and channel, learnt with the field "
         "(exposure and white balance that vary between frames), held at zero mean over the images so the field "
@@ -141,14 +244,14 @@ class TrainConfig(BaseModel):
         "'auto': affine for a captured scan, none for a scene whose transforms.json says it is synthetic "
         "(voxnerf/training/corrections.py)",
     )
-    pose_refinement: PoseRefinementMode = Field(
+    pose_refinement: PoseRefinementMode = Field(json_schema_extra=JOB,
         default="auto",
         description="'so3xr3': a rotation and a translation per training image, learnt with the field (nerfacto's "
         "camera optimiser, voxnerf/cameras/pose_refinement.py) for scans whose poses drift (SLAM, tracking, SfM); a "
         "rendered pose takes the corrections of its nearest training cameras; the refined poses go to "
         "refined_poses.json. 'auto': so3xr3 for a captured scan, none for a synthetic scene (exact poses)",
     )
-    focal_scale: Annotated[float, Field(ge=0.5, le=2.0)] | Literal["auto"] = Field(
+    focal_scale: Annotated[float, Field(ge=0.5, le=2.0)] | Literal["auto"] = Field(json_schema_extra=JOB,
         default="auto",
         description="the colour camera's focal lengths are the stated ones times this; 'auto': measured for a "
         "captured scan with a mesh prior (the training images' agreement through the prior at scales of the stated "
@@ -172,94 +275,133 @@ class TrainConfig(BaseModel):
         description="weight of the pose corrections' mean translation norm (normalised units) in the loss; a tenth "
         "of it weighs their mean rotation (radians), as nerfacto's regulariser",
     )
-    lambda_depth: float = Field(
-        default=0.3, ge=0,
-        description="lambda_d of the paper's total loss (no value in the paper; docs/engine.md, 'Losses')",
-    )
-    lambda_smooth: float = Field(
-        default=0.01, ge=0, description="weight of the smoothness term inside lambda_d's bracket (paper: 1)"
-    )
-    depth_beta: float | None = Field(
-        default=None, gt=0, description="log-Huber beta in scene units; default 5 x the prior's sigma (paper: 0.1 m), "
-        "and for sensor depth 5 x the depth noise measured at that depth"
-    )
-    smooth_patches: int = Field(
-        default=0,
-        ge=0,
-        description="s x s patches per batch for the smoothness term; 0 (the default) leaves the term out "
-        "(docs/engine.md, 'Losses', weighs it on the real and the synthetic scenes)",
-    )
-    patch_size: int = Field(default=8, ge=2)
-    smooth_scales: int = Field(default=3, ge=1)
-    octree_leaf: Literal["coverage", "sigma"] = Field(
-        default="coverage",
-        description="sampler octree leaf: 'sigma' (the paper) or, for point-cloud priors, the smallest multiple "
-        "of sigma (1-3) that the training rays do not slip through (mesh priors always use sigma)",
-    )
-    octree_carving: bool = Field(
-        default=True,
-        description="remove the sampler octree's leaves that the training frames' sensor depth shows empty (rays "
-                    "cross them well before their measured depth and no measured point lies in them): outliers and "
-                    "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.prior.carving; "
-                    "docs/engine.md, 'Pipeline', step 6)",
-    )
-    occgrid_seed: bool = Field(
-        default=True,
-        description="start the occupancy grid from the prior's cells; False starts it all occupied and lets it "
-        "learn from the field's density alone (nerfacc's grid, the paper's baseline)",
-    )
-    occgrid_resolution: int = Field(default=64, ge=8)
-    occgrid_update_every: int = Field(default=32, ge=1)
-    background: tuple[float, float, float] | Literal["training_mean"] = Field(
-        default="training_mean",
-        description="colour behind the last sample of every ray in renders (sRGB in [0, 1]), or 'training_mean': "
-        "the mean colour of the training images, fixed when training starts. It is what a view shows where it "
-        "looks at space no training view saw (docs/benchmarks.md, 'The tuning suite')",
-    )
-    train_background: Literal["fixed", "random"] = Field(
-        default="random",
-        description="the colour behind each training ray: 'random' a uniform random colour per ray and step, so a "
-        "ray matches its pixel only where the field is opaque (seen surfaces cannot stay translucent and let the "
-        "background tint them); 'fixed' the ``background`` (docs/benchmarks.md, 'The tuning suite')",
-    )
-    setup_cache: bool = Field(
-        default=True,
-        description="load the set-up's per-pixel ray casts (the prior's depth, the octree's first hits) from "
-        "$VOXNERF_CACHE/setup when an earlier run cast the same rays against the same geometry with the same code",
-    )
-    eval_every_s: float = Field(default=60.0, gt=0, description="training seconds between progress evaluations")
+
+class EvaluationConfig(_Section):
+    """Evaluations during and after training, and the rays per forward pass of a render."""
+
+    eval_chunk: int | None = Field(default=None, gt=0)
+    eval_every_s: float = Field(json_schema_extra=JOB, default=60.0, gt=0,
+                                description="training seconds between progress evaluations")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
-    eval_at: list[float] = Field(
+    eval_at: list[float] = Field(json_schema_extra=JOB,
         default_factory=list, description="full evaluations at these training seconds (not charged to max_seconds)"
     )
-    eval_at_max_seconds: float | None = Field(
+    eval_at_max_seconds: float | None = Field(json_schema_extra=WORKER,
         default=None, ge=0, description="seconds the eval_at evaluations may take in all (unbounded when None); "
         "the later ones are skipped once they are spent"
     )
-    checkpoint_every_s: float = Field(default=60.0, gt=0)
     final_eval: bool = True
 
-    @field_validator("device")
-    @classmethod
-    def _device(cls, value: str) -> str:
-        if value not in ("auto", "cpu") and not value.startswith("cuda"):
-            raise ValueError("device must be auto, cpu or cuda[:N]")
-        return value
 
-    @field_validator("lr")
+SECTIONS: dict[str, type[_Section]] = {
+    "run": RunConfig, "model": ModelConfig, "sampling": SamplingConfig, "loss": LossConfig,
+    "schedule": ScheduleConfig, "corrections": CorrectionsConfig, "evaluation": EvaluationConfig,
+}
+# The settings a trained model keeps (TrainConfig.for_model), by component; None: all of it.
+MODEL_SETTINGS: dict[str, tuple[str, ...] | None] = {
+    "model": None,
+    "sampling": None,
+    "run": ("downscale", "compile", "hash_kernel"),
+    "corrections": ("appearance", "pose_refinement", "focal_scale"),
+    "evaluation": ("eval_chunk",),
+}
+# Each flat setting name -> its component.
+FIELD_SECTIONS: dict[str, str] = {name: section for section, model in SECTIONS.items() for name in model.model_fields}
+
+
+def field_info(name: str) -> FieldInfo:
+    """The definition (type, default, limits, description) of the setting with flat name ``name``."""
+    if name == "preset":
+        return TrainConfig.model_fields["preset"]
+    return SECTIONS[FIELD_SECTIONS[name]].model_fields[name]
+
+
+def audience(name: str) -> str:
+    """Who may set the setting ``name``: "job", "worker" or "internal" (see :data:`JOB`)."""
+    extra = field_info(name).json_schema_extra
+    return extra.get("audience", "internal") if isinstance(extra, dict) else "internal"
+
+
+def settings_for(who: str) -> tuple[str, ...]:
+    """The flat names of the settings :func:`audience` gives to ``who``, preset first, in component order."""
+    return tuple(name for name in ("preset", *FIELD_SECTIONS) if audience(name) == who)
+
+
+def nested(values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` with flat (``lr``) and dotted (``schedule.lr``) names put into their components; a component
+    given whole (a dict or a section model) is kept, the flat and dotted names win over it. KeyError-free: an
+    unknown name stays at the top level, where validation refuses it by name."""
+    out: dict[str, Any] = {}
+    parts: list[tuple[str, str, Any]] = []
+    for key, value in values.items():
+        section, _, name = key.partition(".") if "." in key else (FIELD_SECTIONS.get(key), "", key)
+        if section in SECTIONS and name in SECTIONS[section].model_fields:
+            parts.append((section, name, value))
+        elif key in SECTIONS and isinstance(value, _Section):
+            out[key] = value.model_dump(exclude_unset=True)
+        else:
+            out[key] = dict(value) if key in SECTIONS and isinstance(value, dict) else value
+    for section, name, value in parts:
+        current = out.setdefault(section, {})
+        if isinstance(current, dict):
+            current[name] = value
+        else:  # not a mapping: left for validation to refuse
+            out[f"{section}.{name}"] = value
+    return out
+
+
+class TrainConfig(BaseModel):
+    """Everything a training run depends on, by component; stored (flat) in report.json.
+
+    Unknown keys, NaN and infinities in any number, and a learning rate outside (0, 1] are refused with a
+    pydantic ``ValidationError`` naming the field. Flat and dotted names are accepted (:func:`nested`).
+    """
+
+    model_config = STRICT
+
+    preset: Preset = Field(default="cpu", json_schema_extra=JOB)
+    run: RunConfig = Field(default_factory=RunConfig)
+    model: ModelConfig = Field(default_factory=ModelConfig)
+    sampling: SamplingConfig = Field(default_factory=SamplingConfig)
+    loss: LossConfig = Field(default_factory=LossConfig)
+    schedule: ScheduleConfig = Field(default_factory=ScheduleConfig)
+    corrections: CorrectionsConfig = Field(default_factory=CorrectionsConfig)
+    evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
+
+    @model_validator(mode="before")
     @classmethod
-    def _learning_rate(cls, value: float) -> float:
-        if not 0 < value <= MAX_LR:
-            raise ValueError(
-                f"learning rate must be in (0, {MAX_LR:g}] (VoxNeRF trains at about 1e-2), got {value!r}"
-            )
-        return value
+    def _flat_and_dotted_names(cls, data: Any) -> Any:
+        return nested(data) if isinstance(data, dict) else data
 
     def resolved(self) -> TrainConfig:
         """A copy with every preset-dependent field filled in."""
-        values = {k: v for k, v in PRESETS[self.preset].items() if getattr(self, k) is None}
-        return self.model_copy(update=values)
+        update = {}
+        for section, values in PRESETS[self.preset].items():
+            part = getattr(self, section)
+            missing = {k: v for k, v in values.items() if getattr(part, k) is None}
+            if missing:
+                update[section] = part.model_copy(update=missing)
+        return self.model_copy(update=update)
 
-    @property
-    def samples_per_ray(self) -> int:
-        return int(self.n_importance) + int(self.n_rest)
+    def updated(self, **values: Any) -> TrainConfig:
+        """A validated copy with ``values`` (flat or dotted names) set."""
+        return TrainConfig.model_validate(self.flat() | values)
+
+    def for_model(self) -> dict[str, Any]:
+        """What a trained model keeps of its config (its checkpoint's ``config``): the resolved field and sampling,
+        and the few run settings its renders follow (:data:`MODEL_SETTINGS`): the resolution and focal length it
+        trained at, the corrections it learnt, how its full render path runs. ``TrainConfig(**for_model())``
+        rebuilds it, every other setting at its default."""
+        resolved = self.resolved()
+        out: dict[str, Any] = {}
+        for section, names in MODEL_SETTINGS.items():
+            part = getattr(resolved, section).model_dump()
+            out[section] = part if names is None else {name: part[name] for name in names}
+        return out
+
+    def flat(self) -> dict[str, Any]:
+        """Every setting by its flat name (``{"preset": ..., "lr": ..., ...}``): report.json's ``config``."""
+        out: dict[str, Any] = {"preset": self.preset}
+        for section in SECTIONS:
+            out |= getattr(self, section).model_dump()
+        return out

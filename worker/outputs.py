@@ -68,7 +68,7 @@ def scene_of(settings: Settings, job, trained: TrainedModel) -> Scene:
     scene_dir = storage.ensure_scene(settings, job.scene_id)
     if not scene_dir.is_dir():
         raise RunError(f"scene {job.scene_id} of job {job.id} was deleted: its cameras are needed")
-    return scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.downscale), load_images=False),
+    return scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.run.downscale), load_images=False),
                             trained.model)
 
 

@@ -162,7 +162,7 @@ def _check_voxel(voxel: float, extent: float) -> None:
 def _scene_of(trained: TrainedModel) -> Scene:
     if not trained.scene_dir:
         raise ExportError("scene: the run does not record its scene directory; pass the scene (--scene DIR)")
-    return scene_as_trained(load_scene(trained.scene_dir, downscale=int(trained.model.config.downscale),
+    return scene_as_trained(load_scene(trained.scene_dir, downscale=int(trained.model.config.run.downscale),
                                        load_images=False), trained.model)
 
 

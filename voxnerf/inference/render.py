@@ -71,7 +71,7 @@ def scene_as_trained(scene: Scene, model: VoxNeRFModel) -> Scene:
     """``scene`` seen through the cameras ``model`` trained with: the colour focal lengths times the run's
     ``focal_scale`` (:mod:`voxnerf.training.focal`; 1 for a checkpoint from before it). Every caller that renders
     or scores a scene's own views loads the scene through this."""
-    scale = model.config.focal_scale
+    scale = model.config.corrections.focal_scale
     return with_focal_scale(scene, scale if isinstance(scale, float) else 1.0)
 
 
@@ -111,11 +111,11 @@ def render_normalized(
     if unknown:
         raise RunError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
     fast = resolved_render_path(path, model.device) == "fast"
-    chunk = chunk or (FAST_CHUNK if fast else int(model.config.eval_chunk))
+    chunk = chunk or (FAST_CHUNK if fast else int(model.config.evaluation.eval_chunk))
     c2w = c2w.to(model.device, torch.float32)
     origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
     n = origins.shape[0]
-    compiled = bool(model.config.compile) and not fast
+    compiled = bool(model.config.run.compile) and not fast
     if compiled and n % chunk:  # pad with copies of the last ray so every chunk has the compiled shape
         pad = chunk - n % chunk
         origins = torch.cat([origins, origins[-1:].expand(pad, 3)])

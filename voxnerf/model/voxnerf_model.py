@@ -47,9 +47,10 @@ def ray_aabb(origins: Tensor, dirs: Tensor, aabb: Tensor) -> tuple[Tensor, Tenso
 def field_for(config: TrainConfig) -> RadianceField:
     """The radiance field (on the CPU, freshly initialised) that ``config``'s resolved preset describes."""
     cfg = config.resolved()
-    field = RadianceField(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size, cfg.hash_max_resolution,
-                          cfg.hidden_dim, cfg.sh_bands)
-    field.encoding.use_kernel = cfg.hash_kernel and hash_kernel.available()
+    spec = cfg.model
+    field = RadianceField(spec.hash_levels, spec.hash_features, spec.hash_log2_size, spec.hash_max_resolution,
+                          cfg.model.hidden_dim, cfg.model.sh_bands)
+    field.encoding.use_kernel = cfg.run.hash_kernel and hash_kernel.available()
     return field
 
 
@@ -110,8 +111,8 @@ class LossSettings:
     def of(config: TrainConfig, beta: float, scale: float, n_patch_rays: int, patch: int,
            n_prior_rays: int = 0) -> LossSettings:
         """The settings of ``config`` for a depth ``beta`` in scene units and the scene's normalisation ``scale``."""
-        return LossSettings(PAPER_BETA / (beta * scale), config.distortion_weight, config.lambda_pose,
-                            config.lambda_smooth, config.smooth_scales, n_patch_rays, patch, n_prior_rays)
+        return LossSettings(PAPER_BETA / (beta * scale), config.loss.distortion_weight, config.corrections.lambda_pose,
+                            config.loss.lambda_smooth, config.loss.smooth_scales, n_patch_rays, patch, n_prior_rays)
 
 
 @dataclass
@@ -143,9 +144,10 @@ class VoxNeRFModel:
         octree: SparseVoxelOctree | None,
         device: torch.device,
     ) -> VoxNeRFModel:
-        cfg = config.resolved()
+        """A fresh model of ``config``, which keeps only the model's own settings (:meth:`TrainConfig.for_model`)."""
+        cfg = TrainConfig(**config.for_model())
         field = field_for(cfg).to(device)
-        grid = OccupancyGrid(cfg.occgrid_resolution).to(device)
+        grid = OccupancyGrid(cfg.sampling.occgrid_resolution).to(device)
         return VoxNeRFModel(cfg, transform, aabb.to(device), field, grid, octree)
 
     @property
@@ -157,17 +159,18 @@ class VoxNeRFModel:
         """[3] the colour behind every ray. ``'training_mean'`` is resolved to a colour by the trainer
         (:func:`voxnerf.training.stages.model_stage`; checkpoints hold the colour); a model built without
         training images, where it is still the name, shows black."""
-        colour = (0.0, 0.0, 0.0) if isinstance(self.config.background, str) else self.config.background
+        colour = (0.0, 0.0, 0.0) if isinstance(self.config.model.background, str) else self.config.model.background
         return torch.tensor(colour, dtype=torch.float32, device=self.device)
 
     def sampler(self) -> UniformSampler | OccGridSampler | VoxNeRFSampler:
-        n = self.config.samples_per_ray
-        if self.config.sampler == "uniform":
+        n = self.config.sampling.samples_per_ray
+        if self.config.sampling.sampler == "uniform":
             return UniformSampler(n)
         occ = OccGridSampler(self.grid, n)
-        if self.config.sampler == "occgrid" or self.octree is None:
+        if self.config.sampling.sampler == "occgrid" or self.octree is None:
             return occ
-        return VoxNeRFSampler(self.octree, int(self.config.n_importance), int(self.config.n_rest), occ)
+        sampling = self.config.sampling
+        return VoxNeRFSampler(self.octree, int(sampling.n_importance), int(sampling.n_rest), occ)
 
     def ray_bundle(self, origins: Tensor, dirs: Tensor) -> RayBundle:
         """Rays [N, 3] (normalised units, unit dirs) clipped to the scene box. A ray that misses the box gets
@@ -290,7 +293,7 @@ class VoxNeRFModel:
 
     def state_dict(self) -> dict:
         return {
-            "config": self.config.model_dump(),
+            "config": self.config.for_model(),
             "transform": {"center": list(self.transform.center), "scale": self.transform.scale},
             "aabb": self.aabb.cpu(),
             "field": self.field.state_dict(),

@@ -110,10 +110,11 @@ class OccupancyGridUpdate(Callback):
     def for_config(cls, model: VoxNeRFModel, cfg: TrainConfig, has_octree: bool) -> OccupancyGridUpdate | None:
         """None for the uniform sampler. The grid drives the occgrid sampler; for voxnerf it only serves rays
         that miss the octree, so it is updated 4x less often there."""
-        if cfg.sampler == "uniform":
+        if cfg.sampling.sampler == "uniform":
             return None
-        return cls(model, cfg.occgrid_update_every * (1 if cfg.sampler == "occgrid" or not has_octree else 4),
-                   cfg.compile)
+        sampling = cfg.sampling
+        return cls(model, sampling.occgrid_update_every * (1 if sampling.sampler == "occgrid" or not has_octree else 4),
+                   cfg.run.compile)
 
     def compile_density(self) -> bool:
         """Compile the density the updates use now, before the first step, so that its compilation does not
@@ -162,14 +163,14 @@ class ProgressEvents(Callback):
     def event(self, stage: str, iteration: int, loss: float | None) -> ProgressEvent:
         cfg, budget = self.cfg, self.budget
         fractions = []
-        if cfg.max_iters:
-            fractions.append(iteration / cfg.max_iters)
-        if cfg.max_seconds:
-            fractions.append((budget.previous + budget.wall) / cfg.max_seconds)
+        if cfg.run.max_iters:
+            fractions.append(iteration / cfg.run.max_iters)
+        if cfg.run.max_seconds:
+            fractions.append((budget.previous + budget.wall) / cfg.run.max_seconds)
         progress = min(1.0, max(fractions)) if fractions else 0.0
         eta = budget.wall * (1 - progress) / progress if 0 < progress < 1 else None
         return ProgressEvent(
-            stage=stage, iteration=iteration, max_iters=cfg.max_iters, elapsed_s=budget.train_seconds,
+            stage=stage, iteration=iteration, max_iters=cfg.run.max_iters, elapsed_s=budget.train_seconds,
             progress=1.0 if stage == "done" else progress, eta_s=eta,
             loss=loss if loss is not None and math.isfinite(loss) else None,
             history=list(self.report.history), stages=list(self.report.stages),
@@ -206,21 +207,22 @@ class ProgressEvaluation(Callback):
     training seconds so far. The progress evaluations that ran, and those skipped, are the stage
     ``progress_evals`` of the report (``events.report``), added at the first one and kept up to date.
 
-    The full ones may take ``cfg.eval_at_max_seconds`` in all: once that is spent the later ``eval_at`` times
+    The full ones may take ``cfg.evaluation.eval_at_max_seconds`` in all: once that is spent the later ``eval_at`` times
     are skipped and ``warnings`` (the report's) says so.
     """
 
     def __init__(self, evaluate: Evaluate, budget: Budget, cfg: TrainConfig, final_eval_rays: int,
                  events: ProgressEvents | None = None, warnings: list[str] | None = None) -> None:
         self.evaluate, self.budget, self.events = evaluate, budget, events
-        self.every, self.compiled, self.final_eval = cfg.eval_every_s, cfg.compile, cfg.final_eval
-        self.views_per_split = cfg.eval_views
+        self.every, self.final_eval = cfg.evaluation.eval_every_s, cfg.evaluation.final_eval
+        self.compiled = cfg.run.compile
+        self.views_per_split = cfg.evaluation.eval_views
         self.final_eval_rays = final_eval_rays
-        self.next_at = next_progress_eval(budget.train_seconds, cfg.eval_every_s)
-        self.pending_full = sorted(t for t in cfg.eval_at if t > budget.train_seconds)
+        self.next_at = next_progress_eval(budget.train_seconds, cfg.evaluation.eval_every_s)
+        self.pending_full = sorted(t for t in cfg.evaluation.eval_at if t > budget.train_seconds)
         self.seconds_per_ray = DEFAULT_EVAL_SECONDS_PER_RAY
         self.done = 0
-        self.full_cap, self.full_spent = cfg.eval_at_max_seconds, 0.0
+        self.full_cap, self.full_spent = cfg.evaluation.eval_at_max_seconds, 0.0
         self.warnings = warnings if warnings is not None else []
         self.progress_times: list[float] = []  # training seconds of the progress evaluations that ran
         self.progress_spent, self.last_progress_cost = 0.0, 0.0

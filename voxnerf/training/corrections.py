@@ -35,7 +35,7 @@ class CorrectionsStage:
 
 def _chosen(cfg: TrainConfig, scene: Scene, previous: dict | None) -> tuple[dict[str, str], str]:
     """(values for the fields that are ``auto``, why)."""
-    auto = [name for name in CORRECTIONS if getattr(cfg, name) == "auto"]
+    auto = [name for name in CORRECTIONS if getattr(cfg.corrections, name) == "auto"]
     if not auto:
         return {}, "as configured"
     if previous is not None:
@@ -52,12 +52,13 @@ def _chosen(cfg: TrainConfig, scene: Scene, previous: dict | None) -> tuple[dict
 
 
 def corrections_stage(cfg: TrainConfig, scene: Scene, previous: dict | None) -> CorrectionsStage:
-    """Resolve ``auto`` in ``cfg.appearance`` and ``cfg.pose_refinement`` for ``scene`` (and the checkpoint a
+    """Resolve ``auto`` in ``cfg.corrections.appearance`` and ``.pose_refinement`` for ``scene`` (and the checkpoint a
     resumed run continues from, ``previous``); the record names what runs and why."""
     t0 = time.perf_counter()
     values, why = _chosen(cfg, scene, previous)
-    cfg = cfg.model_copy(update=values)
-    learnt = [f"{name} {getattr(cfg, name)}" for name in CORRECTIONS if getattr(cfg, name) != "none"]
+    cfg = cfg.updated(**values)
+    learnt = [f"{name} {getattr(cfg.corrections, name)}" for name in CORRECTIONS
+              if getattr(cfg.corrections, name) != "none"]
     ran = bool(learnt)
     text = f"{', '.join(learnt) if ran else 'none'}; {why}"
     return CorrectionsStage(StageRecord(name="corrections", ran=ran, why=text, seconds=time.perf_counter() - t0),

@@ -68,7 +68,7 @@ def progress_eval(
     sizes the final evaluation's reserve of the budget."""
     t0 = time.perf_counter()
     elapsed, wall = budget.train_seconds, budget.wall
-    subset = {name: (v if full else spread(v, cfg.eval_views)) for name, v in views.items()}
+    subset = {name: (v if full else spread(v, cfg.evaluation.eval_views)) for name, v in views.items()}
     if warm_up:
         split, split_views = next(iter(subset.items()))
         evaluate_views(model, {split: split_views[:1]}, cfg, out_dir=None, lpips=False)
@@ -85,7 +85,7 @@ def progress_eval(
         entry.ssim = {k: m["ssim"] for k, m in metrics.items()}
         entry.lpips = {k: m["lpips"] for k, m in metrics.items()}
         entry.half = {k: m["half"] for k, m in metrics.items()}
-        entry.progress_psnr = progress_views_psnr(metrics, views, cfg.eval_views)
+        entry.progress_psnr = progress_views_psnr(metrics, views, cfg.evaluation.eval_views)
     history.append(entry)
     return spent, per_ray
 
@@ -103,7 +103,7 @@ def final_eval(model: VoxNeRFModel, views: EvalViews, cfg: TrainConfig, out_dir:
     record = EvalRecord(
         elapsed_s=round(train_seconds, 3), wall_s=round(budget.wall, 3), iteration=iteration, loss=loss,
         final=True, psnr={k: v["psnr"] for k, v in metrics.items()},
-        progress_psnr=progress_views_psnr(metrics, views, cfg.eval_views),
+        progress_psnr=progress_views_psnr(metrics, views, cfg.evaluation.eval_views),
     )
     return metrics, record
 

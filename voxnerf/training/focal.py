@@ -37,14 +37,14 @@ class FocalStage:
 
 
 def focal_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None) -> FocalStage:
-    """Resolve ``auto`` in ``cfg.focal_scale`` on ``scene``'s (loaded) training images and ``prior`` (scene units),
-    and apply the scale to the scene."""
+    """Resolve ``auto`` in ``cfg.corrections.focal_scale`` on ``scene``'s (loaded) training images and ``prior`` (scene
+    units), and apply the scale to the scene."""
     t0 = time.perf_counter()
-    if cfg.focal_scale == "auto":
-        scale, why = measured_scale(scene, prior, cfg.setup_cache)
+    if cfg.corrections.focal_scale == "auto":
+        scale, why = measured_scale(scene, prior, cfg.run.setup_cache)
     else:
-        scale, why = float(cfg.focal_scale), "as configured"
-    cfg = cfg.model_copy(update={"focal_scale": scale})
+        scale, why = float(cfg.corrections.focal_scale), "as configured"
+    cfg = cfg.updated(focal_scale=scale)
     corrected = with_focal_scale(scene, scale)
     stated = scene.intrinsics(scene.train_indices[0]) if scene.train_indices else None
     if scale == 1.0:

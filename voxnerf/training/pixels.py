@@ -138,12 +138,12 @@ def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, ge
     """Random pixels plus (optionally) s x s patches: index tensors img, py, px [R] (patches last)."""
     n, h, w = pixels.shape
     device = pixels.images.device
-    r = int(cfg.rays_per_batch)
+    r = int(cfg.schedule.rays_per_batch)
     img = torch.randint(0, n, (r,), generator=gen, device=device)
     py = torch.randint(0, h, (r,), generator=gen, device=device)
     px = torch.randint(0, w, (r,), generator=gen, device=device)
     if use_patches:
-        s, p = min(cfg.patch_size, h, w), cfg.smooth_patches
+        s, p = min(cfg.loss.patch_size, h, w), cfg.loss.smooth_patches
         pi = torch.randint(0, n, (p,), generator=gen, device=device)
         y0 = torch.randint(0, h - s + 1, (p,), generator=gen, device=device)
         x0 = torch.randint(0, w - s + 1, (p,), generator=gen, device=device)

@@ -123,10 +123,10 @@ def train(
     run_path = Path(run_dir)
     run_path.mkdir(parents=True, exist_ok=True)
     previous = load_previous(run_path / CHECKPOINT, resume)
-    budget = Budget(cfg.max_seconds, previous["train_seconds"] if previous else 0.0)
-    device = resolve_device(cfg.device)
-    stages.seed_everything(cfg.seed + (previous["iteration"] if previous else 0))
-    report = TrainReport(config=cfg.model_dump(), device=str(device))
+    budget = Budget(cfg.run.max_seconds, previous["train_seconds"] if previous else 0.0)
+    device = resolve_device(cfg.run.device)
+    stages.seed_everything(cfg.run.seed + (previous["iteration"] if previous else 0))
+    report = TrainReport(config=cfg.flat(), device=str(device))
     run = Run(cfg, run_path, device, budget, report, ProgressEvents(on_progress, cfg, budget, report),
               should_stop or never, may_write or always)
     try:
@@ -160,9 +160,9 @@ def _set_up(run: Run, scene_dir: str | Path, previous: dict | None) -> SetupCont
 
 def _patches(cfg: TrainConfig, setup: SetupContext) -> tuple[bool, int, int]:
     """(whether batches carry smoothness patches, patch side, rays of all patches)."""
-    use_patches = setup.use_depth and cfg.smooth_patches > 0 and cfg.lambda_smooth > 0
-    patch = min(cfg.patch_size, setup.pixels.shape[1], setup.pixels.shape[2])
-    return use_patches, patch, cfg.smooth_patches * patch * patch if use_patches else 0
+    use_patches = setup.use_depth and cfg.loss.smooth_patches > 0 and cfg.loss.lambda_smooth > 0
+    patch = min(cfg.loss.patch_size, setup.pixels.shape[1], setup.pixels.shape[2])
+    return use_patches, patch, cfg.loss.smooth_patches * patch * patch if use_patches else 0
 
 
 def _make_step(run: Run, setup: SetupContext) -> tuple[TrainStep, stages.CompileStage]:
@@ -171,13 +171,13 @@ def _make_step(run: Run, setup: SetupContext) -> tuple[TrainStep, stages.Compile
     use_patches, patch, n_patch_rays = _patches(cfg, setup)
     beta = setup.depth_beta or PAPER_BETA
     run.report.depth_beta = beta if setup.use_depth else None
-    n_prior = cfg.prior_rays if setup.prior_rays is not None else 0
+    n_prior = cfg.loss.prior_rays if setup.prior_rays is not None else 0
     compiled = stages.compile_stage(cfg, make_loss_fn(model, cfg, beta, n_patch_rays, patch, n_prior))
     if compiled.record is not None:
         run.events.stage(compiled.record, iteration)
     sampler = model.sampler()
     gen = torch.Generator(device=run.device)
-    gen.manual_seed(cfg.seed + iteration)
+    gen.manual_seed(cfg.run.seed + iteration)
     step = TrainStep(model, setup.built.optimizer, setup.pixels, cfg, compiled.loss_fn, use_patches, sampler, gen,
                      setup.prior_rays)
     return step, compiled
@@ -206,22 +206,22 @@ def _optimise(run: Run, setup: SetupContext, progress_bar: bool) -> TrainReport:
     evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(views), run.events, run.report.warnings)
     save = _fenced(run, CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget,
                                          run.report.history, setup.scene))
-    saving = Checkpointing(save, cfg.checkpoint_every_s)
+    saving = Checkpointing(save, cfg.run.checkpoint_every_s)
     grid = OccupancyGridUpdate.for_config(built.model, cfg, setup.octree is not None)
     timer = _compile_density_and_time(run, compiled, step, grid)
-    bar = ProgressBar.create(cfg.max_iters, built.iteration, progress_bar)
-    progress = TrainingProgress(budget, cfg.max_iters, evaluation.final_eval_reserve)
+    bar = ProgressBar.create(cfg.run.max_iters, built.iteration, progress_bar)
+    progress = TrainingProgress(budget, cfg.run.max_iters, evaluation.final_eval_reserve)
     schedules = _schedules(cfg, built, step, progress)
     callbacks = present([evaluation, *schedules, timer, bar, grid, saving, run.events])
     state = LoopState(built.iteration)
     try:
-        status = run_loop(step, state, callbacks, Limits(cfg.max_iters, budget, evaluation.final_eval_reserve,
+        status = run_loop(step, state, callbacks, Limits(cfg.run.max_iters, budget, evaluation.final_eval_reserve,
                                                          run.should_stop))
     except TrainingDiverged as exc:
         bar.close()
         raise _diverged(run, exc, state.iteration) from None
     finally:
-        built.model.field.encoding.set_active_levels(float(cfg.hash_levels))  # every level on, whatever happened
+        built.model.field.encoding.set_active_levels(float(cfg.model.hash_levels))  # every level on, whatever happened
     bar.close()
     if timer is not None:
         timer.finish(state.iteration)
@@ -243,11 +243,13 @@ def _schedules(cfg: TrainConfig, built: stages.ModelStage, step: TrainStep,
                progress: TrainingProgress) -> list[Callback | None]:
     """What changes with the run's progress: the learning rate, the hash levels switched on (coarse_to_fine),
     lambda_d (depth_weight_final)."""
-    levels = CoarseToFine(built.model.field.encoding, cfg.coarse_levels, cfg.coarse_to_fine, progress,
-                          cfg.lr_decay_iters) if cfg.coarse_to_fine > 0 else None
-    depth = DepthWeightSchedule(step.depth_weight, cfg.lambda_depth, cfg.depth_weight_final,
-                                progress) if cfg.depth_weight_final < 1 else None
-    return [LearningRateSchedule(built.optimizer, cfg.lr_decay_iters, cfg.lr_schedule, cfg.lr_final, progress),
+    levels = CoarseToFine(built.model.field.encoding, cfg.schedule.coarse_levels, cfg.schedule.coarse_to_fine, progress,
+                          cfg.schedule.lr_decay_iters) if cfg.schedule.coarse_to_fine > 0 else None
+    depth = DepthWeightSchedule(step.depth_weight, cfg.loss.lambda_depth, cfg.loss.depth_weight_final,
+                                progress) if cfg.loss.depth_weight_final < 1 else None
+    schedule = cfg.schedule
+    return [LearningRateSchedule(built.optimizer, schedule.lr_decay_iters, schedule.lr_schedule, schedule.lr_final,
+                                 progress),
             levels, depth]
 
 
@@ -314,8 +316,8 @@ def _final_eval_stage(run: Run, setup: SetupContext, views: EvalViews, status: s
     """Evaluate every view (when the run succeeded and has views); the run's status: ``cancelled`` when
     ``should_stop()`` interrupted the evaluation (its renders are then dropped)."""
     cfg, iteration, t0 = run.cfg, state.iteration, time.perf_counter()
-    if not (cfg.final_eval and status == "succeeded" and views):
-        why = ("disabled" if not cfg.final_eval else "run cancelled" if status == "cancelled"
+    if not (cfg.evaluation.final_eval and status == "succeeded" and views):
+        why = ("disabled" if not cfg.evaluation.final_eval else "run cancelled" if status == "cancelled"
                else "the scene has no evaluation split")
         run.events.stage(StageRecord(name="final_eval", ran=False, why=why, seconds=time.perf_counter() - t0),
                          iteration)
@@ -360,8 +362,8 @@ def throughput(cfg: TrainConfig, steps: int, loop_seconds: float, records: list[
     """Rays per step, rays and samples per second of this command's ``steps`` over its ``loop_seconds`` (the
     training loop's, set-up and evaluations left out) less the compile stage's."""
     compile_s = next((s.seconds for s in records if s.name == "compile" and s.ran), 0.0)
-    rays_per_step = int(cfg.rays_per_batch) + (patch_rays if patches else 0)
+    rays_per_step = int(cfg.schedule.rays_per_batch) + (patch_rays if patches else 0)
     rays = rays_per_step * steps
     seconds = max(loop_seconds - compile_s, 1e-9)
     return {"rays_per_step": rays_per_step, "rays_per_s": rays / seconds,
-            "samples_per_s": rays * cfg.samples_per_ray / seconds, "seconds_excluding_compile": seconds}
+            "samples_per_s": rays * cfg.sampling.samples_per_ray / seconds, "seconds_excluding_compile": seconds}

@@ -172,7 +172,7 @@ def _carving(ctx: SetupContext) -> StageRecord:
 
 
 def _first_hit(ctx: SetupContext) -> StageRecord:
-    hits = stages.first_hit_stage(ctx.octree, ctx.pixels, ctx.built.model, ctx.cfg.setup_cache)
+    hits = stages.first_hit_stage(ctx.octree, ctx.pixels, ctx.built.model, ctx.cfg.run.setup_cache)
     ctx.pixels.hit_t, ctx.pixels.hit = hits.hit_t, hits.hit
     return hits.record
 
@@ -208,7 +208,7 @@ def run_setup(ctx: SetupContext, emit: Callable[[StageRecord, int], None], stop_
     from) and ``stop_point`` may stop the set-up."""
     for stage in setup_stages:
         record = stage.run(ctx)
-        ctx.report.config = ctx.cfg.model_dump()
+        ctx.report.config = ctx.cfg.flat()
         if record is not None:
             emit(record, ctx.iteration)
         stop_point()

@@ -61,7 +61,7 @@ class SceneStage:
 
 def load_scene_stage(scene_dir: str | Path, cfg: TrainConfig) -> SceneStage:
     t0 = time.perf_counter()
-    scene = load_scene(scene_dir, downscale=cfg.downscale)
+    scene = load_scene(scene_dir, downscale=cfg.run.downscale)
     check_sensor_depth(cfg, scene)  # before any set-up work, not after it
     why = f"{len(scene.frames)} frames, {len(scene.train_indices)} for training"
     return SceneStage(_record("load_scene", True, why, t0), scene)
@@ -79,10 +79,10 @@ def prior_stage(scene: Scene, cfg: TrainConfig, run_dir: Path | None = None) -> 
     """The scene's prior file; without one, the TSDF fusion of the training frames' depth maps (written to
     ``run_dir/prior_tsdf.ply`` when a run directory is given); without either, none."""
     t0 = time.perf_counter()
-    needs_prior = cfg.sampler == "voxnerf" or cfg.depth_loss
+    needs_prior = cfg.sampling.sampler == "voxnerf" or cfg.loss.depth_loss
     why_needed = "sets the scene box" + (" and guides sampling / depth" if needs_prior else " only (not needed else)")
     if scene.prior_path is not None:
-        prior = load_prior(scene.prior_path, scene.prior_sigma, seed=cfg.seed)
+        prior = load_prior(scene.prior_path, scene.prior_sigma, seed=cfg.run.seed)
         why = why_needed
         if scene.prior_key == "ply_file_path":
             why += f"; from nerfstudio's ply_file_path ({scene.prior_path.name}), no prior_file_path given"
@@ -94,7 +94,7 @@ def prior_stage(scene: Scene, cfg: TrainConfig, run_dir: Path | None = None) -> 
             fused = fuse_depth_prior(training_depth_views(scene, depth_frames))
         except FusionError as err:
             return _no_prior(cfg, f"no prior file, and the depth maps make none: {err}", t0, needs_prior)
-        prior = prior_from_mesh(fused.mesh, fused.sigma, FUSED_PRIOR, seed=cfg.seed)
+        prior = prior_from_mesh(fused.mesh, fused.sigma, FUSED_PRIOR, seed=cfg.run.seed)
         if run_dir is not None:
             write_atomic(Path(run_dir) / FUSED_PRIOR, fused.mesh.export(file_type="ply"))
         why = f"no prior file; {fused.describe()} ({fused.noise.describe()}); {why_needed}"
@@ -108,7 +108,7 @@ def _no_prior(cfg: TrainConfig, why: str, t0: float, needs_prior: bool) -> Prior
     if not needs_prior:
         return PriorStage(record, None)
     return PriorStage(record, None, (
-        f"sampler {cfg.sampler!r}{' and the depth loss' if cfg.depth_loss else ''} need a prior; "
+        f"sampler {cfg.sampling.sampler!r}{' and the depth loss' if cfg.loss.depth_loss else ''} need a prior; "
         "the scene has none, so sampling falls back to the occupancy grid and no depth loss is used"))
 
 
@@ -146,7 +146,7 @@ def hash_kernel_stage(cfg: TrainConfig, device: torch.device) -> StageRecord:
     t0 = time.perf_counter()
     if device.type != "cpu":
         return _record("hash_kernel", False, f"on {device.type} the hash encoding stays in PyTorch", t0)
-    if not cfg.hash_kernel:
+    if not cfg.run.hash_kernel:
         return _record("hash_kernel", False, "disabled (--no-hash-kernel): the hash encoding stays in PyTorch", t0)
     if hash_kernel.available():
         return _record("hash_kernel", True,
@@ -206,38 +206,39 @@ APPEARANCE_LR_SCALE = 0.1  # the per-image corrections learn at a tenth of the f
 
 def _corrections(cfg: TrainConfig, scene: Scene, model: VoxNeRFModel, device: torch.device) -> list[dict]:
     """Give ``model`` the per-image corrections ``cfg`` asks for; their optimiser parameter groups."""
-    if "auto" in (cfg.appearance, cfg.pose_refinement):
+    if "auto" in (cfg.corrections.appearance, cfg.corrections.pose_refinement):
         raise ValueError("model_stage: resolve 'auto' appearance and pose_refinement first (corrections_stage)")
-    if cfg.appearance == "none" and cfg.pose_refinement == "none":
+    if cfg.corrections.appearance == "none" and cfg.corrections.pose_refinement == "none":
         return []
     cameras = torch.from_numpy(np.stack([model.transform.c2w_to_normalized(scene.frames[i].c2w)
                                          for i in scene.train_indices]))  # both blend from the training cameras
     groups = []
-    if cfg.appearance == "affine":
+    if cfg.corrections.appearance == "affine":
         model.appearance = ImageAppearance(len(cameras), cameras).to(device)
-        groups.append({"params": list(model.appearance.parameters()), "lr": cfg.lr * APPEARANCE_LR_SCALE})
-    if cfg.pose_refinement == "so3xr3":
+        groups.append({"params": list(model.appearance.parameters()), "lr": cfg.schedule.lr * APPEARANCE_LR_SCALE})
+    if cfg.corrections.pose_refinement == "so3xr3":
         model.pose_refinement = PoseRefinement(len(cameras), cameras).to(device)
-        groups.append({"params": list(model.pose_refinement.parameters()), "lr": cfg.pose_lr})
+        groups.append({"params": list(model.pose_refinement.parameters()), "lr": cfg.corrections.pose_lr})
     return groups
 
 
 def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, device: torch.device,
                 previous: dict | None) -> ModelStage:
-    if cfg.field_weight_decay == "auto":
+    if cfg.schedule.field_weight_decay == "auto":
         raise ValueError("model_stage: resolve 'auto' field_weight_decay first (weight_decay_stage)")
     transform, aabb = scene_box(scene, prior)
     prior_n = prior.transformed(np.asarray(transform.center), transform.scale) if prior is not None else None
-    if cfg.background == "training_mean":
-        cfg = cfg.model_copy(update={"background": training_mean_colour(scene)})
+    if cfg.model.background == "training_mean":
+        cfg = cfg.updated(background=training_mean_colour(scene))
     model = VoxNeRFModel.create(cfg, transform, torch.from_numpy(aabb).float(), None, device)
-    if prior_n is not None and cfg.sampler != "uniform" and cfg.occgrid_seed:
+    if prior_n is not None and cfg.sampling.sampler != "uniform" and cfg.sampling.occgrid_seed:
         model.grid.seed_from_points(torch.from_numpy(prior_n.points).float().to(device))
     # fused: one pass over each parameter per step instead of one per Adam operation (benchmarks/optimizer_step.py;
     # docs/performance.md, 'Optimiser step').
-    groups = [{"params": list(model.field.parameters()), "lr": cfg.lr, "weight_decay": cfg.field_weight_decay},
+    groups = [{"params": list(model.field.parameters()), "lr": cfg.schedule.lr,
+               "weight_decay": cfg.schedule.field_weight_decay},
               *_corrections(cfg, scene, model, device)]
-    optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, fused=True)
+    optimizer = torch.optim.Adam(groups, lr=cfg.schedule.lr, eps=1e-15, fused=True)
     stage = ModelStage(transform, prior_n, model, optimizer)
     if previous is not None:
         model.field.load_state_dict(previous["model"]["field"])
@@ -247,7 +248,8 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
         if model.pose_refinement is not None and previous["model"].get("pose_refinement") is not None:
             model.pose_refinement.load_state_dict(previous["model"]["pose_refinement"])
         optimizer.load_state_dict(previous["optimizer"])
-        optimizer.param_groups[0]["weight_decay"] = cfg.field_weight_decay  # the command's, not the checkpoint's
+        # the command's weight decay, not the checkpoint's
+        optimizer.param_groups[0]["weight_decay"] = cfg.schedule.field_weight_decay
         stage.iteration, stage.resumed = int(previous["iteration"]), True
         stage.history = [EvalRecord.model_validate(h) for h in previous["history"]]
     return stage
@@ -262,10 +264,10 @@ class OctreeStage:
 def octree_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, pixels: TrainingPixels, model: VoxNeRFModel,
                  device: torch.device) -> OctreeStage:
     t0 = time.perf_counter()
-    if cfg.sampler == "voxnerf" and prior_n is not None:
+    if cfg.sampling.sampler == "voxnerf" and prior_n is not None:
         octree, why = sampler_octree(prior_n, pixels, model, cfg, device)
         return OctreeStage(_record("octree", True, why, t0), octree)
-    why = "no prior" if prior_n is None else f"sampler {cfg.sampler!r} does not use it"
+    why = "no prior" if prior_n is None else f"sampler {cfg.sampling.sampler!r} does not use it"
     return OctreeStage(_record("octree", False, why, t0), None)
 
 
@@ -273,12 +275,12 @@ def sampler_octree(
     prior: GeometryPrior, pixels: TrainingPixels, model: VoxNeRFModel, cfg: TrainConfig, device: torch.device
 ) -> tuple[SparseVoxelOctree, str]:
     """The voxnerf sampler's octree over ``prior`` (normalised frame) and a sentence saying how its leaf was
-    chosen (``cfg.octree_leaf``: the paper's sigma, or for point clouds the coverage rule on 65,536 training
+    chosen (``cfg.sampling.octree_leaf``: the paper's sigma, or for point clouds the coverage rule on 65,536 training
     rays; mesh priors are sampled at sigma / 3, dense enough for sigma leaves)."""
     points = torch.from_numpy(prior.points).float().to(device)
-    if cfg.octree_leaf == "sigma" or prior.kind == "mesh":
+    if cfg.sampling.octree_leaf == "sigma" or prior.kind == "mesh":
         octree = SparseVoxelOctree.from_points(points, prior.sigma)
-        why = "octree_leaf: sigma" if cfg.octree_leaf == "sigma" else "mesh prior, sampled densely"
+        why = "octree_leaf: sigma" if cfg.sampling.octree_leaf == "sigma" else "mesh prior, sampled densely"
         return octree, (f"voxnerf sampler: {octree.levels} levels, leaf = sigma = {octree.leaf_size:.4g} "
                         f"(normalised; {why})")
     n, h, w = pixels.shape
@@ -304,8 +306,9 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
                        octree: SparseVoxelOctree | None, pixels: TrainingPixels, model: VoxNeRFModel,
                        device: torch.device) -> PseudoDepthStage:
     t0 = time.perf_counter()
-    if not (cfg.depth_loss and cfg.depth_source != "none" and prior_n is not None):
-        why = ("depth loss disabled" if not cfg.depth_loss else "depth_source 'none'" if cfg.depth_source == "none"
+    if not (cfg.loss.depth_loss and cfg.loss.depth_source != "none" and prior_n is not None):
+        why = ("depth loss disabled" if not cfg.loss.depth_loss
+               else "depth_source 'none'" if cfg.loss.depth_source == "none"
                else "no prior to render depth from")
         return PseudoDepthStage(_record("pseudo_depth", False, why, t0), None)
     depth_svo = prior_depth_octree(prior_n, octree, device)
@@ -317,7 +320,7 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
                                                                               rays.far))
 
     (pseudo_t, _), loaded = setup_cache.cached_per_pixel("pseudo_depth", inputs, pixels.shape, device, cast,
-                                                         cfg.setup_cache)
+                                                         cfg.run.setup_cache)
     valid = float(torch.isfinite(pseudo_t).float().mean())
     warning = None
     if valid < MIN_PRIOR_COVERAGE:
@@ -379,20 +382,20 @@ class PriorRaysStage:
 def prior_rays_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, use_depth: bool,
                      octree: SparseVoxelOctree | None, pixels: TrainingPixels, model: VoxNeRFModel,
                      device: torch.device) -> PriorRaysStage:
-    """The bank of prior rays (:mod:`voxnerf.training.prior_rays`) when ``cfg.prior_rays`` asks for them and the
+    """The bank of prior rays (:mod:`voxnerf.training.prior_rays`) when ``cfg.loss.prior_rays`` asks for them and the
     run has a prior and a depth loss."""
     t0 = time.perf_counter()
-    if not (cfg.prior_rays and prior_n is not None and use_depth):
-        why = ("prior_rays 0" if not cfg.prior_rays else "no prior" if prior_n is None else "no depth loss")
+    if not (cfg.loss.prior_rays and prior_n is not None and use_depth):
+        why = ("prior_rays 0" if not cfg.loss.prior_rays else "no prior" if prior_n is None else "no depth loss")
         return PriorRaysStage(_record("prior_rays", False, why, t0))
-    wanted = bank_size(cfg.prior_rays)
+    wanted = bank_size(cfg.loss.prior_rays)
     bank = prior_ray_bank(pixels.c2w[:, :3, 3], model, prior_depth_renderer(prior_n, octree, device), octree, wanted,
-                          cfg.seed)
+                          cfg.run.seed)
     if not len(bank):
         return PriorRaysStage(_record("prior_rays", False, "no ray from the training cameras hits the prior", t0))
-    why = (f"{cfg.prior_rays} rays per step from the training cameras' centres, supervised by the prior's depth: "
+    why = (f"{cfg.loss.prior_rays} rays per step from the training cameras' centres, supervised by the prior's depth: "
            f"{len(bank)} of {wanted} random rays hit the prior")
-    if cfg.prior_ray_colour > 0:
+    if cfg.loss.prior_ray_colour > 0:
         depth = pixels.depth_t if pixels.depth_t is not None else pixels.pseudo_t
         points = bank.rays.origins + bank.target_t[:, None] * bank.rays.dirs
         tolerance = UNSEEN_TOLERANCE_LEAVES * (octree.leaf_size if octree is not None else prior_n.sigma)
@@ -403,7 +406,7 @@ def prior_rays_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, use_depth:
 
 def check_sensor_depth(cfg: TrainConfig, scene: Scene) -> None:
     """SceneError when ``depth_source`` 'sensor' is asked for and no training frame has a depth map."""
-    wants_sensor = cfg.depth_loss and cfg.depth_source == "sensor"
+    wants_sensor = cfg.loss.depth_loss and cfg.loss.depth_source == "sensor"
     if wants_sensor and all(scene.depths[i] is None for i in scene.train_indices):
         raise SceneError(scene.root / TRANSFORMS, "depth_source 'sensor' needs depth maps, and no training frame "
                          "has one", key="depth_file_path")
@@ -416,16 +419,16 @@ def depth_source(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None) ->
     """
     check_sensor_depth(cfg, scene)
     has_sensor = any(scene.depths[i] is not None for i in scene.train_indices)
-    if not cfg.depth_loss or cfg.depth_source == "none":
-        return "none", "depth loss disabled" if not cfg.depth_loss else "depth_source 'none'"
-    if cfg.depth_source == "auto":
+    if not cfg.loss.depth_loss or cfg.loss.depth_source == "none":
+        return "none", "depth loss disabled" if not cfg.loss.depth_loss else "depth_source 'none'"
+    if cfg.loss.depth_source == "auto":
         if has_sensor:
             return "sensor", "auto: the training frames have depth maps"
         return ("prior", "auto: no depth maps, the prior's depth") if prior is not None else (
             "none", "auto: no depth maps and no prior")
-    if cfg.depth_source == "prior" and prior is None:
+    if cfg.loss.depth_source == "prior" and prior is None:
         return "none", "depth_source 'prior' but there is no prior"
-    return cfg.depth_source, f"depth_source {cfg.depth_source!r}"
+    return cfg.loss.depth_source, f"depth_source {cfg.loss.depth_source!r}"
 
 
 @dataclass
@@ -462,7 +465,7 @@ def depth_target_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | No
         return DepthTargetStage(_record("depth_target", False, why, t0))
     base_sigma = prior.sigma if prior is not None else None
     if source == "prior":
-        beta = cfg.depth_beta or DEPTH_BETA_PER_SIGMA * base_sigma
+        beta = cfg.loss.depth_beta or DEPTH_BETA_PER_SIGMA * base_sigma
         valid = float(torch.isfinite(pixels.pseudo_t).float().mean())
         summary = {"source": "prior", "why": why, "prior_fraction": valid, "beta": beta}
         return DepthTargetStage(_record("depth_target", True, f"{why}: the prior's depth on {valid:.1%} of "
@@ -478,9 +481,9 @@ def depth_target_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | No
                "prior_fraction": float((~sensor_ok & torch.isfinite(target)).float().mean())}
     text = (f"{why}: sensor depth on {summary['sensor_fraction']:.1%} of training pixels, the prior's on "
             f"{summary['prior_fraction']:.1%}; ")
-    if cfg.depth_beta or noise is None:
-        beta = cfg.depth_beta or (DEPTH_BETA_PER_SIGMA * base_sigma if base_sigma else PAPER_BETA)
-        rule = "given (depth_beta)" if cfg.depth_beta else "no surface to measure the depth noise against"
+    if cfg.loss.depth_beta or noise is None:
+        beta = cfg.loss.depth_beta or (DEPTH_BETA_PER_SIGMA * base_sigma if base_sigma else PAPER_BETA)
+        rule = "given (depth_beta)" if cfg.loss.depth_beta else "no surface to measure the depth noise against"
         summary |= {"beta": beta, "beta_rule": rule}
         return DepthTargetStage(_record("depth_target", True, text + f"beta {beta:.4g}: {rule}", t0), target,
                                 None, beta, summary, sensor_t)
@@ -507,8 +510,8 @@ def carving_stage(cfg: TrainConfig, octree: SparseVoxelOctree | None, pixels: Tr
     noise was measured) before its depth. ``scale``: the scene's normalisation (scene units -> normalised)."""
     t0 = time.perf_counter()
     measured = None if target.sensor_t is None else torch.isfinite(target.sensor_t).view(-1).nonzero().squeeze(1)
-    if octree is None or measured is None or not len(measured) or not cfg.octree_carving:
-        why = ("octree_carving false" if not cfg.octree_carving else "no octree" if octree is None
+    if octree is None or measured is None or not len(measured) or not cfg.sampling.octree_carving:
+        why = ("octree_carving false" if not cfg.sampling.octree_carving else "no octree" if octree is None
                else "no sensor depth in use (the depth target is not the sensor's)" if measured is None
                else "no training pixel has sensor depth")
         return CarvingStage(_record("octree_carving", False, why, t0), None)
@@ -524,7 +527,7 @@ def carving_stage(cfg: TrainConfig, octree: SparseVoxelOctree | None, pixels: Tr
         return (empty is not None and votes is not None and empty.dtype == torch.bool
                 and tuple(empty.shape) == tuple(octree.codes[-1].shape) and tuple(votes.shape) == (2,))
 
-    entry, loaded = setup_cache.cached("octree_carving", inputs, octree.device, carve, fits, cfg.setup_cache)
+    entry, loaded = setup_cache.cached("octree_carving", inputs, octree.device, carve, fits, cfg.run.setup_cache)
     carving = remove_empty(octree, entry["empty"], *(int(v) for v in entry["votes"]))
     why = (f"{carving.describe()}; free space ends {CARVE_MARGIN_LEAVES:g} leaves + {CARVE_MARGIN_SIGMAS:g} "
            f"sigma(z) before each measured depth{FROM_CACHE if loaded else ''}")
@@ -632,7 +635,7 @@ def compile_stage(cfg: TrainConfig, loss_fn: LossFn) -> CompileStage:
     :func:`inductor_cache_dir` unless ``TORCHINDUCTOR_CACHE_DIR`` says otherwise, so a later run of the same
     configuration loads the compiled step instead of compiling it again."""
     t0 = time.perf_counter()
-    if cfg.compile:
+    if cfg.run.compile:
         os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(inductor_cache_dir()))
         return CompileStage(torch.compile(loss_fn, dynamic=False), t0)
     return CompileStage(loss_fn, t0, _record("compile", False, "disabled (--no-compile)", t0))

@@ -47,8 +47,8 @@ def divergence_guard(losses: Losses, iteration: int) -> float:
 class TrainStep:
     """The step, split where the divergence guard looks: ``batch()``, ``losses(batch)`` (forward and
     backward) and ``apply()`` (the optimiser update, only after the guard passed). With pose refinement, every
-    ``cfg.pose_every``-th batch carries the corrections with their gradient and the others carry them detached
-    (those steps move the rays as the poses stand and leave the poses alone)."""
+    ``cfg.corrections.pose_every``-th batch carries the corrections with their gradient and the others carry them
+    detached (those steps move the rays as the poses stand and leave the poses alone)."""
 
     def __init__(self, model: VoxNeRFModel, optimizer: torch.optim.Optimizer, pixels: TrainingPixels,
                  cfg: TrainConfig, loss_fn: LossFn, use_patches: bool, sampler, gen: torch.Generator,
@@ -57,7 +57,8 @@ class TrainStep:
         self.prior_rays = prior_rays
         self.mean_colour = pixels.images.float().mean((0, 1, 2)) / 255.0 if prior_rays is not None else None
         self.loss_fn, self.use_patches, self.sampler, self.gen = loss_fn, use_patches, sampler, gen
-        self.depth_weight = torch.tensor(float(cfg.lambda_depth), device=pixels.images.device)  # the schedule sets it
+        # lambda_d now, as a tensor the schedule sets
+        self.depth_weight = torch.tensor(float(cfg.loss.lambda_depth), device=pixels.images.device)
         self.batches = 0  # batches drawn by this step (which ones refine the poses)
 
     def batch(self) -> Batch:
@@ -84,30 +85,30 @@ class TrainStep:
     @property
     def graphs(self) -> int:
         """How many forms the batches take for a compiled loss function: two where only every
-        ``cfg.pose_every``-th one carries the pose corrections with their gradient, else one."""
-        return 2 if self.model.pose_refinement is not None and self.cfg.pose_every > 1 else 1
+        ``cfg.corrections.pose_every``-th one carries the pose corrections with their gradient, else one."""
+        return 2 if self.model.pose_refinement is not None and self.cfg.corrections.pose_every > 1 else 1
 
     def _pose_corrections(self) -> torch.Tensor | None:
         """The model's pose corrections [images, 6] for this batch: with their gradient on every
-        ``cfg.pose_every``-th batch, detached on the others; None without pose refinement."""
+        ``cfg.corrections.pose_every``-th batch, detached on the others; None without pose refinement."""
         poses = self.model.pose_refinement
         if poses is None:
             return None
         corrections = poses.corrections()
-        return corrections if self.batches % self.cfg.pose_every == 0 else corrections.detach()
+        return corrections if self.batches % self.cfg.corrections.pose_every == 0 else corrections.detach()
 
     def _random_background(self, n: int) -> torch.Tensor | None:
         """[n, 3] a uniform random colour behind each ray when ``train_background`` is 'random' (else None: the
         model's background). A ray can then match its pixel only by turning opaque, so the field cannot make a
         seen surface translucent and let the background tint it."""
-        if self.cfg.train_background != "random":
+        if self.cfg.loss.train_background != "random":
             return None
         return torch.rand(n, 3, generator=self.gen, device=self.gen.device)
 
     def _with_prior_rays(self, batch: Batch) -> Batch:
-        """``batch`` with ``cfg.prior_rays`` prior rays appended (image 0, beta scale 1, colour target the training
+        """``batch`` with ``cfg.loss.prior_rays`` prior rays appended (image 0, beta scale 1, colour target the training
         images' mean colour, which counts only where ``prior_ray_colour`` weighs in the rays to unseen surfaces)."""
-        rays, target_t, unseen = self.prior_rays.draw(int(self.cfg.prior_rays), self.gen)
+        rays, target_t, unseen = self.prior_rays.draw(int(self.cfg.loss.prior_rays), self.gen)
         with torch.no_grad():
             starts, ends = self.sampler(rays, True)
         n = len(rays)
@@ -115,7 +116,8 @@ class TrainStep:
         colour = self.mean_colour.expand(n, 3)
         weight = None
         if unseen is not None:
-            weight = torch.cat([torch.ones_like(batch.target_rgb[:, 0]), self.cfg.prior_ray_colour * unseen.float()])
+            colour_weight = self.cfg.loss.prior_ray_colour * unseen.float()
+            weight = torch.cat([torch.ones_like(batch.target_rgb[:, 0]), colour_weight])
         return Batch(torch.cat([batch.origins, rays.origins]), torch.cat([batch.dirs, rays.dirs]),
                      torch.cat([batch.starts, starts]), torch.cat([batch.ends, ends]),
                      torch.cat([batch.target_rgb, colour]), torch.cat([batch.target_t, target_t]),

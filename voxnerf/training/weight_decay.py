@@ -39,19 +39,20 @@ class WeightDecayStage:
 
 
 def weight_decay_stage(cfg: TrainConfig, scene: Scene) -> WeightDecayStage:
-    """Resolve ``auto`` in ``cfg.field_weight_decay`` from the noise of ``scene``'s (loaded) training images."""
+    """Resolve ``auto`` in ``cfg.schedule.field_weight_decay`` from the noise of ``scene``'s (loaded) training
+    images."""
     t0 = time.perf_counter()
-    if cfg.field_weight_decay == "auto":
+    if cfg.schedule.field_weight_decay == "auto":
         step = max(1, -(-len(scene.train_indices) // NOISE_IMAGES))  # ceil: at most NOISE_IMAGES of them
         images = [scene.images[i] for i in scene.train_indices[::step] if scene.images and scene.images[i] is not None]
         sigma = images_noise_sigma(images)
         clean = sigma < NOISE_FLOOR
-        cfg = cfg.model_copy(update={"field_weight_decay": 0.0 if clean else NOISE_DECAY * sigma**2})
+        cfg = cfg.updated(field_weight_decay=0.0 if clean else NOISE_DECAY * sigma**2)
         why = (f"auto: the training images' noise sigma {sigma * 255:.2f}/255 (median of {len(images)} images), "
                + (f"below {NOISE_FLOOR * 255:g}/255: clean" if clean else f"decay {NOISE_DECAY:g} x sigma^2"))
     else:
         why = "as configured"
-    decay = float(cfg.field_weight_decay)
+    decay = float(cfg.schedule.field_weight_decay)
     text = f"{decay:.3g} on the field's parameters; {why}" if decay > 0 else f"none; {why}"
     return WeightDecayStage(StageRecord(name="weight_decay", ran=decay > 0, why=text,
                                         seconds=time.perf_counter() - t0), cfg)
