@@ -11,7 +11,8 @@ from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
 from app.core import jobstore, storage
-from app.core.dispatch import send_train
+from app.core.dispatch import send
+from app.core.jobstore import JOBS
 from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import CeleryDep, SceneId, SettingsDep
@@ -186,11 +187,11 @@ def create_job(
     if job is None:
         raise HTTPException(404, f"no scene {scene_id}")
     try:
-        send_train(celery, job.id)
+        send(celery, JOBS, job.id)
     except (KombuError, OSError) as err:
         log.error("cannot queue job %s: %s", job.id, err)
-        jobstore.fail_job(settings, job.id, public_error(f"the broker refused the job: {err}", settings))
+        JOBS.fail(settings, job.id, public_error(f"the broker refused the job: {err}", settings))
         raise HTTPException(503, public_error(f"the job queue is unavailable ({err}); try again later",
                                               settings)) from None
     response.headers["Location"] = f"/jobs/{job.id}"
-    return JobOut.from_row(jobstore.get_job(settings, job.id))
+    return JobOut.from_row(JOBS.get(settings, job.id))
