@@ -1,9 +1,9 @@
 """What the viewer draws of a scene: its cameras and a sparse sample of its prior, read by the engine's own scene
-rules (:func:`voxnerf.scene.load_scene`) in a child process, since that module imports torch and the API process
+rules (:func:`voxnerf.data.scene.load_scene`) in a child process, since that module imports torch and the API process
 must not.
 
 :func:`read_scene_view` runs :func:`scene_view` in a child of the multiprocessing *forkserver* that
-:mod:`app.uploads.sandbox` set up (its preload holds ``voxnerf.scene``, so a child starts in milliseconds) and
+:mod:`app.uploads.sandbox` set up (its preload holds ``voxnerf.data.scene``, so a child starts in milliseconds) and
 waits at most ``timeout_s`` for its answer. A stored scene was validated at upload and never changes, so the
 answer can be cached by scene id (:class:`SceneViewCache`).
 """
@@ -38,7 +38,7 @@ def scene_view(scene_root: Path, fallback_prior: Path | None, max_points: int = 
     "colors": [N*3] in [0, 1] or None, "total": points in the file}``. ``metric``: the scene carries sensor
     depth maps, which are metres (``depth_unit_scale_factor`` metres per unit), so its poses are in metres.
     """
-    from voxnerf.scene import load_scene  # preloaded by the forkserver: no import happens here
+    from voxnerf.data.scene import load_scene  # preloaded by the forkserver: no import happens here
 
     scene = load_scene(scene_root, load_images=False)
     splits_of: dict[int, list[str]] = {}

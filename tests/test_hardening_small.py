@@ -33,13 +33,13 @@ from app.core.render_results import receive_outcome
 from app.core.settings import Settings
 from app.main import create_app
 from voxnerf.errors import SceneError
-from voxnerf.evaluation import evaluate_views, view_names
+from voxnerf.inference.evaluation import evaluate_views, view_names
 from voxnerf.files import CHECKPOINT
-from voxnerf.image_io import write_atomic
-from voxnerf.render import load_model
-from voxnerf.scene import load_scene
+from voxnerf.data.image_io import write_atomic
+from voxnerf.inference.render import load_model
+from voxnerf.data.scene import load_scene
 from voxnerf.synthetic import RoomSpec, make_room_scene
-from voxnerf.training.evals import eval_views_of
+from voxnerf.training.eval_passes import eval_views_of
 from worker import outputs as output_tasks
 from worker import tasks
 

@@ -15,7 +15,7 @@ from app.core.db import session_scope
 from app.core.dispatch import requeue_stale
 from app.core.models import JobRow, OutputRow
 from app.core.settings import Settings
-from voxnerf.camera_path import CameraPathError
+from voxnerf.cameras.paths import CameraPathError
 from voxnerf.files import CHECKPOINT
 
 
@@ -139,7 +139,7 @@ def test_bad_video_requests_name_the_key(settings, request_body, key):
 
 
 def test_key_cameras_thin_evenly_and_keep_the_ends():
-    from voxnerf.camera_path import FRAMES_PER_KEY, key_cameras
+    from voxnerf.cameras.paths import FRAMES_PER_KEY, key_cameras
 
     poses = np.tile(np.eye(4), (20, 1, 1))
     poses[:, 0, 3] = np.arange(20)

@@ -21,9 +21,9 @@ from app.core.models import JobRow
 from app.core.render_request import RenderRequest
 from app.core.settings import Settings
 from app.uploads.staging import TRANSFORMS, UploadError, safe_relpath
-from voxnerf.cameras import Intrinsics
-from voxnerf.image_io import decode_exr, srgb_to_linear
-from voxnerf.outputs import encode_outputs as encode_render
+from voxnerf.cameras.rays import Intrinsics
+from voxnerf.data.image_io import decode_exr, srgb_to_linear
+from voxnerf.inference.encoding import encode_outputs as encode_render
 from voxnerf.training.records import EvalRecord, ProgressEvent
 
 
@@ -297,7 +297,9 @@ def test_cancel_is_immediate_when_queued_and_flagged_when_running(settings):
 
 def test_upload_names_the_engines_scene_file():
     from app.core import storage
-    from voxnerf import files, render, scene  # the engine modules import torch: not at app.uploads.staging's import
+    from voxnerf import files  # the engine modules import torch: not at app.uploads.staging's import
+    from voxnerf.inference import render
+    from voxnerf.data import scene
 
     assert TRANSFORMS == scene.TRANSFORMS == files.TRANSFORMS
     assert storage.CHECKPOINT == render.CHECKPOINT == files.CHECKPOINT

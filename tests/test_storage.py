@@ -23,7 +23,7 @@ from service_fixtures import Service, first_pose, free_port, start_redis, start_
 
 from app.core import storage
 from app.core.settings import Settings
-from voxnerf.render import CHECKPOINT, load_model, render
+from voxnerf.inference.render import CHECKPOINT, load_model, render
 
 KEY, SECRET = "test-key", "test-secret"
 
@@ -377,5 +377,5 @@ def test_api_start_up_fails_clearly_when_the_store_is_unreachable(tmp_path):
 
 
 def test_the_store_names_the_engines_checkpoint():
-    """app.core.storage cannot import voxnerf.render (torch) for the name; the two must agree."""
+    """app.core.storage cannot import voxnerf.inference.render (torch) for the name; the two must agree."""
     assert storage.CHECKPOINT == CHECKPOINT

@@ -22,7 +22,7 @@ from service_fixtures import start_redis, start_service, wait_for, zip_scene
 from app.core import jobstore
 from app.core.settings import Settings
 from app.main import create_app
-from voxnerf.camera_path import parse_nerfstudio
+from voxnerf.cameras.paths import parse_nerfstudio
 from voxnerf.synthetic import RoomSpec, make_room_scene
 
 TOKEN = "viewer-token"

@@ -14,7 +14,7 @@ from worker_fixtures import SCENE, claimed_job, store_with_scene
 from app.core import jobstore
 from app.core.render_results import receive_outcome
 from app.core.settings import Settings
-from voxnerf.camera_rules import Intrinsics
+from voxnerf.cameras.rules import Intrinsics
 from voxnerf.errors import SceneError
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
 from worker import tasks
@@ -85,7 +85,7 @@ def test_train_task_records_the_report(settings, monkeypatch):
     tasks.train_job(job.id)
     ((scene_dir, run_dir, config, resume),) = seen
     assert scene_dir == settings.scenes_dir / SCENE and run_dir == settings.runs_dir / job.id and resume
-    assert (config.max_iters, config.device, config.checkpoint_every_s) == (50, "auto", settings.checkpoint_every_s)
+    assert (config.run.max_iters, config.run.device, config.run.checkpoint_every_s) == (50, "auto", settings.checkpoint_every_s)
     row = jobstore.JOBS.get(settings, job.id)
     assert (row.state, row.stage, row.progress, row.iteration, row.elapsed_s) == ("succeeded", "done", 1.0, 50, 3.0)
     assert row.metrics == {"test": {"psnr": 22.0}} and row.history[0]["final"] and row.loss == 0.2

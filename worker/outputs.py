@@ -4,12 +4,12 @@ The task holds the output (:func:`worker.lease.hold`: claimed in the job store, 
 lease renewed every ``heartbeat_s`` and its cancel flag turned into ``should_stop``, so a cancelled output stops
 at its next frame or view), loads the trained job's model through this process's model cache
 (:func:`worker.model_cache.model_cache`; with an object store the run's checkpoint is fetched first), and runs
-the engine: :func:`voxnerf.video.render_path` for a video, :func:`voxnerf.export.export_geometry` for a mesh or
+the engine: :func:`voxnerf.inference.video.render_path` for a video, :func:`voxnerf.inference.export.export_geometry` for a mesh or
 point cloud. Progress (frames or views done, ETA) is written at most every ``progress_interval_s``. The engine
 writes each file under a temporary name and renames it when complete; a failed or cancelled output's directory
 is removed, a succeeded one's is uploaded to the object store (when there is one).
 
-Generated video paths need the scene's training cameras (:func:`voxnerf.camera_path.generated_path`:
+Generated video paths need the scene's training cameras (:func:`voxnerf.cameras.paths.generated_path`:
 ``interpolate`` through evenly spaced ones, ``orbit`` around their centre). Exports render from them too.
 """
 
@@ -26,14 +26,14 @@ from app.core.models import OutputRow
 from app.core.outputs import OUTPUTS
 from app.core.redact import public_error
 from app.core.settings import Settings, get_settings
-from voxnerf import camera_path as camera_paths
-from voxnerf.camera_path import CameraPath, parse_nerfstudio
-from voxnerf.camera_rules import CameraError, resolve_intrinsics
+from voxnerf.cameras import paths as camera_paths
+from voxnerf.cameras.paths import CameraPath, parse_nerfstudio
+from voxnerf.cameras.rules import CameraError, resolve_intrinsics
 from voxnerf.errors import RunError, VoxNeRFError
-from voxnerf.export import export_geometry
-from voxnerf.render import TrainedModel, scene_as_trained
-from voxnerf.scene import Scene, load_scene
-from voxnerf.video import render_path
+from voxnerf.inference.export import export_geometry
+from voxnerf.inference.render import TrainedModel, scene_as_trained
+from voxnerf.data.scene import Scene, load_scene
+from voxnerf.inference.video import render_path
 from worker.lease import Lease, hold, leased_task
 from worker.model_cache import model_cache
 
@@ -68,13 +68,13 @@ def scene_of(settings: Settings, job, trained: TrainedModel) -> Scene:
     scene_dir = storage.ensure_scene(settings, job.scene_id)
     if not scene_dir.is_dir():
         raise RunError(f"scene {job.scene_id} of job {job.id} was deleted: its cameras are needed")
-    return scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.downscale), load_images=False),
+    return scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.run.downscale), load_images=False),
                             trained.model)
 
 
 def generated_path(settings: Settings, params: dict, trained: TrainedModel, scene: Scene) -> CameraPath:
     """The ``interpolate`` or ``orbit`` path of a video's ``params`` around ``scene``'s training cameras in
-    capture order (:func:`voxnerf.camera_path.generated_path`, the rule of ``voxnerf render --path`` too)."""
+    capture order (:func:`voxnerf.cameras.paths.generated_path`, the rule of ``voxnerf render --path`` too)."""
     intrinsics = resolve_intrinsics(
         trained.default_intrinsics, width=params["width"], height=params["height"],
         max_pixels=settings.max_render_pixels,

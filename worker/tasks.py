@@ -43,11 +43,11 @@ from app.core.redact import public_error
 from app.core.render_request import RenderRequest
 from app.core.render_results import RenderOutcome, deliver_outcome
 from app.core.settings import Settings, get_settings
-from voxnerf.camera_rules import CameraError
+from voxnerf.cameras.rules import CameraError
 from voxnerf.config import TrainConfig
 from voxnerf.errors import RunError, VoxNeRFError
-from voxnerf.outputs import encode_outputs
-from voxnerf.render import render
+from voxnerf.inference.encoding import encode_outputs
+from voxnerf.inference.render import render
 from voxnerf.trainer import train
 from voxnerf.training.records import ProgressEvent
 from voxnerf.training.run import LeaseLost

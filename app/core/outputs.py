@@ -14,7 +14,7 @@ beside it, ``mesh.ply``, ``pointcloud.ply``), written by the engine under a temp
 complete. With an object store (:mod:`app.core.storage`) the finished directory is uploaded as
 ``outputs/<output id>`` and fetched into a process's cache when it is downloaded there.
 
-Video requests are checked here with the engine's torch-free camera-path rules (:mod:`voxnerf.camera_path`),
+Video requests are checked here with the engine's torch-free camera-path rules (:mod:`voxnerf.cameras.paths`),
 so the API refuses a malformed path (422 naming the key) before anything is queued.
 """
 
@@ -31,7 +31,7 @@ from app.core.lease import WorkKind
 from app.core.models import JobRow, OutputRow
 from app.core.progress import json_safe
 from app.core.settings import Settings
-from voxnerf.camera_path import CameraPathError, check_frame_count, parse_nerfstudio
+from voxnerf.cameras.paths import CameraPathError, check_frame_count, parse_nerfstudio
 from voxnerf.files import CHECKPOINT
 
 OUTPUTS_DIR = "outputs"  # under a run directory, and the object store's prefix
@@ -77,7 +77,7 @@ def trained_source(settings: Settings, job: JobRow) -> bool:
 
 
 def _even_size(width: int, height: int, key: str) -> None:
-    """The engine's video rule (:mod:`voxnerf.video`: H.264 yuv420p needs even sizes), checked before queueing."""
+    """The engine's video rule (:mod:`voxnerf.inference.video`: H.264 yuv420p needs even sizes), checked before queueing."""
     if width % 2 or height % 2:
         raise CameraPathError(f"a video needs even sizes (H.264 yuv420p), got {width}x{height}", key)
 

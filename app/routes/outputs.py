@@ -25,7 +25,7 @@ from app.core.settings import Settings
 from app.deps import ID_DOC, CeleryDep, JobId, SettingsDep
 from app.routes import work
 from app.schemas import ExportRequest, OutputOut, VideoRequest
-from voxnerf.camera_path import CameraPathError
+from voxnerf.cameras.paths import CameraPathError
 
 router = APIRouter(tags=["outputs"])
 OutputId = Annotated[str, Path(pattern=jobstore.ID_RE.pattern, description=f"output id, {ID_DOC}")]

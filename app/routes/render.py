@@ -28,7 +28,7 @@ from app.core.render_results import receive_outcome
 from app.core.settings import Settings
 from app.deps import CeleryDep, SettingsDep
 from app.routes import work
-from voxnerf.outputs import MEDIA_TYPES
+from voxnerf.inference.encoding import MEDIA_TYPES
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["render"])

@@ -24,8 +24,8 @@ from app.deps import JobId, SettingsDep
 from app.routes import work
 from app.schemas import CameraPathOut, CameraPathRequest, CamerasOut, PathFrame, PriorPreviewOut, ViewerCamera
 from app.viewer_scene import SceneViewCache, SceneViewError, read_scene_view
-from voxnerf.camera_path import CameraPath, CameraPathError, interpolate_path, parse_nerfstudio
-from voxnerf.camera_rules import CameraError, Intrinsics, resolve_intrinsics
+from voxnerf.cameras.paths import CameraPath, CameraPathError, interpolate_path, parse_nerfstudio
+from voxnerf.cameras.rules import CameraError, Intrinsics, resolve_intrinsics
 from voxnerf.files import FUSED_PRIOR
 
 router = APIRouter(tags=["viewer"])

@@ -16,7 +16,7 @@ from typing import BinaryIO
 
 from app.core.settings import Settings
 from voxnerf.files import TRANSFORMS
-from voxnerf.importers.splits import PaperSplitRule
+from voxnerf.data.importers.splits import PaperSplitRule
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ class ValidatedScene:
     """What the validation process answers for a valid scene."""
 
     size_bytes: int  # of the files in ``root``
-    summary: dict  # the engine's summary (``voxnerf.scene.inspect_scene``), with ``imported`` for an import
+    summary: dict  # the engine's summary (``voxnerf.data.scene.inspect_scene``), with ``imported`` for an import
 
 
 ALLOWED_SUFFIXES = frozenset(

@@ -33,7 +33,7 @@ from app.uploads.rules import StagedUpload, UploadError, ValidatedScene
 log = logging.getLogger(__name__)
 
 # imported once by the forkserver, so that each child starts with them loaded (open3d: a prior's sigma estimate)
-VALIDATOR_MODULES = ["app.uploads.validation", "voxnerf.scene", "voxnerf.prior", "open3d"]
+VALIDATOR_MODULES = ["app.uploads.validation", "voxnerf.data.scene", "voxnerf.prior.loading", "open3d"]
 
 
 def _preload() -> list[str]:

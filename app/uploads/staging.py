@@ -39,7 +39,7 @@ from app.uploads.rules import (
 )
 from app.uploads.sandbox import validate_in_child
 from voxnerf.files import TRANSFORMS
-from voxnerf.importers.splits import PaperSplitRule
+from voxnerf.data.importers.splits import PaperSplitRule
 
 __all__ = ["TRANSFORMS", "StoredScene", "UploadError", "safe_relpath", "split_rule", "store_parts", "store_zip"]
 

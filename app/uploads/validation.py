@@ -17,9 +17,9 @@ Order of checks, each refusing with :class:`~app.uploads.rules.UploadError` (an 
    their sum over the scene against ``max_scene_pixels``;
    an archive without ``transforms.json`` holding a COLMAP model (``sparse/0/cameras.bin|txt``) or a ScanNet
    export (``color/ pose/ intrinsic/``) is extracted beside the staging scene and written into it by the
-   matching importer (:mod:`voxnerf.importers`), optionally with the paper's splits;
+   matching importer (:mod:`voxnerf.data.importers`), optionally with the paper's splits;
 5. the size of ``transforms.json`` on disk against ``max_transforms_bytes``, then
-   :func:`voxnerf.scene.inspect_scene`: the engine's own validation of transforms.json, images (sizes must
+   :func:`voxnerf.data.scene.inspect_scene`: the engine's own validation of transforms.json, images (sizes must
    match the intrinsics), depth maps and the prior.
 """
 
@@ -55,8 +55,8 @@ from app.uploads.rules import (
 )
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
-from voxnerf.image_io import PNG_SIGNATURE, image_size
-from voxnerf.importers import PaperSplitRule, detect_layout, run_import
+from voxnerf.data.image_io import PNG_SIGNATURE, image_size
+from voxnerf.data.importers import PaperSplitRule, detect_layout, run_import
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg"})
 JPEG_MAGIC = b"\xff\xd8\xff"
@@ -408,7 +408,7 @@ def _hide_staging(text: str, root: Path) -> str:
 
 def _validate_staged(root: Path, settings: Settings) -> dict:
     """The engine's summary of the staged scene at ``root``; UploadError (4xx) when it is not a valid scene."""
-    from voxnerf.scene import inspect_scene  # imports torch: preloaded by the validation processes' forkserver
+    from voxnerf.data.scene import inspect_scene  # imports torch: preloaded by the validation processes' forkserver
 
     transforms = root / TRANSFORMS
     if not transforms.is_file():
