@@ -31,7 +31,7 @@ from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
 from app.routes import health, jobs, outputs, render, scenes, viewer
-from app.uploads import UploadError
+from app.uploads.rules import UploadError
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"

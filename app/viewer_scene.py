@@ -3,7 +3,7 @@ rules (:func:`voxnerf.data.scene.load_scene`) in a child process, since that mod
 must not.
 
 :func:`read_scene_view` runs :func:`scene_view` in a child of the multiprocessing *forkserver* that
-:mod:`app.upload_sandbox` set up (its preload holds ``voxnerf.data.scene``, so a child starts in milliseconds) and
+:mod:`app.uploads.sandbox` set up (its preload holds ``voxnerf.data.scene``, so a child starts in milliseconds) and
 waits at most ``timeout_s`` for its answer. A stored scene was validated at upload and never changes, so the
 answer can be cached by scene id (:class:`SceneViewCache`).
 """

@@ -29,10 +29,14 @@ from docs_section import replace_section
 CHILD = r"""
 import json, sys, time
 import numpy as np
-from voxnerf.cameras.rays import Intrinsics
 from voxnerf.config import TrainConfig
-from voxnerf.inference.render import load_model, render
 from voxnerf.trainer import train
+try:
+    from voxnerf.cameras.rays import Intrinsics
+    from voxnerf.inference.render import load_model, render
+except ImportError:  # a tree from before the engine's packages (0.1, flat modules)
+    from voxnerf.cameras import Intrinsics
+    from voxnerf.render import load_model, render
 scene, run, iters, downscale = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 cfg = TrainConfig(max_iters=iters, downscale=downscale, final_eval=False, eval_every_s=1e9)
 report = train(scene, run, cfg, resume=False, progress_bar=False)

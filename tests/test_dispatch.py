@@ -1,5 +1,6 @@
 """Publishing (app/core/dispatch.py) on the embedded filesystem broker: train and render messages land in their
-queues under their task names, a render expires, and stale jobs are published again before they are marked."""
+queues under their task names, a render expires, stale jobs are published again before they are marked, and the
+sweep re-sends the message of a queued training or output job no worker took."""
 
 from __future__ import annotations
 
@@ -9,11 +10,11 @@ import time
 
 import pytest
 
-from app.core import jobstore
-from app.core.celery_app import RENDER_QUEUE, RENDER_TASK, TRAIN_QUEUE, TRAIN_TASK, create_celery
+from app.core import jobstore, outputs
+from app.core.celery_app import OUTPUTS_QUEUE, RENDER_QUEUE, RENDER_TASK, TRAIN_QUEUE, TRAIN_TASK, create_celery
 from app.core.db import session_scope
-from app.core.dispatch import requeue_stale_jobs, send_render, send_train
-from app.core.models import JobRow
+from app.core.dispatch import requeue_stale, send, send_render, sweep_jobs
+from app.core.models import JobRow, OutputRow
 from app.core.settings import Settings
 
 
@@ -48,7 +49,7 @@ def test_the_app_routes_by_task_name_on_the_configured_broker(settings):
 
 def test_send_train_and_send_render_land_in_their_queues(settings):
     celery = create_celery(settings)
-    send_train(celery, "j" * 32)
+    send(celery, jobstore.JOBS, "j" * 32)
     send_render(celery, "r" * 32, "j" * 32, {"job_id": "j" * 32, "format": "png"}, expires_s=30)
     (train,) = _messages(settings, TRAIN_QUEUE)
     assert train["task"] == TRAIN_TASK and train["args"] == ["j" * 32]
@@ -61,7 +62,7 @@ def test_send_train_and_send_render_land_in_their_queues(settings):
 def _stale_job(settings: Settings) -> str:
     jobstore.add_scene(settings, "s" * 32, "room", {"frames": 1}, 10)
     job = jobstore.create_job(settings, "s" * 32, {"max_iters": 5})
-    jobstore.claim_job(settings, job.id, "gone:1")
+    jobstore.JOBS.claim(settings, job.id, "gone:1")
     with session_scope(settings) as session:
         session.get(JobRow, job.id).heartbeat_at = time.time() - 60
     return job.id
@@ -70,10 +71,10 @@ def _stale_job(settings: Settings) -> str:
 def test_stale_jobs_are_published_then_marked(settings):
     celery = create_celery(settings)
     job_id = _stale_job(settings)
-    assert requeue_stale_jobs(settings, celery) == [job_id]
+    assert requeue_stale(settings, celery, jobstore.JOBS) == [job_id]
     assert [m["args"] for m in _messages(settings, TRAIN_QUEUE)] == [[job_id]]
-    assert jobstore.get_job(settings, job_id).state == "queued"
-    assert requeue_stale_jobs(settings, celery) == []  # nothing stale any more
+    assert jobstore.JOBS.get(settings, job_id).state == "queued"
+    assert requeue_stale(settings, celery, jobstore.JOBS) == []  # nothing stale any more
 
 
 def test_a_job_stays_stale_when_publishing_fails(settings, monkeypatch):
@@ -85,10 +86,10 @@ def test_a_job_stays_stale_when_publishing_fails(settings, monkeypatch):
 
     monkeypatch.setattr(celery, "send_task", broker_down)
     with pytest.raises(OSError):
-        requeue_stale_jobs(settings, celery)
-    assert jobstore.get_job(settings, job_id).state == "running"  # the next sweep tries again
+        requeue_stale(settings, celery, jobstore.JOBS)
+    assert jobstore.JOBS.get(settings, job_id).state == "running"  # the next sweep tries again
     monkeypatch.undo()
-    assert requeue_stale_jobs(settings, celery) == [job_id]
+    assert requeue_stale(settings, celery, jobstore.JOBS) == [job_id]
 
 
 def test_a_render_worker_polls_the_embedded_queue_faster(settings):
@@ -99,3 +100,30 @@ def test_a_render_worker_polls_the_embedded_queue_faster(settings):
 
     assert interval([TRAIN_QUEUE]) == settings.broker_polling_interval_s
     assert interval([TRAIN_QUEUE, RENDER_QUEUE]) == settings.render_polling_interval_s < interval([TRAIN_QUEUE])
+
+
+def _queued_without_a_send(settings: Settings, kind: str) -> tuple[str, type, str]:
+    """A queued row of ``kind`` whose message was never sent (the API died between the row and the send): its
+    id, table and queue."""
+    if kind == "train":
+        jobstore.add_scene(settings, "s" * 32, "room", {"frames": 1}, 10)
+        return jobstore.create_job(settings, "s" * 32, {"max_iters": 5}).id, JobRow, TRAIN_QUEUE
+    row = outputs.create_output(settings, "j" * 32, "video", {"path": "orbit", "frames": 4}, 4, False)
+    return row.id, OutputRow, OUTPUTS_QUEUE
+
+
+@pytest.mark.parametrize("kind", ["train", "output"])
+def test_a_queued_row_whose_message_was_lost_is_sent_again_by_the_sweep(settings, kind):
+    """Training jobs and output jobs alike (issue #41: output jobs were never re-sent)."""
+    celery = create_celery(settings)
+    row_id, table, queue = _queued_without_a_send(settings, kind)
+    sweep_jobs(settings, celery)
+    assert _messages(settings, queue) == []  # just queued: its message may still be on its way
+    with session_scope(settings) as session:  # resend_queued_after_s later, no worker has taken it
+        session.get(table, row_id).heartbeat_at = time.time() - settings.resend_queued_after_s - 1
+    sweep_jobs(settings, celery)
+    assert [m["args"] for m in _messages(settings, queue)] == [[row_id]]
+    sweep_jobs(settings, celery)  # noted as re-sent: not sent again before another resend_queued_after_s
+    assert len(_messages(settings, queue)) == 1
+    with session_scope(settings) as session:
+        assert session.get(table, row_id).state == "queued"

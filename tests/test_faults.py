@@ -152,14 +152,14 @@ def test_a_worker_taking_over_a_stale_job_counts_one_requeue(tmp_path):
     settings.make_dirs()
     jobstore.add_scene(settings, "a" * 32, "room", {"frames": 1}, 10)
     job = jobstore.create_job(settings, "a" * 32, {"max_iters": 5})
-    jobstore.claim_job(settings, job.id, "gone:1")
+    jobstore.JOBS.claim(settings, job.id, "gone:1")
     with session_scope(settings) as session:  # the first worker went silent 10 s ago
         session.get(JobRow, job.id).heartbeat_at = time.time() - 10
-    stale = jobstore.stale_jobs(settings)
-    taken = jobstore.claim_job(settings, job.id, "here:2")
+    stale = jobstore.JOBS.stale(settings)
+    taken = jobstore.JOBS.claim(settings, job.id, "here:2")
     assert (taken.state, taken.attempt, taken.requeues, taken.worker) == ("running", 2, 1, "here:2")
-    assert jobstore.mark_requeued(settings, stale) == []  # the sweep's late mark must not undo the claim
-    assert jobstore.get_job(settings, job.id).requeues == 1
+    assert jobstore.JOBS.mark_requeued(settings, stale) == []  # the sweep's late mark must not undo the claim
+    assert jobstore.JOBS.get(settings, job.id).requeues == 1
 
 
 def test_two_workers_finish_n_jobs_each_exactly_once(service, client, scene):
@@ -171,7 +171,7 @@ def test_two_workers_finish_n_jobs_each_exactly_once(service, client, scene):
     for job in done:
         assert (job["attempt"], job["requeues"], job["iteration"]) == (1, 0, TINY["max_iters"]), job["id"]
         assert "resumed_from_iteration" not in _report(service, job["id"])
-    rows = [jobstore.get_job(_store(service), job_id) for job_id in ids]
+    rows = [jobstore.JOBS.get(_store(service), job_id) for job_id in ids]
     assert len({row.worker for row in rows}) == 2, "both train workers should have trained jobs"
     assert any(
         a.worker != b.worker and a.started_at < b.finished_at and b.started_at < a.finished_at
@@ -189,7 +189,7 @@ def test_sigkilled_worker_job_is_redelivered_and_resumes_from_its_checkpoint(ser
     saved_iteration = torch.load(checkpoint, map_location="cpu", weights_only=False)["iteration"]
     assert 0 < saved_iteration < options["max_iters"], "kill came too late: the job had (nearly) finished"
 
-    owner = jobstore.get_job(_store(service), job_id).worker  # host:pid of the Celery pool process
+    owner = jobstore.JOBS.get(_store(service), job_id).worker  # host:pid of the Celery pool process
     group = os.getpgid(int(owner.rpartition(":")[2]))
     name = next(n for n, proc in service.procs.items() if proc.pid == group)
     service.kill(name)  # SIGKILL to the worker's whole process group: a crash, nothing acknowledged
@@ -201,7 +201,7 @@ def test_sigkilled_worker_job_is_redelivered_and_resumes_from_its_checkpoint(ser
     done = _wait_job(service, client, job_id, lambda j: j["state"] == "succeeded")
     assert (done["attempt"], done["requeues"], done["iteration"]) == (2, 1, options["max_iters"])
     assert _report(service, job_id)["resumed_from_iteration"] >= saved_iteration > 0
-    assert jobstore.get_job(_store(service), job_id).worker != owner
+    assert jobstore.JOBS.get(_store(service), job_id).worker != owner
     wait_for(lambda: len(_health(service)["workers"]["train"]) == 2, 120, "the restarted train worker")
 
 

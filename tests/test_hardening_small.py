@@ -27,6 +27,7 @@ from tiny_run import write_tiny_run
 from app.core import jobstore, storage
 from app.core import outputs as output_store
 from app.core.cleanup import clean_leftovers
+from app.core.lease import worker_identity
 from app.core.redact import install_log_masking, mask_url, public_error
 from app.core.render_results import receive_outcome
 from app.core.settings import Settings
@@ -148,7 +149,7 @@ def test_a_failed_training_job_error_carries_no_server_path(settings, monkeypatc
     monkeypatch.setattr(tasks, "train", broken)
     job = jobstore.create_job(settings, SCENE, {"max_iters": 5})
     tasks.train_job(job.id)
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert row.state == "failed" and row.error == f"SceneError: scenes/{SCENE}/transforms.json: frames: empty"
 
 
@@ -172,7 +173,7 @@ def test_a_render_refusal_detail_carries_no_server_path(settings):
 def test_a_failed_output_error_carries_no_server_path(settings):
     job_id = _job_with_garbage_checkpoint(settings)
     row = output_store.create_output(settings, job_id, "video", {}, 2, False)
-    row = output_store.claim_output(settings, row.id, jobstore.worker_identity())
+    row = output_store.OUTPUTS.claim(settings, row.id, worker_identity())
     values = output_tasks.produce(settings, row, lease=None)
     assert values["state"] == "failed" and str(settings.data_dir) not in values["error"], values
     assert values["error"].startswith(f"RunError: runs/{job_id}/{CHECKPOINT}: unreadable checkpoint")

@@ -57,7 +57,7 @@ def test_queued_jobs_beyond_the_limit_are_answered_429(api):
     assert first.status_code == second.status_code == 202
     refused = _submit(client)
     assert refused.status_code == 429 and "limit is 2" in refused.json()["detail"]
-    assert len(jobstore.list_jobs(settings)) == 2  # the refused job left no row
+    assert len(jobstore.JOBS.newest(settings)) == 2  # the refused job left no row
     _set_state(settings, first.json()["id"], "running")  # one started: room for one more
     assert _submit(client).status_code == 202
 
@@ -73,10 +73,10 @@ def test_deleting_a_finished_job_removes_its_row_run_and_outputs(api):
     (run_dir / "eval" / "test").mkdir(parents=True)
     (run_dir / CHECKPOINT).write_bytes(b"ckpt")
     output = outputs.create_output(settings, job_id, "mesh", {}, 4, False)
-    outputs.fail_output(settings, output.id, "done with it")
+    outputs.OUTPUTS.fail(settings, output.id, "done with it")
     assert client.delete(f"/jobs/{job_id}").status_code == 204
-    assert not run_dir.exists() and jobstore.get_job(settings, job_id) is None
-    assert outputs.get_output(settings, output.id) is None
+    assert not run_dir.exists() and jobstore.JOBS.get(settings, job_id) is None
+    assert outputs.OUTPUTS.get(settings, output.id) is None
     assert client.get(f"/jobs/{job_id}").status_code == 404
 
 
@@ -93,7 +93,7 @@ def test_deleting_an_active_job_is_409_and_keeps_everything(api, state):
     (settings.runs_dir / job_id).mkdir(parents=True)
     response = client.delete(f"/jobs/{job_id}")
     assert response.status_code == 409 and state in response.json()["detail"]
-    assert (settings.runs_dir / job_id).is_dir() and jobstore.get_job(settings, job_id) is not None
+    assert (settings.runs_dir / job_id).is_dir() and jobstore.JOBS.get(settings, job_id) is not None
 
 
 def test_deleting_a_job_whose_output_is_running_is_409(api):
@@ -180,20 +180,20 @@ def test_a_trainer_that_lost_its_lease_writes_nothing_more(tiny_room, tmp_path):
     settings = Settings(_env_file=None, data_dir=tmp_path / "data", stale_after_s=5.0)
     jobstore.add_scene(settings, SCENE, "room", {"frames": 1}, 10)
     job = jobstore.create_job(settings, SCENE, {"max_iters": 3})
-    first = jobstore.claim_job(settings, job.id, "old:1")
+    first = jobstore.JOBS.claim(settings, job.id, "old:1")
     run_dir = tmp_path / "run"
 
     def taken_over_at_training(event: ProgressEvent) -> None:
         if event.stage == "first_hit_cache":  # set-up done: the lease expires and another worker claims the job
             with session_scope(settings) as session:
                 session.get(JobRow, job.id).heartbeat_at = time.time() - 60
-            assert jobstore.claim_job(settings, job.id, "new:2").attempt == 2
+            assert jobstore.JOBS.claim(settings, job.id, "new:2").attempt == 2
 
     with pytest.raises(LeaseLost, match="another attempt owns this run"):
         train(tiny_room, run_dir, _config(), on_progress=taken_over_at_training, progress_bar=False,
-              may_write=lambda: jobstore.still_owned(settings, job.id, first.attempt))
+              may_write=lambda: jobstore.JOBS.still_owned(settings, job.id, first.attempt))
     written = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.rglob("*"))
     assert written == ["prior_tsdf.ply"] or written == []  # only what it wrote while it owned the job
     report = train(tiny_room, run_dir, _config(), progress_bar=False,
-                   may_write=lambda: jobstore.still_owned(settings, job.id, 2))  # the new owner writes
+                   may_write=lambda: jobstore.JOBS.still_owned(settings, job.id, 2))  # the new owner writes
     assert report.status == "succeeded" and (run_dir / CHECKPOINT).is_file() and (run_dir / "eval").is_dir()

@@ -28,7 +28,7 @@ def settings(tmp_path) -> Settings:
 
 def _running(settings: Settings, worker: str = "w:1") -> JobRow:
     job = jobstore.create_job(settings, SCENE, {"max_iters": 5})
-    return jobstore.claim_job(settings, job.id, worker)
+    return jobstore.JOBS.claim(settings, job.id, worker)
 
 
 def _age_lease(settings: Settings, job_id: str, seconds: float) -> None:
@@ -51,7 +51,7 @@ def test_tables_are_created_with_the_progress_columns(settings):
 
 
 def test_a_new_job_is_queued_with_initial_progress(settings):
-    job = jobstore.get_job(settings, jobstore.create_job(settings, SCENE, {"max_iters": 5}).id)
+    job = jobstore.JOBS.get(settings, jobstore.create_job(settings, SCENE, {"max_iters": 5}).id)
     assert job.state == "queued" and job.attempt == 0 and job.requeues == 0
     assert (job.progress, job.iteration, job.elapsed_s, job.history, job.stages) == (0.0, 0, 0.0, [], [])
     assert job.stage is None and job.eta_s is None and job.loss is None
@@ -61,15 +61,15 @@ def test_a_new_job_is_queued_with_initial_progress(settings):
 def test_claims_are_fenced(settings):
     job = _running(settings, "w:1")
     assert (job.state, job.attempt, job.worker, job.stage) == ("running", 1, "w:1", "starting")
-    assert jobstore.claim_job(settings, job.id, "w:2") is None  # a fresh lease: not claimable
+    assert jobstore.JOBS.claim(settings, job.id, "w:2") is None  # a fresh lease: not claimable
     _age_lease(settings, job.id, 10)
-    taken = jobstore.claim_job(settings, job.id, "w:2")
+    taken = jobstore.JOBS.claim(settings, job.id, "w:2")
     assert (taken.attempt, taken.requeues, taken.worker) == (2, 1, "w:2")
     event = ProgressEvent(stage="train", iteration=3, progress=0.5)
-    assert not jobstore.record_progress(settings, job.id, 1, event)  # the first worker is fenced off
-    assert not jobstore.renew_lease(settings, job.id, 1).owned
-    assert not jobstore.finish_job(settings, job.id, 1, "failed", {"error": "late"})
-    assert jobstore.get_job(settings, job.id).state == "running"
+    assert not jobstore.JOBS.record_progress(settings, job.id, 1, event)  # the first worker is fenced off
+    assert not jobstore.JOBS.renew_lease(settings, job.id, 1).owned
+    assert not jobstore.JOBS.finish(settings, job.id, 1, "failed", {"error": "late"})
+    assert jobstore.JOBS.get(settings, job.id).state == "running"
 
 
 def test_progress_is_written_from_the_events_fields(settings):
@@ -87,8 +87,8 @@ def test_progress_is_written_from_the_events_fields(settings):
         history=history,
         stages=stages,
     )
-    assert jobstore.record_progress(settings, job.id, job.attempt, event)
-    row = jobstore.get_job(settings, job.id)
+    assert jobstore.JOBS.record_progress(settings, job.id, job.attempt, event)
+    row = jobstore.JOBS.get(settings, job.id)
     assert (row.stage, row.iteration, row.progress, row.loss) == ("train", 10, 0.1, 0.25)
     assert row.elapsed_s == 0.0 and row.eta_s is None
     # history entries keep only the keys the engine set (as in report.json), NaN made null
@@ -112,10 +112,10 @@ def _report(status: str, **fields) -> TrainReport:
 
 def test_a_succeeded_report_finishes_the_job(settings):
     job = _running(settings)
-    jobstore.record_progress(settings, job.id, job.attempt, ProgressEvent(stage="train", iteration=4, loss=0.3))
+    jobstore.JOBS.record_progress(settings, job.id, job.attempt, ProgressEvent(stage="train", iteration=4, loss=0.3))
     report = _report("succeeded", metrics={"test": {"psnr": 21.0, "ssim": float("nan")}})
     assert jobstore.finish_with_report(settings, job.id, job.attempt, report, progress=0.8)
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert (row.state, row.stage, row.progress, row.eta_s, row.iteration, row.elapsed_s) == (
         "succeeded", "done", 1.0, None, 5, 12.5
     )
@@ -129,7 +129,7 @@ def test_a_succeeded_report_finishes_the_job(settings):
 def test_a_cancelled_report_keeps_the_progress_reached(settings):
     job = _running(settings)
     assert jobstore.finish_with_report(settings, job.id, job.attempt, _report("cancelled"), progress=0.4)
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert (row.state, row.stage, row.progress, row.metrics) == ("cancelled", "cancelled", 0.4, None)
 
 
@@ -137,24 +137,24 @@ def test_stale_jobs_are_requeued_once(settings):
     fresh = _running(settings, "w:1")
     stale = _running(settings, "w:2")
     _age_lease(settings, stale.id, 10)
-    found = jobstore.stale_jobs(settings)
+    found = jobstore.JOBS.stale(settings)
     assert [j.id for j in found] == [stale.id]
-    assert jobstore.mark_requeued(settings, found) == [stale.id]
-    assert jobstore.mark_requeued(settings, found) == []  # the row changed since it was read
-    row = jobstore.get_job(settings, stale.id)
+    assert jobstore.JOBS.mark_requeued(settings, found) == [stale.id]
+    assert jobstore.JOBS.mark_requeued(settings, found) == []  # the row changed since it was read
+    row = jobstore.JOBS.get(settings, stale.id)
     assert (row.state, row.requeues, row.stage, row.worker) == ("queued", 1, "requeued", None)
-    assert jobstore.get_job(settings, fresh.id).state == "running"
+    assert jobstore.JOBS.get(settings, fresh.id).state == "running"
 
 
 def test_cancel_and_fail(settings):
     queued = jobstore.create_job(settings, SCENE, {"max_iters": 5})
-    assert jobstore.request_cancel(settings, queued.id).state == "cancelled"
+    assert jobstore.JOBS.request_cancel(settings, queued.id).state == "cancelled"
     running = _running(settings)
-    assert jobstore.request_cancel(settings, running.id).cancel_requested
-    assert jobstore.renew_lease(settings, running.id, running.attempt).cancel_requested
+    assert jobstore.JOBS.request_cancel(settings, running.id).cancel_requested
+    assert jobstore.JOBS.renew_lease(settings, running.id, running.attempt).cancel_requested
     lost = jobstore.create_job(settings, SCENE, {"max_iters": 5})
-    jobstore.fail_job(settings, lost.id, "the broker refused the job")
-    row = jobstore.get_job(settings, lost.id)
+    jobstore.JOBS.fail(settings, lost.id, "the broker refused the job")
+    row = jobstore.JOBS.get(settings, lost.id)
     assert (row.state, row.error) == ("failed", "the broker refused the job")
     with pytest.raises(jobstore.SceneBusy):
         jobstore.delete_scene(settings, SCENE)
@@ -171,5 +171,5 @@ def test_a_database_from_an_earlier_version_gains_the_new_columns(tmp_path):
     db._engines.clear()  # a new process opens the old database
     engine = get_engine(settings)
     assert "loss_series" in {c["name"] for c in inspect(engine).get_columns("jobs")}
-    assert jobstore.get_job(settings, job.id).loss_series is None  # read by JobOut as []
+    assert jobstore.JOBS.get(settings, job.id).loss_series is None  # read by JobOut as []
     assert db.add_missing_columns(engine) == []  # added once

@@ -186,27 +186,27 @@ def test_joined_series_keeps_an_earlier_attempts_points_before_the_resumed_ones(
 
 
 def test_the_job_row_keeps_the_series_across_a_requeue(settings):
-    job = jobstore.claim_job(settings, jobstore.create_job(settings, SCENE, {"max_iters": 5}).id, "w:1")
+    job = jobstore.JOBS.claim(settings, jobstore.create_job(settings, SCENE, {"max_iters": 5}).id, "w:1")
     first = ProgressEvent(stage="train", loss_series=[(1.0, 0.5), (2.0, 0.4), (3.0, 0.3)])
-    assert jobstore.record_progress(settings, job.id, job.attempt, first)
-    jobstore.mark_requeued(settings, [jobstore.get_job(settings, job.id)])
-    again = jobstore.claim_job(settings, job.id, "w:2")
+    assert jobstore.JOBS.record_progress(settings, job.id, job.attempt, first)
+    jobstore.JOBS.mark_requeued(settings, [jobstore.JOBS.get(settings, job.id)])
+    again = jobstore.JOBS.claim(settings, job.id, "w:2")
     resumed = ProgressEvent(stage="train", loss_series=[(2.5, 0.35)])
-    assert jobstore.record_progress(settings, job.id, again.attempt, resumed)
-    assert jobstore.get_job(settings, job.id).loss_series == [[1.0, 0.5], [2.0, 0.4], [2.5, 0.35]]
+    assert jobstore.JOBS.record_progress(settings, job.id, again.attempt, resumed)
+    assert jobstore.JOBS.get(settings, job.id).loss_series == [[1.0, 0.5], [2.0, 0.4], [2.5, 0.35]]
     report = TrainReport(config={}, device="cpu", status="succeeded", iteration=5, train_seconds=4.0,
                          loss_series=[(2.5, 0.35), (3.5, 0.2)])
     assert jobstore.finish_with_report(settings, job.id, again.attempt, report, 1.0)
-    assert jobstore.get_job(settings, job.id).loss_series == [[1.0, 0.5], [2.0, 0.4], [2.5, 0.35], [3.5, 0.2]]
+    assert jobstore.JOBS.get(settings, job.id).loss_series == [[1.0, 0.5], [2.0, 0.4], [2.5, 0.35], [3.5, 0.2]]
 
 
 # ------------------------------------------------------------------------------------------- downloads
 
 
 def _finished_job(settings: Settings, state: str) -> str:
-    job = jobstore.claim_job(settings, jobstore.create_job(settings, SCENE, {"max_iters": 5}).id, "w:1")
+    job = jobstore.JOBS.claim(settings, jobstore.create_job(settings, SCENE, {"max_iters": 5}).id, "w:1")
     if state != "running":
-        jobstore.finish_job(settings, job.id, job.attempt, state, {})
+        jobstore.JOBS.finish(settings, job.id, job.attempt, state, {})
     return job.id
 
 

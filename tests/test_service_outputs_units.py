@@ -12,7 +12,7 @@ from sqlalchemy import update
 
 from app.core import jobstore, outputs
 from app.core.db import session_scope
-from app.core.dispatch import requeue_stale_outputs
+from app.core.dispatch import requeue_stale
 from app.core.models import JobRow, OutputRow
 from app.core.settings import Settings
 from voxnerf.cameras.paths import CameraPathError
@@ -42,46 +42,46 @@ def _output(settings: Settings, job_id: str = "a" * 32) -> OutputRow:
 
 def test_a_claim_fences_the_writes_of_the_worker_before(settings):
     row = _output(settings)
-    first = outputs.claim_output(settings, row.id, "host:1")
+    first = outputs.OUTPUTS.claim(settings, row.id, "host:1")
     assert first.state == "running" and first.attempt == 1
-    assert outputs.claim_output(settings, row.id, "host:2") is None  # fresh lease: not stale
-    assert outputs.record_progress(settings, row.id, 1, 2, 4, 1.5)
-    assert outputs.get_output(settings, row.id).progress == 0.5
+    assert outputs.OUTPUTS.claim(settings, row.id, "host:2") is None  # fresh lease: not stale
+    assert outputs.OUTPUTS.record_progress(settings, row.id, 1, 2, 4, 1.5)
+    assert outputs.OUTPUTS.get(settings, row.id).progress == 0.5
     with session_scope(settings) as session:  # the lease expires
         session.execute(update(OutputRow).where(OutputRow.id == row.id).values(heartbeat_at=time.time() - 60))
-    second = outputs.claim_output(settings, row.id, "host:3")
+    second = outputs.OUTPUTS.claim(settings, row.id, "host:3")
     assert second.attempt == 2 and second.requeues == 1 and second.done == 0
-    assert not outputs.record_progress(settings, row.id, 1, 3, 4, None)  # the old worker writes nothing
-    assert not outputs.finish_output(settings, row.id, 1, "succeeded", {})
-    assert outputs.renew_lease(settings, row.id, 1).owned is False
-    assert outputs.finish_output(settings, row.id, 2, "succeeded", {"file_name": "video.mp4", "summary": {}})
-    done = outputs.get_output(settings, row.id)
+    assert not outputs.OUTPUTS.record_progress(settings, row.id, 1, 3, 4, None)  # the old worker writes nothing
+    assert not outputs.OUTPUTS.finish(settings, row.id, 1, "succeeded", {})
+    assert outputs.OUTPUTS.renew_lease(settings, row.id, 1).owned is False
+    assert outputs.OUTPUTS.finish(settings, row.id, 2, "succeeded", {"file_name": "video.mp4", "summary": {}})
+    done = outputs.OUTPUTS.get(settings, row.id)
     assert done.state == "succeeded" and done.progress == 1.0 and done.eta_s is None
 
 
 def test_cancel_a_queued_output_at_once_and_a_running_one_through_its_lease(settings):
     queued = _output(settings)
-    assert outputs.request_cancel(settings, queued.id).state == "cancelled"
-    assert outputs.claim_output(settings, queued.id, "host:1") is None
+    assert outputs.OUTPUTS.request_cancel(settings, queued.id).state == "cancelled"
+    assert outputs.OUTPUTS.claim(settings, queued.id, "host:1") is None
     running = _output(settings)
-    claimed = outputs.claim_output(settings, running.id, "host:1")
-    row = outputs.request_cancel(settings, running.id)
+    claimed = outputs.OUTPUTS.claim(settings, running.id, "host:1")
+    row = outputs.OUTPUTS.request_cancel(settings, running.id)
     assert row.state == "running" and row.cancel_requested
-    assert outputs.renew_lease(settings, running.id, claimed.attempt).cancel_requested
+    assert outputs.OUTPUTS.renew_lease(settings, running.id, claimed.attempt).cancel_requested
 
 
 def test_stale_outputs_are_requeued_then_failed_after_max_requeues(settings):
     row = _output(settings)
     publisher = Publisher()
     for attempt in range(settings.max_worker_deaths):
-        claimed = outputs.claim_output(settings, row.id, "host:1")
+        claimed = outputs.OUTPUTS.claim(settings, row.id, "host:1")
         assert claimed is not None and claimed.attempt == attempt + 1
         with session_scope(settings) as session:
             session.execute(update(OutputRow).where(OutputRow.id == row.id).values(heartbeat_at=0.0))
-        requeued = requeue_stale_outputs(settings, publisher)
+        requeued = requeue_stale(settings, publisher, outputs.OUTPUTS)
         if attempt < settings.max_worker_deaths - 1:
-            assert requeued == [row.id] and outputs.get_output(settings, row.id).state == "queued"
-    final = outputs.get_output(settings, row.id)
+            assert requeued == [row.id] and outputs.OUTPUTS.get(settings, row.id).state == "queued"
+    final = outputs.OUTPUTS.get(settings, row.id)
     assert final.state == "failed" and "died 3 times" in final.error
     assert len(publisher.sent) == settings.max_worker_deaths - 1
 
@@ -92,7 +92,7 @@ def _job(settings: Settings, state: str):
     job = jobstore.create_job(settings, scene_id, {"max_iters": 1})
     with session_scope(settings) as session:
         session.execute(update(JobRow).where(JobRow.id == job.id).values(state=state))
-    return jobstore.get_job(settings, job.id)
+    return jobstore.JOBS.get(settings, job.id)
 
 
 @pytest.mark.parametrize("state", ["queued", "running", "failed", "cancelled"])

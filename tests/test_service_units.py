@@ -16,11 +16,11 @@ from kombu import Connection, Exchange, Queue
 from app.core import jobstore
 from app.core.celery_app import create_celery
 from app.core.db import session_scope
-from app.core.dispatch import requeue_stale_jobs
+from app.core.dispatch import requeue_stale
 from app.core.models import JobRow
 from app.core.render_request import RenderRequest
 from app.core.settings import Settings
-from app.uploads import TRANSFORMS, UploadError, safe_relpath
+from app.uploads.staging import TRANSFORMS, UploadError, safe_relpath
 from voxnerf.cameras.rays import Intrinsics
 from voxnerf.data.image_io import decode_exr, srgb_to_linear
 from voxnerf.inference.encoding import encode_outputs as encode_render
@@ -237,34 +237,34 @@ def settings(tmp_path) -> Settings:
 def test_claims_are_fenced_and_stale_jobs_are_requeued(settings):
     jobstore.add_scene(settings, "a" * 32, "room", {"frames": 1}, 10)
     job = jobstore.create_job(settings, "a" * 32, {"max_iters": 5})
-    first = jobstore.claim_job(settings, job.id, "elsewhere:1")
+    first = jobstore.JOBS.claim(settings, job.id, "elsewhere:1")
     assert first.attempt == 1 and first.state == "running"
-    assert jobstore.claim_job(settings, job.id, "elsewhere:2") is None  # fresh lease: not claimable
+    assert jobstore.JOBS.claim(settings, job.id, "elsewhere:2") is None  # fresh lease: not claimable
     nan_point = EvalRecord(elapsed_s=1.0, iteration=3, psnr={"test": float("nan")})
-    assert jobstore.record_progress(
+    assert jobstore.JOBS.record_progress(
         settings, job.id, 1, ProgressEvent(stage="train", progress=0.5, history=[nan_point])
     )
-    history = jobstore.get_job(settings, job.id).history
+    history = jobstore.JOBS.get(settings, job.id).history
     assert [point["psnr"] for point in history] == [{"test": None}]  # NaN never reaches the store
 
     celery = create_celery(settings)
-    assert requeue_stale_jobs(settings, celery) == []
-    jobstore.renew_lease(settings, job.id, 1)
+    assert requeue_stale(settings, celery, jobstore.JOBS) == []
+    jobstore.JOBS.renew_lease(settings, job.id, 1)
     with session_scope(settings) as session:  # the worker went silent 10 s ago
         session.get(JobRow, job.id).heartbeat_at = time.time() - 10
-    assert requeue_stale_jobs(settings, celery) == [job.id]
+    assert requeue_stale(settings, celery, jobstore.JOBS) == [job.id]
     assert [p for p in (settings.broker_dir / "queue").iterdir() if p.name.endswith(".train.msg")]
-    requeued = jobstore.get_job(settings, job.id)
+    requeued = jobstore.JOBS.get(settings, job.id)
     assert requeued.state == "queued" and requeued.requeues == 1
 
-    second = jobstore.claim_job(settings, job.id, "here:2")
+    second = jobstore.JOBS.claim(settings, job.id, "here:2")
     assert second.attempt == 2
-    assert not jobstore.record_progress(
+    assert not jobstore.JOBS.record_progress(
         settings, job.id, 1, ProgressEvent(stage="train", progress=0.9)
     )  # the old worker is fenced off
-    assert not jobstore.renew_lease(settings, job.id, 1).owned
-    assert jobstore.finish_job(settings, job.id, 2, "succeeded", {"progress": 1.0})
-    assert jobstore.get_job(settings, job.id).state == "succeeded"
+    assert not jobstore.JOBS.renew_lease(settings, job.id, 1).owned
+    assert jobstore.JOBS.finish(settings, job.id, 2, "succeeded", {"progress": 1.0})
+    assert jobstore.JOBS.get(settings, job.id).state == "succeeded"
 
 
 def test_a_job_whose_local_worker_process_is_gone_is_stale_at_once(settings):
@@ -273,23 +273,23 @@ def test_a_job_whose_local_worker_process_is_gone_is_stale_at_once(settings):
     dead = multiprocessing.get_context("spawn").Process(target=time.sleep, args=(0,))
     dead.start()
     dead.join()
-    jobstore.claim_job(settings, job.id, f"{socket.gethostname()}:{dead.pid}")
-    assert [j.id for j in jobstore.stale_jobs(settings)] == [job.id]
-    jobstore.mark_requeued(settings, jobstore.stale_jobs(settings))
-    mine = jobstore.claim_job(settings, job.id, f"{socket.gethostname()}:{os.getpid()}")
-    assert mine.attempt == 2 and jobstore.stale_jobs(settings) == []
+    jobstore.JOBS.claim(settings, job.id, f"{socket.gethostname()}:{dead.pid}")
+    assert [j.id for j in jobstore.JOBS.stale(settings)] == [job.id]
+    jobstore.JOBS.mark_requeued(settings, jobstore.JOBS.stale(settings))
+    mine = jobstore.JOBS.claim(settings, job.id, f"{socket.gethostname()}:{os.getpid()}")
+    assert mine.attempt == 2 and jobstore.JOBS.stale(settings) == []
 
 
 def test_cancel_is_immediate_when_queued_and_flagged_when_running(settings):
     jobstore.add_scene(settings, "c" * 32, "room", {"frames": 1}, 10)
     queued = jobstore.create_job(settings, "c" * 32, {"max_iters": 5})
-    assert jobstore.request_cancel(settings, queued.id).state == "cancelled"
-    assert jobstore.claim_job(settings, queued.id, "w:1") is None
+    assert jobstore.JOBS.request_cancel(settings, queued.id).state == "cancelled"
+    assert jobstore.JOBS.claim(settings, queued.id, "w:1") is None
     running = jobstore.create_job(settings, "c" * 32, {"max_iters": 5})
-    jobstore.claim_job(settings, running.id, "w:1")
-    flagged = jobstore.request_cancel(settings, running.id)
+    jobstore.JOBS.claim(settings, running.id, "w:1")
+    flagged = jobstore.JOBS.request_cancel(settings, running.id)
     assert flagged.state == "running" and flagged.cancel_requested
-    assert jobstore.renew_lease(settings, running.id, 1).cancel_requested
+    assert jobstore.JOBS.renew_lease(settings, running.id, 1).cancel_requested
     with pytest.raises(jobstore.SceneBusy):
         jobstore.delete_scene(settings, "c" * 32)
     assert jobstore.get_scene(settings, "c" * 32) is not None
@@ -297,7 +297,7 @@ def test_cancel_is_immediate_when_queued_and_flagged_when_running(settings):
 
 def test_upload_names_the_engines_scene_file():
     from app.core import storage
-    from voxnerf import files  # the engine modules import torch: not at app.uploads' import
+    from voxnerf import files  # the engine modules import torch: not at app.uploads.staging's import
     from voxnerf.data import scene
     from voxnerf.inference import render
 

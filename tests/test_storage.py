@@ -337,8 +337,8 @@ def test_service_with_separate_data_dirs(tmp_path, moto_endpoint, store_url):
 
 def test_upload_refused_with_503_when_the_store_is_down(tmp_path):
     """The API keeps no scene the store did not take: no directory, no row, a 503 naming the cause."""
-    from app import uploads
     from app.core import jobstore
+    from app.uploads import staging as uploads
     from voxnerf.synthetic import RoomSpec, make_room_scene
 
     scene_dir = tmp_path / "room"

@@ -31,9 +31,9 @@ from service_fixtures import Service, start_service, wait_for
 from test_fuzz_upload import _png, _png_header_only, _zip
 
 from app.core.settings import Settings
-from app.upload_rules import StagedUpload, UploadError
-from app.upload_sandbox import validate_in_child
-from app.upload_validation import DirectoryExtent, check_directory_extent, read_directory_extent
+from app.uploads.rules import StagedUpload, UploadError
+from app.uploads.sandbox import validate_in_child
+from app.uploads.validation import DirectoryExtent, check_directory_extent, read_directory_extent
 from voxnerf.synthetic import RoomSpec, make_room_scene
 
 MiB = 1024 * 1024

@@ -174,7 +174,7 @@ def test_bad_splits_field_and_stray_text_files(api, client, tmp_path, small_room
 
 
 def test_importers_do_not_load_torch_or_pycolmap():
-    code = ("import sys, json, app.uploads, voxnerf.data.importers; "
+    code = ("import sys, json, app.uploads.staging, voxnerf.data.importers; "
             "print(json.dumps([m for m in ('torch', 'pycolmap', 'voxnerf.data.scene') if m in sys.modules]))")
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr

@@ -115,7 +115,7 @@ def test_an_unknown_job_has_no_cameras(api):
 
 def test_a_scene_that_cannot_be_read_is_503_naming_it(api):
     client, settings, jobs = api
-    scene_id = jobstore.get_job(settings, jobs["bare"]).scene_id
+    scene_id = jobstore.JOBS.get(settings, jobs["bare"]).scene_id
     (settings.scenes_dir / scene_id / "transforms.json").unlink()
     response = client.get(f"/jobs/{jobs['bare']}/cameras")
     assert response.status_code == 503 and scene_id in response.json()["detail"]

@@ -20,16 +20,16 @@ def settings(tmp_path) -> Settings:
 
 def test_lease_renews_and_reports_cancellation(settings):
     job = claimed_job(settings)
-    before = jobstore.get_job(settings, job.id).heartbeat_at
+    before = jobstore.JOBS.get(settings, job.id).heartbeat_at
     with Lease(settings, job.id, job.attempt) as lease:
         time.sleep(0.2)
         assert not lease.should_stop()
-        jobstore.request_cancel(settings, job.id)
+        jobstore.JOBS.request_cancel(settings, job.id)
         deadline = time.monotonic() + 5
         while not lease.should_stop() and time.monotonic() < deadline:
             time.sleep(0.02)
         assert lease.cancelled.is_set() and not lease.lost.is_set()
-    assert jobstore.get_job(settings, job.id).heartbeat_at > before
+    assert jobstore.JOBS.get(settings, job.id).heartbeat_at > before
 
 
 def test_the_fence_says_no_for_a_stale_attempt_and_for_a_store_that_cannot_answer(settings):

@@ -31,14 +31,14 @@ def test_progress_writer_writes_each_stage_then_one_event_per_interval(settings)
     job = claimed_job(settings)
     writer = tasks.ProgressWriter(settings, job.id, job.attempt)
     writer(ProgressEvent(stage="load_scene"))
-    assert jobstore.get_job(settings, job.id).stage == "load_scene"
+    assert jobstore.JOBS.get(settings, job.id).stage == "load_scene"
     writer(ProgressEvent(stage="train", iteration=10, progress=0.2, loss=0.5, eta_s=40.0))
     writer(ProgressEvent(stage="train", iteration=20, progress=0.4, loss=0.4))  # within the interval: skipped
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert (row.stage, row.iteration, row.progress, row.loss, row.eta_s) == ("train", 10, 0.2, 0.5, 40.0)
     history = [EvalRecord(elapsed_s=5.0, iteration=20, psnr={"test": 19.0})]
     writer(ProgressEvent(stage="final_eval", iteration=20, progress=0.4, history=history))
-    assert jobstore.get_job(settings, job.id).history == [{"elapsed_s": 5.0, "iteration": 20, "psnr": {"test": 19.0}}]
+    assert jobstore.JOBS.get(settings, job.id).history == [{"elapsed_s": 5.0, "iteration": 20, "psnr": {"test": 19.0}}]
 
 
 def test_progress_writer_never_goes_back_and_leaves_done_to_the_task(settings):
@@ -46,10 +46,10 @@ def test_progress_writer_never_goes_back_and_leaves_done_to_the_task(settings):
     writer = tasks.ProgressWriter(settings, job.id, job.attempt)
     writer(ProgressEvent(stage="train", iteration=30, progress=0.6))
     writer(ProgressEvent(stage="checkpoint", iteration=0, progress=0.0))  # stage events carry iteration 0
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert (row.stage, row.iteration, row.progress) == ("checkpoint", 30, 0.6)
     writer(ProgressEvent(stage="done", iteration=50, progress=1.0))
-    assert jobstore.get_job(settings, job.id).stage == "checkpoint"
+    assert jobstore.JOBS.get(settings, job.id).stage == "checkpoint"
     assert (writer.iteration, writer.progress) == (30, 0.6)
 
 
@@ -57,7 +57,7 @@ def test_a_fenced_off_writer_writes_nothing(settings):
     job = claimed_job(settings)
     stale = tasks.ProgressWriter(settings, job.id, job.attempt - 1)
     stale(ProgressEvent(stage="train", iteration=7, progress=0.3))
-    assert jobstore.get_job(settings, job.id).iteration == 0
+    assert jobstore.JOBS.get(settings, job.id).iteration == 0
 
 
 def _fake_train(status: str, seen: list):
@@ -87,7 +87,7 @@ def test_train_task_records_the_report(settings, monkeypatch):
     assert scene_dir == settings.scenes_dir / SCENE and run_dir == settings.runs_dir / job.id and resume
     run = config.run
     assert (run.max_iters, run.device, run.checkpoint_every_s) == (50, "auto", settings.checkpoint_every_s)
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert (row.state, row.stage, row.progress, row.iteration, row.elapsed_s) == ("succeeded", "done", 1.0, 50, 3.0)
     assert row.metrics == {"test": {"psnr": 22.0}} and row.history[0]["final"] and row.loss == 0.2
 
@@ -96,7 +96,7 @@ def test_train_task_cancelled_keeps_progress(settings, monkeypatch):
     monkeypatch.setattr(tasks, "train", _fake_train("cancelled", []))
     job = jobstore.create_job(settings, SCENE, {"max_iters": 50})
     tasks.train_job(job.id)
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert (row.state, row.progress, row.iteration) == ("cancelled", 0.5, 25)
 
 
@@ -107,10 +107,10 @@ def test_train_task_marks_engine_errors_failed(settings, monkeypatch):
     monkeypatch.setattr(tasks, "train", broken)
     job = jobstore.create_job(settings, SCENE, {"max_iters": 50})
     tasks.train_job(job.id)
-    row = jobstore.get_job(settings, job.id)
+    row = jobstore.JOBS.get(settings, job.id)
     assert row.state == "failed" and row.stage == "failed" and "frames: empty" in row.error
     tasks.train_job(job.id)  # a redelivered message for a finished job claims nothing
-    assert jobstore.get_job(settings, job.id).attempt == 1
+    assert jobstore.JOBS.get(settings, job.id).attempt == 1
 
 
 def _fake_model(monkeypatch, settings: Settings) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from app.core import jobstore
+from app.core.lease import worker_identity
 from app.core.settings import Settings
 
 SCENE = "a" * 32
@@ -23,4 +24,4 @@ def store_with_scene(tmp_path: Path, **overrides) -> Settings:
 def claimed_job(settings: Settings) -> jobstore.JobRow:
     """A new training job on ``SCENE``, claimed by this process (attempt 1)."""
     job = jobstore.create_job(settings, SCENE, {"max_iters": 50, "compile": False})
-    return jobstore.claim_job(settings, job.id, jobstore.worker_identity())
+    return jobstore.JOBS.claim(settings, job.id, worker_identity())

@@ -1,13 +1,13 @@
 """Celery task of the ``outputs`` queue: make an output job's video, mesh or point cloud from a trained model.
 
-The task claims the output in the job store (fenced by its attempt, :mod:`app.core.outputs`), loads the trained
-job's model through this process's model cache (:func:`worker.model_cache.model_cache`; with an object store the
-run's checkpoint is fetched first), and runs the engine: :func:`voxnerf.inference.video.render_path` for a video,
-:func:`voxnerf.inference.export.export_geometry` for a mesh or point cloud. Progress (frames or views done, ETA) is
-written at most every ``progress_interval_s``; a :class:`worker.lease.Lease` renews the output's lease every
-``heartbeat_s`` and turns its cancel flag into ``should_stop``, so a cancelled output stops at its next frame or
-view. The engine writes each file under a temporary name and renames it when complete; a failed or cancelled
-output's directory is removed, a succeeded one's is uploaded to the object store (when there is one).
+The task holds the output (:func:`worker.lease.hold`: claimed in the job store, fenced by its attempt, its lease
+renewed every ``heartbeat_s`` and its cancel flag turned into ``should_stop``, so a cancelled output stops at its
+next frame or view), loads the trained job's model through this process's model cache
+(:func:`worker.model_cache.model_cache`; with an object store the run's checkpoint is fetched first), and runs the
+engine: :func:`voxnerf.inference.video.render_path` for a video, :func:`voxnerf.inference.export.export_geometry`
+for a mesh or point cloud. Progress (frames or views done, ETA) is written at most every ``progress_interval_s``.
+The engine writes each file under a temporary name and renames it when complete; a failed or cancelled output's
+directory is removed, a succeeded one's is uploaded to the object store (when there is one).
 
 Generated video paths need the scene's training cameras (:func:`voxnerf.cameras.paths.generated_path`:
 ``interpolate`` through evenly spaced ones, ``orbit`` around their centre). Exports render from them too.
@@ -19,11 +19,11 @@ import logging
 import time
 
 import numpy as np
-from celery import shared_task
 
-from app.core import jobstore, outputs, storage
-from app.core.celery_app import OUTPUT_TASK
+from app.core import outputs, storage
+from app.core.jobstore import JOBS
 from app.core.models import OutputRow
+from app.core.outputs import OUTPUTS
 from app.core.redact import public_error
 from app.core.settings import Settings, get_settings
 from voxnerf.cameras import paths as camera_paths
@@ -34,7 +34,7 @@ from voxnerf.errors import RunError, VoxNeRFError
 from voxnerf.inference.export import export_geometry
 from voxnerf.inference.render import TrainedModel, scene_as_trained
 from voxnerf.inference.video import render_path
-from worker.lease import DeathNotingRequest, Lease
+from worker.lease import Lease, hold, leased_task
 from worker.model_cache import model_cache
 
 log = logging.getLogger(__name__)
@@ -57,7 +57,7 @@ class OutputProgress:
             return
         self._last_write = now
         eta_s = (now - self._started) * (total - done) / done if done > 0 else None
-        outputs.record_progress(self.settings, self.output_id, self.attempt, done, total, eta_s)
+        OUTPUTS.record_progress(self.settings, self.output_id, self.attempt, done, total, eta_s)
 
 
 # ------------------------------------------------------------------------------------------------ inputs
@@ -128,7 +128,7 @@ def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
     """Make a claimed output; the final row values: ``state`` succeeded (summary, file name), cancelled, or
     failed (error)."""
     try:
-        job = jobstore.get_job(settings, row.job_id)
+        job = JOBS.get(settings, row.job_id)
         if job is None:
             raise RunError(f"job {row.job_id} no longer exists")
         trained = model_cache().get(storage.ensure_run(settings, row.job_id, refresh=False), settings.device)
@@ -146,28 +146,13 @@ def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
     return {"state": "succeeded", "summary": summary, "file_name": outputs.FILE_NAMES[row.kind]}
 
 
-class OutputDeathNotingRequest(DeathNotingRequest):
-    """:class:`worker.lease.DeathNotingRequest` for output jobs."""
-
-    table = OutputRow
-
-
-@shared_task(name=OUTPUT_TASK, acks_late=True, reject_on_worker_lost=True, Request=OutputDeathNotingRequest)
-def make_output(output_id: str) -> None:
-    """Make output ``output_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
-    settings = get_settings()
-    row = outputs.claim_output(settings, output_id, jobstore.worker_identity())
-    if row is None:
-        log.info("output %s: nothing to do (finished, cancelled, or running elsewhere)", output_id)
-        return
-    if row.cancel_requested:
-        outputs.finish_output(settings, output_id, row.attempt, "cancelled", {})
-        return
-    with Lease(settings, output_id, row.attempt, renew=outputs.renew_lease) as lease:
-        values = produce(settings, row, lease)
-    if lease.lost.is_set():
-        return  # requeued elsewhere: the new owner writes the row and the files
-    state = values.pop("state")
+def _remove_unfinished(settings: Settings, row: OutputRow, state: str) -> None:
+    """What a failed or cancelled output left in this process's data directory goes."""
     if state != "succeeded":
         outputs.remove_files(settings, row)
-    outputs.finish_output(settings, output_id, row.attempt, state, values)
+
+
+@leased_task(OUTPUTS)
+def make_output(output_id: str) -> None:
+    """Make output ``output_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
+    hold(get_settings(), OUTPUTS, output_id, produce, ending=_remove_unfinished)

@@ -2,16 +2,16 @@
 jobs (queue ``outputs``: videos, meshes, point clouds) are in :mod:`worker.outputs`; both hold their work with
 :mod:`worker.lease` and load models through :mod:`worker.model_cache`.
 
-Training: the task claims the job in the job store (fenced by its attempt number), runs
-:func:`voxnerf.trainer.train` with ``resume=True`` (a redelivered job continues from its checkpoint),
-writes progress at most every ``progress_interval_s``, and renews its lease every ``heartbeat_s`` from a
-side thread that also picks up cancellation. ``acks_late`` + ``reject_on_worker_lost`` give the message
-back to the broker if the process dies (the Celery main process notes the death on the job's row first,
-:class:`worker.lease.DeathNotingRequest`); the job store's stale-job sweep covers the rest, and fails a job whose worker
-died ``max_worker_deaths`` times. Every job trains for at most ``max_job_seconds`` of wall clock, its
-``eval_at`` evaluations for at most ``max_eval_at_seconds``; before each file it writes, the trainer asks the
-job store whether this attempt still owns the job (:meth:`worker.lease.Lease.still_owned`), so a worker that lost its
-lease writes nothing more into the run.
+Training: the task holds the job (:func:`worker.lease.hold`: claimed in the job store, fenced by its attempt
+number, its lease renewed every ``heartbeat_s`` from a side thread that also picks up cancellation, its final
+state written from the report), runs :func:`voxnerf.trainer.train` with ``resume=True`` (a redelivered job
+continues from its checkpoint) and writes progress at most every ``progress_interval_s``. ``acks_late`` +
+``reject_on_worker_lost`` give the message back to the broker if the process dies (the Celery main process
+notes the death on the job's row first, :class:`worker.lease.DeathNotingRequest`); the dispatcher's sweep
+covers the rest, and fails a job whose worker died ``max_worker_deaths`` times. Every job trains for at most
+``max_job_seconds`` of wall clock, its ``eval_at`` evaluations for at most ``max_eval_at_seconds``; before each
+file it writes, the trainer asks the job store whether this attempt still owns the job
+(:meth:`worker.lease.Lease.still_owned`), so a worker that lost its lease writes nothing more into the run.
 
 With an object store (``VOXNERF_STORAGE_URL``, :mod:`app.core.storage`) the scene and the run's last uploaded
 checkpoint are fetched into this machine's cache first, and the run is uploaded after every checkpoint and
@@ -36,8 +36,9 @@ from celery import shared_task
 from celery.signals import worker_ready
 
 from app.core import jobstore, storage
-from app.core.celery_app import RENDER_TASK, TRAIN_TASK
+from app.core.celery_app import RENDER_TASK
 from app.core.dispatch import sweep_jobs
+from app.core.jobstore import JOBS
 from app.core.redact import public_error
 from app.core.render_request import RenderRequest
 from app.core.render_results import RenderOutcome, deliver_outcome
@@ -48,9 +49,9 @@ from voxnerf.errors import RunError, VoxNeRFError
 from voxnerf.inference.encoding import encode_outputs
 from voxnerf.inference.render import render
 from voxnerf.trainer import train
-from voxnerf.training.records import ProgressEvent, TrainReport
+from voxnerf.training.records import ProgressEvent
 from voxnerf.training.run import LeaseLost
-from worker.lease import DeathNotingRequest, Lease
+from worker.lease import Lease, hold, leased_task
 from worker.model_cache import model_cache
 
 log = logging.getLogger(__name__)
@@ -83,13 +84,12 @@ class ProgressWriter:
         self.iteration = max(self.iteration, event.iteration)
         self.progress = max(self.progress, jobstore.finite_or_none(event.progress) or 0.0)
         event = event.model_copy(update={"iteration": self.iteration, "progress": self.progress})
-        jobstore.record_progress(self.settings, self.job_id, self.attempt, event)
+        JOBS.record_progress(self.settings, self.job_id, self.attempt, event)
 
 
-def _fail(settings: Settings, job_id: str, attempt: int, error: str) -> None:
-    """Mark the job failed with ``error`` as clients may read it (:func:`app.core.redact.public_error`)."""
-    values = {"error": public_error(error, settings), "stage": "failed", "eta_s": None}
-    jobstore.finish_job(settings, job_id, attempt, "failed", values)
+def _failed(settings: Settings, error: str) -> dict:
+    """A failed job's final columns: ``error`` as clients may read it (:func:`app.core.redact.public_error`)."""
+    return {"state": "failed", "error": public_error(error, settings)}
 
 
 def job_config(settings: Settings, options: dict) -> TrainConfig:
@@ -111,15 +111,17 @@ def _kill_if_poison_test(settings: Settings, scene_id: str) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-def _train_claimed(settings: Settings, job, writer: ProgressWriter, lease: Lease) -> TrainReport | None:
-    """Train a claimed job; None when it failed (the job is then marked failed) or its lease was lost."""
+def _train_claimed(settings: Settings, job, lease: Lease) -> dict | None:
+    """Train a claimed job; its final columns (:func:`app.core.jobstore.report_outcome`, or failed with the
+    error), None when its lease was lost."""
+    writer = ProgressWriter(settings, job.id, job.attempt)
     try:
         config = job_config(settings, job.options)
         scene_dir = storage.ensure_scene(settings, job.scene_id)
         _kill_if_poison_test(settings, job.scene_id)
         run_dir = storage.ensure_run(settings, job.id)
         with storage.RunPublisher(settings, job.id, run_dir, may_upload=lease.still_owned):
-            return train(
+            report = train(
                 scene_dir,
                 run_dir,
                 config,
@@ -131,32 +133,21 @@ def _train_claimed(settings: Settings, job, writer: ProgressWriter, lease: Lease
             )
     except LeaseLost as err:
         log.warning("job %s: %s", job.id, err)
+        return None
     except VoxNeRFError as err:
         log.warning("job %s failed: %s", job.id, err)
-        _fail(settings, job.id, job.attempt, f"{type(err).__name__}: {err}")
+        return _failed(settings, f"{type(err).__name__}: {err}")
     except Exception as err:
         log.exception("job %s crashed", job.id)
-        _fail(settings, job.id, job.attempt, f"internal error: {type(err).__name__}: {err}")
-    return None
+        return _failed(settings, f"internal error: {type(err).__name__}: {err}")
+    state, values = jobstore.report_outcome(settings, job.id, report, writer.progress)
+    return {"state": state, **values}
 
 
-@shared_task(name=TRAIN_TASK, acks_late=True, reject_on_worker_lost=True, Request=DeathNotingRequest)
+@leased_task(JOBS)
 def train_job(job_id: str) -> None:
     """Train job ``job_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
-    settings = get_settings()
-    job = jobstore.claim_job(settings, job_id, jobstore.worker_identity())
-    if job is None:
-        log.info("job %s: nothing to do (finished, cancelled, or running elsewhere)", job_id)
-        return
-    if job.cancel_requested:
-        jobstore.finish_job(settings, job_id, job.attempt, "cancelled", {"stage": "cancelled"})
-        return
-    writer = ProgressWriter(settings, job_id, job.attempt)
-    with Lease(settings, job_id, job.attempt) as lease:
-        report = _train_claimed(settings, job, writer, lease)
-    if report is None or lease.lost.is_set():
-        return
-    jobstore.finish_with_report(settings, job_id, job.attempt, report, writer.progress)
+    hold(get_settings(), JOBS, job_id, _train_claimed)
 
 
 def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:

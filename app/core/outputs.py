@@ -1,9 +1,9 @@
 """Output jobs: videos, meshes and point clouds made from a trained job's model (API and ``outputs`` workers).
 
-An output job moves ``queued -> running -> succeeded | failed | cancelled`` like a training job, with the same
-fencing: a worker *claims* it (``attempt`` goes up by one) and writes progress, renews its lease and finishes
-it only while the row still carries that attempt (:func:`app.core.jobstore.is_stale` decides when a running
-one's worker is presumed dead). Progress counts ``done`` of ``total`` frames (video) or views (exports).
+An output job has the lease lifecycle every kind of queued work shares (:mod:`app.core.lease`: claim with a
+fence, lease renewal, progress, cancel, finish, stale sweep, re-send of a lost message, worker deaths);
+:data:`OUTPUTS` is its kind: a claim starts the output again from its first frame, and progress counts ``done``
+of ``total`` frames (video) or views (exports).
 
 What an output is made from: a ``succeeded`` training job, or a ``cancelled`` one that kept a checkpoint (the
 output is then marked ``partial``: an unfinished model); :func:`trained_source` is that rule, which
@@ -21,16 +21,14 @@ so the API refuses a malformed path (422 naming the key) before anything is queu
 from __future__ import annotations
 
 import shutil
-import time
-from collections.abc import Iterable
 from pathlib import Path
 
-from sqlalchemy import select, update
-
 from app.core import storage
+from app.core.celery_app import OUTPUT_TASK
 from app.core.db import session_scope
-from app.core.jobstore import LeaseStatus, claim_row, is_stale, new_id
-from app.core.models import ACTIVE_STATES, JobRow, OutputRow
+from app.core.jobstore import new_id
+from app.core.lease import WorkKind
+from app.core.models import JobRow, OutputRow
 from app.core.progress import json_safe
 from app.core.settings import Settings
 from voxnerf.cameras.paths import CameraPathError, check_frame_count, parse_nerfstudio
@@ -156,122 +154,29 @@ def remove_files(settings: Settings, output: OutputRow) -> None:
 # ------------------------------------------------------------------------------------------------ rows
 
 
+def _progress(_settings: Settings, _output_id: str, done: int, total: int, eta_s: float | None) -> dict:
+    """The columns of ``done`` of ``total`` (frames or views) and the ETA."""
+    progress = min(1.0, done / total) if total > 0 else 0.0
+    return {"done": done, "total": total, "progress": progress, "eta_s": eta_s}
+
+
+OUTPUTS = WorkKind(
+    name="output",
+    noun="output job",
+    table=OutputRow,
+    task=OUTPUT_TASK,
+    claimed=lambda _row, now: {"started_at": now, "progress": 0.0, "done": 0, "eta_s": None},  # from frame one
+    progress=_progress,
+)
+"""Output jobs' lease lifecycle (:class:`app.core.lease.WorkKind`): ``OUTPUTS.get``, ``claim``,
+``record_progress(settings, output_id, attempt, done, total, eta_s)``, ``finish``, ``request_cancel``..."""
+
+
 def create_output(settings: Settings, job_id: str, kind: str, params: dict, total: int | None,
                   partial: bool) -> OutputRow:
     """A new queued output job of trained job ``job_id``."""
-    row = OutputRow(
-        id=new_id(), job_id=job_id, kind=kind, state="queued", params=json_safe(params), partial=partial,
-        progress=0.0, done=0, total=total, created_at=time.time(), cancel_requested=False, attempt=0, requeues=0,
-    )
+    row = OUTPUTS.new_row(new_id(), job_id=job_id, kind=kind, params=json_safe(params), partial=partial,
+                          progress=0.0, done=0, total=total)
     with session_scope(settings) as session:
         session.add(row)
     return row
-
-
-def get_output(settings: Settings, output_id: str) -> OutputRow | None:
-    with session_scope(settings) as session:
-        return session.get(OutputRow, output_id)
-
-
-def list_outputs(settings: Settings, job_id: str, limit: int = 100) -> list[OutputRow]:
-    """The outputs of job ``job_id``, newest first."""
-    query = (
-        select(OutputRow).where(OutputRow.job_id == job_id).order_by(OutputRow.created_at.desc()).limit(limit)
-    )
-    with session_scope(settings) as session:
-        return list(session.scalars(query))
-
-
-def fail_output(settings: Settings, output_id: str, error: str) -> None:
-    """Fail an output that is queued or running whoever holds it (the broker refused it)."""
-    with session_scope(settings) as session:
-        session.execute(
-            update(OutputRow)
-            .where(OutputRow.id == output_id, OutputRow.state.in_(ACTIVE_STATES))
-            .values(state="failed", error=error, finished_at=time.time(), eta_s=None)
-        )
-
-
-def request_cancel(settings: Settings, output_id: str) -> OutputRow | None:
-    """Cancel an output: a queued one at once, a running one at its next frame or view (its worker sees the
-    flag through its lease)."""
-    with session_scope(settings) as session:
-        cancelled = session.execute(
-            update(OutputRow)
-            .where(OutputRow.id == output_id, OutputRow.state == "queued")
-            .values(state="cancelled", cancel_requested=True, finished_at=time.time())
-        ).rowcount
-        if not cancelled:
-            session.execute(
-                update(OutputRow)
-                .where(OutputRow.id == output_id, OutputRow.state == "running")
-                .values(cancel_requested=True)
-            )
-    return get_output(settings, output_id)
-
-
-def claim_output(settings: Settings, output_id: str, worker: str) -> OutputRow | None:
-    """Take a queued (or stale running) output for ``worker``; None when it is not there to take (the rule of
-    :func:`app.core.jobstore.claim_row`, a worker that died too often included). The returned row's
-    ``attempt`` fences every later write; a claim starts the output again from its first frame."""
-    return claim_row(settings, OutputRow, output_id, worker,
-                     lambda _row, now: {"started_at": now, "progress": 0.0, "done": 0, "eta_s": None})
-
-
-def _write_running(settings: Settings, output_id: str, attempt: int, values: dict) -> bool:
-    """Update a running output's row (and its heartbeat) while it still carries ``attempt``."""
-    with session_scope(settings) as session:
-        return bool(
-            session.execute(
-                update(OutputRow)
-                .where(OutputRow.id == output_id, OutputRow.attempt == attempt, OutputRow.state == "running")
-                .values(heartbeat_at=time.time(), **{k: json_safe(v) for k, v in values.items()})
-            ).rowcount
-        )
-
-
-def renew_lease(settings: Settings, output_id: str, attempt: int) -> LeaseStatus:
-    """Refresh a claimed output's heartbeat and read its cancel flag (the lease of ``worker.lease.Lease``)."""
-    owned = _write_running(settings, output_id, attempt, {})
-    with session_scope(settings) as session:
-        cancel = session.scalar(select(OutputRow.cancel_requested).where(OutputRow.id == output_id))
-    return LeaseStatus(owned, bool(cancel))
-
-
-def record_progress(settings: Settings, output_id: str, attempt: int, done: int, total: int,
-                    eta_s: float | None) -> bool:
-    """Write ``done`` of ``total`` (frames or views) and the ETA of a claimed output; False when not owned."""
-    progress = min(1.0, done / total) if total > 0 else 0.0
-    return _write_running(settings, output_id, attempt, {"done": done, "total": total, "progress": progress,
-                                                         "eta_s": eta_s})
-
-
-def finish_output(settings: Settings, output_id: str, attempt: int, state: str, values: dict) -> bool:
-    """Move a claimed output to a final state with its last fields; False when no longer owned."""
-    final = {"state": state, "finished_at": time.time(), "eta_s": None, **values}
-    if state == "succeeded":
-        final["progress"] = 1.0
-    return _write_running(settings, output_id, attempt, final)
-
-
-def stale_outputs(settings: Settings) -> list[OutputRow]:
-    """Running outputs whose worker is presumed dead (:func:`app.core.jobstore.is_stale`)."""
-    now = time.time()
-    with session_scope(settings) as session:
-        running = list(session.scalars(select(OutputRow).where(OutputRow.state == "running")))
-    return [row for row in running if is_stale(row, settings, now)]
-
-
-def mark_requeued(settings: Settings, rows: Iterable[OutputRow]) -> list[str]:
-    """Put stale running outputs back to ``queued`` (only if untouched since read); returns the ids moved."""
-    moved = []
-    with session_scope(settings) as session:
-        for row in rows:
-            done = session.execute(
-                update(OutputRow)
-                .where(OutputRow.id == row.id, OutputRow.attempt == row.attempt, OutputRow.state == "running")
-                .values(state="queued", requeues=row.requeues + 1, worker=None, eta_s=None)
-            ).rowcount
-            if done:
-                moved.append(row.id)
-    return moved

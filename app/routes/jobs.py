@@ -11,10 +11,12 @@ from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.responses import FileResponse
 
 from app.core import jobstore, outputs, storage
+from app.core.jobstore import JOBS
 from app.core.models import JobRow
 from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import JobId, SettingsDep
+from app.routes import work
 from app.schemas import EvalRender, JobOut
 from voxnerf.files import CHECKPOINT, REPORT
 
@@ -25,11 +27,8 @@ EVAL_DIR = "eval"  # the trainer writes <run_dir>/eval/<split>/<view name>.png
 NAME_MAX_BYTES = 255
 
 
-def _job_or_404(settings: Settings, job_id: str):
-    row = jobstore.get_job(settings, job_id)
-    if row is None:
-        raise HTTPException(404, f"no job {job_id}")
-    return row
+def _job_or_404(settings: Settings, job_id: str) -> JobRow:
+    return work.found(settings, JOBS, job_id)
 
 
 @router.get("/jobs", response_model=list[JobOut], summary="List jobs, newest first")
@@ -38,7 +37,7 @@ def list_jobs(
     limit: int = Query(100, ge=1, le=1000),
     scene_id: str | None = Query(None, pattern=jobstore.ID_RE.pattern),
 ) -> list[JobOut]:
-    return [JobOut.from_row(row) for row in jobstore.list_jobs(settings, limit, scene_id)]
+    return [JobOut.from_row(row) for row in JOBS.newest(settings, limit, scene_id=scene_id)]
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, summary="State, progress, ETA, history, stages, metrics")
@@ -49,11 +48,7 @@ def get_job(job_id: JobId, settings: SettingsDep) -> JobOut:
 @router.post("/jobs/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job")
 def cancel_job(job_id: JobId, settings: SettingsDep) -> JobOut:
     """Cancel a queued job at once, a running one at its next iteration (its checkpoint is kept)."""
-    _job_or_404(settings, job_id)
-    job = jobstore.request_cancel(settings, job_id)
-    if job.state in ("succeeded", "failed"):
-        raise HTTPException(409, f"job {job_id} already {job.state}")
-    return JobOut.from_row(job)
+    return JobOut.from_row(work.cancel(settings, JOBS, job_id))
 
 
 @router.delete("/jobs/{job_id}", status_code=204, summary="Delete a finished job, its run and its outputs")

@@ -16,11 +16,14 @@ from kombu.exceptions import KombuError
 
 from app.core import jobstore, storage
 from app.core import outputs as store
-from app.core.dispatch import send_output
+from app.core.dispatch import send
+from app.core.jobstore import JOBS
 from app.core.models import OutputRow
+from app.core.outputs import OUTPUTS
 from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import ID_DOC, CeleryDep, JobId, SettingsDep
+from app.routes import work
 from app.schemas import ExportRequest, OutputOut, VideoRequest
 from voxnerf.cameras.paths import CameraPathError
 
@@ -30,9 +33,7 @@ OutputId = Annotated[str, Path(pattern=jobstore.ID_RE.pattern, description=f"out
 
 def _source_or_error(settings: Settings, job_id: str) -> bool:
     """Whether outputs of job ``job_id`` are partial; 404 for an unknown job, 409 for one not to render from."""
-    job = jobstore.get_job(settings, job_id)
-    if job is None:
-        raise HTTPException(404, f"no job {job_id}")
+    job = work.found(settings, JOBS, job_id)
     try:
         return store.trained_source(settings, job)
     except store.NotRenderable as err:
@@ -44,19 +45,16 @@ def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: d
     """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503)."""
     row = store.create_output(settings, job_id, kind, params, total, partial)
     try:
-        send_output(celery, row.id)
+        send(celery, OUTPUTS, row.id)
     except (KombuError, OSError) as err:
-        store.fail_output(settings, row.id, public_error(f"the queue refused it: {err}", settings))
+        OUTPUTS.fail(settings, row.id, public_error(f"the queue refused it: {err}", settings))
         raise HTTPException(503, public_error(f"the outputs queue is unavailable ({err}); try again later",
                                               settings)) from None
     return OutputOut.from_row(row)
 
 
 def _output_or_404(settings: Settings, output_id: str) -> OutputRow:
-    row = store.get_output(settings, output_id)
-    if row is None:
-        raise HTTPException(404, f"no output {output_id}")
-    return row
+    return work.found(settings, OUTPUTS, output_id)
 
 
 @router.post("/jobs/{job_id}/videos", status_code=202, response_model=OutputOut,
@@ -79,9 +77,8 @@ def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, cel
 
 @router.get("/jobs/{job_id}/outputs", response_model=list[OutputOut], summary="Output jobs of a job, newest first")
 def list_outputs(job_id: JobId, settings: SettingsDep, limit: int = Query(100, ge=1, le=1000)) -> list[OutputOut]:
-    if jobstore.get_job(settings, job_id) is None:
-        raise HTTPException(404, f"no job {job_id}")
-    return [OutputOut.from_row(row) for row in store.list_outputs(settings, job_id, limit)]
+    work.found(settings, JOBS, job_id)
+    return [OutputOut.from_row(row) for row in OUTPUTS.newest(settings, limit, job_id=job_id)]
 
 
 @router.get("/outputs/{output_id}", response_model=OutputOut, summary="State, progress, ETA, error, summary")
@@ -92,11 +89,7 @@ def get_output(output_id: OutputId, settings: SettingsDep) -> OutputOut:
 @router.post("/outputs/{output_id}/cancel", status_code=202, response_model=OutputOut, summary="Cancel an output")
 def cancel_output(output_id: OutputId, settings: SettingsDep) -> OutputOut:
     """Cancel a queued output at once, a running one at its next frame or view (nothing is kept)."""
-    _output_or_404(settings, output_id)
-    row = store.request_cancel(settings, output_id)
-    if row.state in ("succeeded", "failed"):
-        raise HTTPException(409, f"output {output_id} already {row.state}")
-    return OutputOut.from_row(row)
+    return OutputOut.from_row(work.cancel(settings, OUTPUTS, output_id))
 
 
 @router.get(

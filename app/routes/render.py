@@ -20,12 +20,14 @@ from redis import RedisError
 
 from app.core import jobstore
 from app.core.dispatch import send_render
+from app.core.jobstore import JOBS
 from app.core.outputs import NotRenderable, trained_source
 from app.core.redact import public_error
 from app.core.render_request import RenderRequest
 from app.core.render_results import receive_outcome
 from app.core.settings import Settings
 from app.deps import CeleryDep, SettingsDep
+from app.routes import work
 from voxnerf.inference.encoding import MEDIA_TYPES
 
 log = logging.getLogger(__name__)
@@ -67,9 +69,7 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
     The outcome comes back through Redis (BLPOP) or, with the embedded broker, as files in
     ``data_dir/render-results``; see :mod:`app.core.render_results`.
     """
-    job = jobstore.get_job(settings, body.job_id)
-    if job is None:
-        raise HTTPException(404, f"no job {body.job_id}")
+    job = work.found(settings, JOBS, body.job_id)
     try:
         partial = trained_source(settings, job)
     except NotRenderable as err:

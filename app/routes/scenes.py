@@ -10,15 +10,16 @@ from kombu.exceptions import KombuError
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
-from app import uploads
 from app.core import jobstore, storage
-from app.core.dispatch import send_train
+from app.core.dispatch import send
+from app.core.jobstore import JOBS
 from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import CeleryDep, SceneId, SettingsDep
 from app.routes.render import RenderSlots
 from app.schemas import JobOptions, JobOut, SceneOut
-from app.upload_form import read_form
+from app.uploads import staging
+from app.uploads.form import read_form
 from voxnerf.config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -66,7 +67,7 @@ def _display_name(value: object, fallback: str) -> str:
 
 def _split_rule(value: object, is_zip: bool):
     """The form field ``splits`` as an importer's split rule; 422 for a bad value or a files upload."""
-    rule = uploads.split_rule(value)  # UploadError: answered as 422 by app.main's handler
+    rule = staging.split_rule(value)  # UploadError: answered as 422 by app.main's handler
     if rule is not None and not is_zip:
         raise HTTPException(422, "splits: only a zip of a COLMAP project or a ScanNet export takes splits")
     return rule
@@ -116,12 +117,12 @@ async def _receive_scene(request: Request, settings: Settings) -> SceneOut:
         if isinstance(archive, UploadFile):
             stem = (archive.filename or "scene").rsplit("/", 1)[-1].removesuffix(".zip")
             stored = await run_in_threadpool(
-                uploads.store_zip, settings, _display_name(form.get("name"), stem), archive.file, splits
+                staging.store_zip, settings, _display_name(form.get("name"), stem), archive.file, splits
             )
         elif parts:
             named = [(p.filename or "", p.file) for p in parts]
             stored = await run_in_threadpool(
-                uploads.store_parts, settings, _display_name(form.get("name"), "scene"), named
+                staging.store_parts, settings, _display_name(form.get("name"), "scene"), named
             )
         else:
             raise HTTPException(
@@ -156,7 +157,7 @@ def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
         raise HTTPException(409, f"scene {scene_id} is {busy}; cancel or wait for them first") from None
     if not deleted:
         raise HTTPException(404, f"no scene {scene_id}")
-    uploads.remove_scene_files(settings, scene_id)
+    staging.remove_scene_files(settings, scene_id)
     try:
         storage.delete_scene(settings, scene_id)
     except Exception:  # the scene is gone for the service; its unreferenced copy in the store is only waste
@@ -186,11 +187,11 @@ def create_job(
     if job is None:
         raise HTTPException(404, f"no scene {scene_id}")
     try:
-        send_train(celery, job.id)
+        send(celery, JOBS, job.id)
     except (KombuError, OSError) as err:
         log.error("cannot queue job %s: %s", job.id, err)
-        jobstore.fail_job(settings, job.id, public_error(f"the broker refused the job: {err}", settings))
+        JOBS.fail(settings, job.id, public_error(f"the broker refused the job: {err}", settings))
         raise HTTPException(503, public_error(f"the job queue is unavailable ({err}); try again later",
                                               settings)) from None
     response.headers["Location"] = f"/jobs/{job.id}"
-    return JobOut.from_row(jobstore.get_job(settings, job.id))
+    return JobOut.from_row(JOBS.get(settings, job.id))

@@ -15,11 +15,13 @@ import numpy as np
 from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse
 
-from app.core import jobstore, storage
+from app.core import storage
+from app.core.jobstore import JOBS
 from app.core.models import JobRow
 from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import JobId, SettingsDep
+from app.routes import work
 from app.schemas import CameraPathOut, CameraPathRequest, CamerasOut, PathFrame, PriorPreviewOut, ViewerCamera
 from app.viewer_scene import SceneViewCache, SceneViewError, read_scene_view
 from voxnerf.cameras.paths import CameraPath, CameraPathError, interpolate_path, parse_nerfstudio
@@ -34,9 +36,7 @@ _VIEWS = SceneViewCache()
 def _scene_view(settings: Settings, job_id: str) -> tuple[JobRow, dict]:
     """Job ``job_id`` and its scene's view (cameras, prior sample); 404 for an unknown job, 503 when the
     scene cannot be fetched or read."""
-    job = jobstore.get_job(settings, job_id)
-    if job is None:
-        raise HTTPException(404, f"no job {job_id}")
+    job = work.found(settings, JOBS, job_id)
     fused = settings.runs_dir / job.id / FUSED_PRIOR  # the prior a run fused when its scene has no prior file
     key = f"{job.scene_id}:{fused}"
     view = _VIEWS.get(key)

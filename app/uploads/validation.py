@@ -1,6 +1,6 @@
-"""What an upload's validation process does (:mod:`app.upload_sandbox` runs it under memory and time limits).
+"""What an upload's validation process does (:mod:`app.uploads.sandbox` runs it under memory and time limits).
 
-Order of checks, each refusing with :class:`~app.upload_rules.UploadError` (an HTTP status and a one-line
+Order of checks, each refusing with :class:`~app.uploads.rules.UploadError` (an HTTP status and a one-line
 ``detail``):
 
 1. a zip's end-of-central-directory record (zip64's when present), read from the file's tail before the
@@ -40,7 +40,7 @@ from typing import BinaryIO
 import numpy as np
 
 from app.core.settings import Settings
-from app.upload_rules import (
+from app.uploads.rules import (
     IMPORT_SUFFIXES,
     MAX_PATH_BYTES,
     StagedUpload,

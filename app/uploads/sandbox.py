@@ -2,7 +2,7 @@
 the API process.
 
 :func:`validate_in_child` hands a :class:`StagedUpload` (files already on disk under ``data_dir/staging``) to a
-child that unpacks and checks it (:func:`app.upload_validation.validate_upload`) and answers with a
+child that unpacks and checks it (:func:`app.uploads.validation.validate_upload`) and answers with a
 :class:`ValidatedScene` or a refusal. Children are forked from a multiprocessing *forkserver* that imported the
 validator (and with it the engine's scene checks and torch) once: the API process itself never imports torch,
 and a validation starts in milliseconds instead of importing torch anew. Each child, before it reads a byte:
@@ -28,12 +28,12 @@ import sys
 from multiprocessing.connection import Connection, wait
 
 from app.core.settings import Settings
-from app.upload_rules import StagedUpload, UploadError, ValidatedScene
+from app.uploads.rules import StagedUpload, UploadError, ValidatedScene
 
 log = logging.getLogger(__name__)
 
 # imported once by the forkserver, so that each child starts with them loaded (open3d: a prior's sigma estimate)
-VALIDATOR_MODULES = ["app.upload_validation", "voxnerf.data.scene", "voxnerf.prior.loading", "open3d"]
+VALIDATOR_MODULES = ["app.uploads.validation", "voxnerf.data.scene", "voxnerf.prior.loading", "open3d"]
 
 
 def _preload() -> list[str]:
@@ -108,7 +108,7 @@ def _answer(outcome: tuple | None, exitcode: int | None, settings: Settings) -> 
 def _child_main(upload: StagedUpload, settings: Settings, sender: Connection) -> None:
     """In the child: apply the limits, validate, send one outcome tuple."""
     _limit_resources(settings)
-    from app.upload_validation import validate_upload  # preloaded by the forkserver: no import happens here
+    from app.uploads.validation import validate_upload  # preloaded by the forkserver: no import happens here
 
     try:
         outcome: tuple = ("ok", validate_upload(upload, settings))

@@ -1,5 +1,5 @@
 """The rules an uploaded file's name and size must meet, the bounded copy, and what the API process (which stages
-an upload) and the validation process (which unpacks and checks it, :mod:`app.upload_validation`) hand each other:
+an upload) and the validation process (which unpacks and checks it, :mod:`app.uploads.validation`) hand each other:
 :class:`StagedUpload` in, :class:`ValidatedScene` out.
 
 :class:`UploadError` is a refusal: an HTTP status (4xx) and a one-line ``detail`` naming the entry at fault.

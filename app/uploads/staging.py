@@ -7,8 +7,8 @@ store it atomically.
 2. the upload goes into a private staging directory under ``data_dir/staging``: a zip is copied there as it
    is; files sent as form parts are written under their (checked) names into the staging scene, after their
    count, duplicates, types and the size of ``transforms.json`` are checked;
-3. a validation process unpacks and checks it under a memory and a time limit (:mod:`app.upload_sandbox`
-   runs :mod:`app.upload_validation`, whose docstring lists its checks): the API process parses nothing the
+3. a validation process unpacks and checks it under a memory and a time limit (:mod:`app.uploads.sandbox`
+   runs :mod:`app.uploads.validation`, whose docstring lists its checks): the API process parses nothing the
    client sent and never imports torch;
 4. only then one ``os.replace`` of the staging scene into ``data_dir/scenes/<id>``, and, when ``storage_url``
    is set, its upload to the object store (:func:`app.core.storage.publish_scene`).
@@ -28,7 +28,7 @@ from typing import BinaryIO
 
 from app.core import jobstore, storage
 from app.core.settings import Settings
-from app.upload_rules import (
+from app.uploads.rules import (
     StagedUpload,
     UploadError,
     check_suffix,
@@ -37,7 +37,7 @@ from app.upload_rules import (
     copy_limited,
     safe_relpath,
 )
-from app.upload_sandbox import validate_in_child
+from app.uploads.sandbox import validate_in_child
 from voxnerf.data.importers.splits import PaperSplitRule
 from voxnerf.files import TRANSFORMS
 
