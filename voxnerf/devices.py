@@ -29,7 +29,7 @@ def compute_environment(device: torch.device) -> dict[str, str | int | bool | No
     ``OMP_WAIT_POLICY`` and ``OMP_NUM_THREADS``, None where unset: the runtime's default) and whether the
     process has loaded the plain-C kernels (hash encoding, octree tracing); asking builds nothing. A run trained
     by a service worker and one trained by ``voxnerf train`` on the same machine record the same values
-    (``tests/test_service_runtime.py``)."""
+    (``tests/service/test_service_runtime.py``)."""
     return {
         "device": str(device),
         "torch": torch.__version__,

@@ -14,7 +14,7 @@ from voxnerf.cli import main
 from voxnerf.data.importers import PaperSplitRule, import_scannet, paper_splits
 from voxnerf.errors import SceneError
 
-REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
+REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "redkitchen"
 needs_redkitchen = pytest.mark.skipif(
     not (REDKITCHEN / "transforms.json").is_file(), reason="shared redkitchen data not present"
 )

@@ -37,7 +37,7 @@ from voxnerf.inference.metrics import (
     ssim_window,
 )
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "redkitchen"
 
 needs_lpips_weights = pytest.mark.skipif(lpips_weights_path() is None, reason=LPIPS_UNAVAILABLE)
 

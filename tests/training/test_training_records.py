@@ -10,7 +10,7 @@ from pathlib import Path
 
 from voxnerf.training.records import EvalRecord, StageRecord, TrainReport
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_the_records_module_and_the_package_load_without_torch():

@@ -16,7 +16,7 @@ from voxnerf.data.importers import PaperSplitRule, import_colmap, paper_splits
 from voxnerf.data.importers.colmap import CAMERA_MODELS
 from voxnerf.errors import SceneError
 
-REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
+REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "redkitchen"
 needs_redkitchen = pytest.mark.skipif(
     not (REDKITCHEN / "transforms.json").is_file(), reason="shared redkitchen data not present"
 )

@@ -17,7 +17,7 @@ from voxnerf.data.scene import load_scene
 from voxnerf.prior.loading import load_prior
 from voxnerf.synthetic import RoomSpec, make_room_scene
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "make_priors.py"
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "make_priors.py"
 _spec = importlib.util.spec_from_file_location("make_priors", _PATH)
 make_priors = importlib.util.module_from_spec(_spec)
 sys.modules["make_priors"] = make_priors

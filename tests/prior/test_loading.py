@@ -12,7 +12,7 @@ import trimesh
 from voxnerf.errors import SceneError
 from voxnerf.prior.loading import estimate_sigma, load_prior
 
-REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
+REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "redkitchen"
 
 
 def noisy_plane(n: int, noise: float, seed: int = 0) -> np.ndarray:

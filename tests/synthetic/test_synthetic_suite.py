@@ -3,8 +3,9 @@ raycast.Shading, sensor) and the tuning suite (voxnerf.synthetic.suite): each fi
 a tiny render, determinism, the default rooms unchanged (against reference fingerprints) and make_suite's reuse and
 rebuild.
 
-``python tests/test_synthetic_suite.py`` rewrites the reference fingerprints (tests/synthetic_default_rooms.json)
-from this machine's default rooms: only after a deliberate change to what the generator writes.
+``python tests/synthetic/test_synthetic_suite.py`` rewrites the reference fingerprints
+(tests/synthetic/synthetic_default_rooms.json) from this machine's default rooms: only after a deliberate change
+to what the generator writes.
 """
 
 from __future__ import annotations
@@ -244,8 +245,9 @@ def write_reference(out_dir: Path) -> None:
         scene = make_room_scene(out_dir / room, spec)
         files = [f"    {json.dumps(name)}: {json.dumps(fp)}" for name, fp in _fingerprints(scene).items()]
         lines.append(f"  {json.dumps(room)}: {{\n" + ",\n".join(files) + "\n  }")
-    about = json.dumps("Fingerprints of the default rooms (tests/test_synthetic_suite.py DEFAULT_ROOMS); rewrite "
-                       "with `python tests/test_synthetic_suite.py` only after a deliberate generator change.")
+    about = json.dumps("Fingerprints of the default rooms (tests/synthetic/test_synthetic_suite.py DEFAULT_ROOMS); "
+                       "rewrite with `python tests/synthetic/test_synthetic_suite.py` only after a deliberate "
+                       "generator change.")
     REFERENCE.write_text(f'{{"about": {about},\n "rooms": {{\n' + ",\n".join(lines) + "\n}}\n")
 
 

@@ -146,7 +146,7 @@ def test_scene_transform_round_trip():
 
 
 def test_inspect_real_scene_summary():
-    root = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
+    root = Path(__file__).resolve().parents[3] / "shared" / "data" / "redkitchen"
     if not root.is_dir():
         pytest.skip("shared redkitchen data absent")
     scene = load_scene(root, load_images=False)

@@ -1,5 +1,5 @@
 """The job and scene pages in a real headless browser (playwright driving Debian's /usr/bin/chromium, as
-tests/test_dashboard.py does): from the dashboard's job row to the job page of a 60 s job, whose error plot has
+tests/service/test_dashboard.py does): from the dashboard's job row to the job page of a 60 s job, whose error plot has
 more than one PSNR point per split while the job still runs (the front-loaded progress evaluations from 10 s of
 training on; the default eval_every_s of 60 s alone would give none before the final evaluation) and a
 training-loss curve; once it succeeded, the stages with their reasons, the final metrics, the per-view table

@@ -12,7 +12,7 @@ import pytest
 
 from app.core.settings import Settings
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "service.md"
+DOC = Path(__file__).resolve().parents[2] / "docs" / "service.md"
 PREFIX = Settings.model_config["env_prefix"]
 UNITS = {"KiB": 2**10, "MiB": 2**20, "GiB": 2**30}
 

@@ -54,7 +54,7 @@ SERVICE_SETTINGS = {
 
 @pytest.fixture(scope="module")
 def room_files(tmp_path_factory) -> dict[str, bytes]:
-    """A valid 8-frame 32x24 scene: path inside the scene -> bytes (as tests/test_fuzz_upload.py makes it)."""
+    """A valid 8-frame 32x24 scene: path inside the scene -> bytes (as tests/service/test_fuzz_upload.py makes it)."""
     scene_dir = tmp_path_factory.mktemp("bounds") / "room"
     make_room_scene(
         scene_dir,
