@@ -80,6 +80,14 @@ def test_resolved_fills_the_preset_s_values_in_every_component_and_keeps_explici
     assert cfg.sampling.samples_per_ray == 128 + 7
 
 
+def test_model_copy_with_flat_names_updates_the_components_and_validates():
+    cfg = TrainConfig().model_copy(update={"lr": 0.02, "sampling.n_rest": 3})
+    assert cfg.schedule.lr == 0.02 and cfg.sampling.n_rest == 3 and "lr" not in cfg.__dict__
+    with pytest.raises(ValidationError):
+        TrainConfig().model_copy(update={"lr": 5.0})
+    assert TrainConfig().model_copy(update={"preset": "paper"}).preset == "paper"
+
+
 def test_updated_validates_the_new_values():
     cfg = TrainConfig()
     assert cfg.updated(focal_scale=1.1).corrections.focal_scale == 1.1 and cfg.corrections.focal_scale == "auto"

@@ -383,6 +383,14 @@ class TrainConfig(BaseModel):
                 update[section] = part.model_copy(update=missing)
         return self.model_copy(update=update)
 
+    def model_copy(self, *, update: dict[str, Any] | None = None, deep: bool = False) -> TrainConfig:
+        """pydantic's copy; an ``update`` naming settings by their flat or dotted names (``{"lr": 0.02}``, as
+        before the config was nested) goes through :meth:`updated`, so it is validated and lands in its component
+        instead of becoming a stray attribute."""
+        if update and any(key not in type(self).model_fields for key in update):
+            return self.updated(**update)
+        return super().model_copy(update=update, deep=deep)
+
     def updated(self, **values: Any) -> TrainConfig:
         """A validated copy with ``values`` (flat or dotted names) set."""
         return TrainConfig.model_validate(self.flat() | values)
