@@ -40,6 +40,9 @@ MOVED_MODULES = {
     "voxnerf.metrics": "voxnerf.inference.metrics", "voxnerf.video": "voxnerf.inference.video",
     "voxnerf.export": "voxnerf.inference.export", "voxnerf.outputs": "voxnerf.inference.encoding",
     "voxnerf.training.evals": "voxnerf.training.eval_passes",
+    "voxnerf.training.corrections": "voxnerf.training.stages.corrections",
+    "voxnerf.training.focal": "voxnerf.training.stages.focal",
+    "voxnerf.training.weight_decay": "voxnerf.training.stages.weight_decay",
 }
 
 

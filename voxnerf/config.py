@@ -215,7 +215,7 @@ class ScheduleConfig(_Section):
         description="L2 weight decay of the field's parameters (Adam's coupled form: the coefficient times each "
         "parameter joins its gradient), which keeps the hash grid's features from fitting the training images' "
         "noise; 'auto': in proportion to the variance of that noise, measured on the training images "
-        "(voxnerf/training/weight_decay.py); 0 leaves it out",
+        "(voxnerf/training/stages/weight_decay.py); 0 leaves it out",
     )
     coarse_to_fine: float = Field(
         default=0.0, ge=0, le=1,
@@ -242,7 +242,7 @@ class CorrectionsConfig(_Section):
         "(exposure and white balance that vary between frames), held at zero mean over the images so the field "
         "keeps their average; a rendered view takes its nearest training cameras' corrections (docs/engine.md). "
         "'auto': affine for a captured scan, none for a scene whose transforms.json says it is synthetic "
-        "(voxnerf/training/corrections.py)",
+        "(voxnerf/training/stages/corrections.py)",
     )
     pose_refinement: PoseRefinementMode = Field(json_schema_extra=JOB,
         default="auto",

@@ -1,6 +1,6 @@
 """Backward-compatible facade of :mod:`voxnerf.training` (``from voxnerf.trainer import train`` keeps working).
 
-The engine lives in ``voxnerf/training/``: set-up stages (``stages.py``), the loop (``loop.py``) and its
+The engine lives in ``voxnerf/training/``: set-up stages (``setup.py``, ``stages/``), the loop (``loop.py``) and its
 callbacks (``callbacks.py``), and ``train()`` in ``run.py``, which returns a
 :class:`~voxnerf.training.records.TrainReport` and sends :class:`~voxnerf.training.records.ProgressEvent`
 objects to ``on_progress``.

@@ -1,4 +1,4 @@
-"""Which real-scan corrections a run learns (voxnerf/training/corrections.py): ``auto`` per scene, through a
+"""Which real-scan corrections a run learns (voxnerf/training/stages/corrections.py): ``auto`` per scene, through a
 run's report, and the ``synthetic`` key that decides it."""
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from voxnerf.config import TrainConfig
 from voxnerf.data.scene import load_scene
 from voxnerf.errors import SceneError
 from voxnerf.files import REFINED_POSES
-from voxnerf.training.corrections import corrections_stage
 from voxnerf.training.run import train
 from voxnerf.training.stages import model_stage
+from voxnerf.training.stages.corrections import corrections_stage
 
 
 @pytest.fixture(scope="module")

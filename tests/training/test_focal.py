@@ -1,5 +1,5 @@
-"""The colour focal length checked against the prior (voxnerf/prior/focal_check.py, voxnerf/training/focal.py) and the
-scene seen through a corrected one (voxnerf/data/scene.py's with_focal_scale, voxnerf/inference/render.py's
+"""The colour focal length checked against the prior (voxnerf/prior/focal_check.py, voxnerf/training/stages/focal.py)
+and the scene seen through a corrected one (voxnerf/data/scene.py's with_focal_scale, voxnerf/inference/render.py's
 scene_as_trained)."""
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from voxnerf.prior.focal_check import check_focal, image_pairs
 from voxnerf.prior.loading import load_prior
 from voxnerf.prior.pseudo_depth import MeshCaster
 from voxnerf.synthetic import RoomSpec, make_room_scene
-from voxnerf.training.focal import focal_stage
 from voxnerf.training.run import train
+from voxnerf.training.stages.focal import focal_stage
 
 # 96x72 pixels, 12 training frames, a mesh prior: enough texture and parallax to see a focal length by.
 ROOM = RoomSpec(width=96, height=72, n_frames=48, train_every=4, n_gaps=0, gap_len=0, prior_kind="mesh")

@@ -1,4 +1,4 @@
-"""Sensor depth in training (voxnerf/training/stages.py): the prior fused from depth, the depth loss's target and
+"""Sensor depth in training (voxnerf/training/stages/): the prior fused from depth, the depth loss's target and
 its beta, and the proof that held-out frames' depth never enters either."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The set-up stages (voxnerf/training/stages.py): what each records, and why, on small stub inputs."""
+"""The set-up stages (voxnerf/training/stages/): what each records, and why, on small stub inputs."""
 
 from __future__ import annotations
 

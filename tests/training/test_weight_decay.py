@@ -1,4 +1,4 @@
-"""``field_weight_decay`` ``auto`` (voxnerf/training/weight_decay.py): a decay in proportion to the training
+"""``field_weight_decay`` ``auto`` (voxnerf/training/stages/weight_decay.py): a decay in proportion to the training
 images' noise, resolved once per run and said in the report."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from voxnerf.data.image_noise import images_noise_sigma
 from voxnerf.data.scene import load_scene
 from voxnerf.training.run import train
 from voxnerf.training.stages import model_stage
-from voxnerf.training.weight_decay import NOISE_DECAY, NOISE_FLOOR, weight_decay_stage
+from voxnerf.training.stages.weight_decay import NOISE_DECAY, NOISE_FLOOR, weight_decay_stage
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +95,7 @@ def test_a_decay_that_is_neither_auto_nor_a_small_non_negative_number_is_refused
 
 
 def test_a_large_scan_is_measured_on_a_bounded_sample_of_its_images():
-    from voxnerf.training.weight_decay import NOISE_IMAGES
+    from voxnerf.training.stages.weight_decay import NOISE_IMAGES
 
     image = np.full((8, 8, 3), 100, np.uint8)
     scene = SimpleNamespace(images=[image] * 100, train_indices=list(range(100)))

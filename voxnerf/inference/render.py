@@ -69,7 +69,7 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
 
 def scene_as_trained(scene: Scene, model: VoxNeRFModel) -> Scene:
     """``scene`` seen through the cameras ``model`` trained with: the colour focal lengths times the run's
-    ``focal_scale`` (:mod:`voxnerf.training.focal`; 1 for a checkpoint from before it). Every caller that renders
+    ``focal_scale`` (:mod:`voxnerf.training.stages.focal`; 1 for a checkpoint from before it). Every caller that renders
     or scores a scene's own views loads the scene through this."""
     scale = model.config.corrections.focal_scale
     return with_focal_scale(scene, scale if isinstance(scale, float) else 1.0)

@@ -224,7 +224,7 @@ def _write_scene(root: Path, spec: RoomSpec, splits: FrameSplits) -> None:
         meta.update({key: getattr(lens, key) for key in MODEL_COEFFICIENTS[lens.model]})
     if spec.write_depth:
         meta["depth_unit_scale_factor"] = DEPTH_UNIT_SCALE
-    meta["synthetic"] = True  # rendered with exact poses (voxnerf/training/corrections.py)
+    meta["synthetic"] = True  # rendered with exact poses (voxnerf/training/stages/corrections.py)
     drift = _drift(spec)
     meta["frames"] = _write_frames(root, spec, geom, splits.used, fl, drift)
     meta.update(_split_lists(splits))

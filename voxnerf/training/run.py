@@ -3,7 +3,7 @@
 It writes ``run_dir/checkpoint.pt`` (atomically: temp file + rename), ``run_dir/report.json`` (config, stages
 that ran and why, timings, the error-against-run-time history, final metrics) and
 ``run_dir/eval/<split>/<frame>.png``. The set-up stages run in the order of ``setup.py`` (their work is in
-``stages.py``, ``corrections.py``, ``weight_decay.py`` and ``focal.py``), the loop is ``loop.py``, its periodic
+``stages/``, one module per stage), the loop is ``loop.py``, its periodic
 duties ``callbacks.py``.
 
 ``should_stop()`` is asked between set-up stages, at every step and between the final evaluation's views: a

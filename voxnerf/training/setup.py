@@ -3,8 +3,9 @@
 A stage (:class:`SetupStage`) has a ``name`` and ``run(ctx)``: it reads what earlier stages made from the
 :class:`SetupContext`, puts its own product there (and its part of the report), and returns its
 :class:`StageRecord`, which says whether the stage applied to this run and why (``ran`` and ``why``), or None for
-the steps that only build (the model). The work of each stage lives in its own module (``stages.py``,
-``corrections.py``, ``weight_decay.py``, ``focal.py``); a stage here only wires its inputs and products.
+the steps that only build (the model). The work of each stage lives in its own module of
+:mod:`voxnerf.training.stages`, named as report.json names the stage; a stage here only wires its inputs and
+products.
 
 :func:`run_setup` runs :data:`SETUP_STAGES` in order: after each it keeps the report's config in step with the
 context's (stages resolve ``auto`` values), emits the stage's event and asks whether to stop (``StoppedInSetUp``).
@@ -24,12 +25,12 @@ from voxnerf.data.scene import Scene
 from voxnerf.prior.loading import GeometryPrior
 from voxnerf.prior.octree import SparseVoxelOctree
 from voxnerf.training import stages
-from voxnerf.training.corrections import corrections_stage
-from voxnerf.training.focal import focal_stage
 from voxnerf.training.pixels import TrainingPixels, training_pixels
 from voxnerf.training.prior_rays import PriorRayBank
 from voxnerf.training.records import StageRecord, TrainReport
-from voxnerf.training.weight_decay import weight_decay_stage
+from voxnerf.training.stages.corrections import corrections_stage
+from voxnerf.training.stages.focal import focal_stage
+from voxnerf.training.stages.weight_decay import weight_decay_stage
 
 
 @dataclass
