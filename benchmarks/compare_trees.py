@@ -3,8 +3,9 @@ refactoring that must not cost speed).
 
 Each measurement runs in its own process with ``PYTHONPATH`` set to one tree; the trees alternate in an
 ABBA order (before first in even rounds, after first in odd ones), so both see the same machine load and
-drift. Default path only (compiled step, the C kernel where it builds). Prints the medians and their
-ratios and, with ``--out``, replaces the marked section of a docs page.
+drift. Every run renders the same checkpoint (the first run's), so the render column compares the render code,
+not models whose weights differ run to run. Default path only (compiled step, the C kernel where it builds).
+Prints the medians and their ratios and, with ``--out``, replaces the marked section of a docs page.
 
     .venv/bin/python benchmarks/compare_trees.py --before /tmp/before --after . [--scene DIR] [--downscale N]
         [--iters 200] [--rounds 3] [--out docs/performance.md --section refactor-ab]
@@ -24,8 +25,9 @@ from pathlib import Path
 
 from docs_section import replace_section
 
-# Runs inside the measured tree: train, then time three 640x480 renders (rgb + depth) after a warm-up render
-# and keep their median.
+# Runs inside the measured tree: train, then time three 640x480 renders (rgb + depth) of the run ``render_run``
+# (every measurement renders the same checkpoint, the first run's, so the render column compares the render code,
+# not the models, whose weights differ run to run) after a warm-up render, and keep their median.
 CHILD = r"""
 import json, sys, time
 import numpy as np
@@ -37,11 +39,11 @@ try:
 except ImportError:  # a tree from before the engine's packages (0.1, flat modules)
     from voxnerf.cameras import Intrinsics
     from voxnerf.render import load_model, render
-scene, run, iters, downscale = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+scene, run, iters, downscale, render_run = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 cfg = TrainConfig(max_iters=iters, downscale=downscale, final_eval=False, eval_every_s=1e9)
 report = train(scene, run, cfg, resume=False, progress_bar=False)
 report = report if isinstance(report, dict) else report.to_json_dict()
-trained = load_model(run, "cpu")
+trained = load_model(render_run, "cpu")
 pose = np.eye(4)
 pose[:3, 3] = trained.model.transform.center
 intr = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
@@ -55,9 +57,11 @@ print(json.dumps({"samples_per_s": report["throughput"]["samples_per_s"], "rende
 """
 
 
-def measure(tree: Path, scene: Path, run: Path, iters: int, downscale: int) -> dict:
+def measure(tree: Path, scene: Path, run: Path, iters: int, downscale: int, render_run: Path | None = None) -> dict:
+    """Train ``iters`` steps in ``tree`` into ``run``, then time renders of ``render_run`` (default: ``run``)."""
     env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
-    out = subprocess.run([sys.executable, "-c", CHILD, str(scene), str(run), str(iters), str(downscale)],
+    out = subprocess.run([sys.executable, "-c", CHILD, str(scene), str(run), str(iters), str(downscale),
+                          str(render_run or run)],
                          env=env, cwd=tree, capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"{tree}: measurement failed:\n{out.stderr[-3000:]}")
@@ -73,7 +77,8 @@ def table(results: dict[str, list[dict]], args: argparse.Namespace) -> list[str]
         "",
         f"Scene: {args.scene or 'the synthetic 160x120 room'}, downscale {args.downscale}, default config "
         f"(compiled step, C kernel), {args.iters} iterations per run; medians of {args.rounds} rounds in ABBA "
-        "order, each run in its own process; a run's render time is the median of three renders.",
+        "order, each run in its own process; a run's render time is the median of three renders of one checkpoint, "
+        "the first run's, the same for every run (the renders compare the code, not the models).",
         "",
         "| tree | training samples/s | 640x480 render (rgb + depth) | runs (samples/s) |",
         "| --- | --- | --- | --- |",
@@ -105,11 +110,12 @@ def main() -> int:
             from voxnerf.synthetic import RoomSpec, make_room_scene
 
             scene = make_room_scene(Path(tmp) / "room", RoomSpec())
+        reference = Path(tmp) / "before_0"  # the first run: the checkpoint every measurement renders
         for i in range(args.rounds):
             order = (("before", args.before), ("after", args.after))
             for name, tree in order if i % 2 == 0 else order[::-1]:
                 results[name].append(measure(tree, Path(scene).resolve(), Path(tmp) / f"{name}_{i}", args.iters,
-                                             args.downscale))
+                                             args.downscale, reference))
                 print(name, results[name][-1], flush=True)
     lines = table(results, args)
     if args.out:
