@@ -33,3 +33,18 @@ def test_a_tree_that_cannot_train_is_named(tmp_path):
     (broken / "voxnerf" / "__init__.py").write_text("raise ImportError('broken tree')\n")
     with pytest.raises(SystemExit, match=f"{broken}: measurement failed"):
         compare_trees.measure(broken, tmp_path / "scene", tmp_path / "run", 1, 1)
+
+
+def test_a_measurement_renders_the_run_it_is_given_not_its_own(tmp_path_factory, tmp_path):
+    from synthetic_fixtures import make_micro_scene
+
+    scene = make_micro_scene(tmp_path_factory, "compare-trees")
+    tree = Path(__file__).resolve().parents[1]
+    own = compare_trees.measure(tree, scene, tmp_path / "own", 1, 1)
+    assert own["samples_per_s"] > 0 and own["render_s"] > 0
+    elsewhere = compare_trees.measure(tree, scene, tmp_path / "again", 1, 1, render_run=tmp_path / "own")
+    assert elsewhere["render_s"] > 0
+    missing = tmp_path / "no-such-run"
+    with pytest.raises(SystemExit, match="no checkpoint"):
+        compare_trees.measure(tree, scene, tmp_path / "third", 1, 1, render_run=missing)
+    assert (tmp_path / "third" / "checkpoint.pt").is_file()  # it trained its own run, then rendered the given one
