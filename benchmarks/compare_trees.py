@@ -110,13 +110,13 @@ def main() -> int:
             from voxnerf.synthetic import RoomSpec, make_room_scene
 
             scene = make_room_scene(Path(tmp) / "room", RoomSpec())
-        reference = Path(tmp) / "before_0"  # the first run: the checkpoint every measurement renders
-        for i in range(args.rounds):
-            order = (("before", args.before), ("after", args.after))
-            for name, tree in order if i % 2 == 0 else order[::-1]:
-                results[name].append(measure(tree, Path(scene).resolve(), Path(tmp) / f"{name}_{i}", args.iters,
-                                             args.downscale, reference))
-                print(name, results[name][-1], flush=True)
+        order = (("before", args.before), ("after", args.after))
+        runs = [(name, tree, Path(tmp) / f"{name}_{i}") for i in range(args.rounds)
+                for name, tree in (order if i % 2 == 0 else order[::-1])]
+        reference = runs[0][2]  # the first run: the checkpoint every measurement renders
+        for name, tree, run in runs:
+            results[name].append(measure(tree, Path(scene).resolve(), run, args.iters, args.downscale, reference))
+            print(name, results[name][-1], flush=True)
     lines = table(results, args)
     if args.out:
         replace_section(args.out, args.section, "\n".join(lines))

@@ -48,9 +48,12 @@ MOVED_MODULES = {
 
 def moved_to(old: str) -> str | None:
     """The module an old name now imports (``voxnerf.importers.colmap`` -> ``voxnerf.data.importers.colmap``)."""
-    for prefix, new in MOVED_MODULES.items():
-        if old == prefix or old.startswith(prefix + "."):
-            return new + old[len(prefix):]
+    head, tail = old, ""
+    while head.startswith("voxnerf."):  # the name, then each package above it: a lookup per level
+        if head in MOVED_MODULES:
+            return MOVED_MODULES[head] + tail
+        head, _, last = head.rpartition(".")
+        tail = f".{last}{tail}"
     return None
 
 

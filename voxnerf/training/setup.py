@@ -208,8 +208,10 @@ def run_setup(ctx: SetupContext, emit: Callable[[StageRecord, int], None], stop_
     "auto" values resolved so far), the stage's record goes to ``emit`` (with the iteration the run starts
     from) and ``stop_point`` may stop the set-up."""
     for stage in setup_stages:
+        before = ctx.cfg
         record = stage.run(ctx)
-        ctx.report.config = ctx.cfg.flat()
+        if ctx.cfg is not before:  # the stage resolved a setting
+            ctx.report.config = ctx.cfg.flat()
         if record is not None:
             emit(record, ctx.iteration)
         stop_point()
