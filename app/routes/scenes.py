@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
 from app.core import jobstore, storage
+from app.core.disk_space import require_room
 from app.core.dispatch import send
 from app.core.jobstore import JOBS
 from app.core.redact import public_error
@@ -91,9 +92,18 @@ async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
             headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)},
         )
     try:
+        declared = _declared_length(request)  # the body is not read yet: a refused upload writes nothing
+        await run_in_threadpool(require_room, settings, declared, what=f"an upload of {declared} bytes")
         return await _receive_scene(request, settings)
     finally:
         slots.release()
+
+
+def _declared_length(request: Request) -> int:
+    """The request's ``Content-Length`` (0 when absent or not a number: a chunked body is checked once it is
+    unpacked, and cut off at ``max_upload_bytes`` meanwhile)."""
+    value = request.headers.get("content-length", "")
+    return int(value) if value.isdigit() else 0
 
 
 def _upload_slots(request: Request, settings: Settings) -> RenderSlots:

@@ -10,7 +10,10 @@ store it atomically.
 3. a validation process unpacks and checks it under a memory and a time limit (:mod:`app.uploads.sandbox`
    runs :mod:`app.uploads.validation`, whose docstring lists its checks): the API process parses nothing the
    client sent and never imports torch;
-4. only then one ``os.replace`` of the staging scene into ``data_dir/scenes/<id>``, and, when ``storage_url``
+4. the room on disk is checked again with the scene unpacked (:func:`app.core.disk_space.require_room`: the
+   data directory's quota and the free-space floor; the route checked the declared size before the body was
+   read), and a disk that fills up while the upload is written is answered the same way (507);
+5. only then one ``os.replace`` of the staging scene into ``data_dir/scenes/<id>``, and, when ``storage_url``
    is set, its upload to the object store (:func:`app.core.storage.publish_scene`).
 
 Any failure removes the staging directory, so a refused upload leaves nothing behind.
@@ -18,6 +21,7 @@ Any failure removes the staging directory, so a refused upload leaves nothing be
 
 from __future__ import annotations
 
+import errno
 import logging
 import shutil
 import tempfile
@@ -27,6 +31,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from app.core import jobstore, storage
+from app.core.disk_space import InsufficientStorage, require_room
 from app.core.settings import Settings
 from app.uploads.rules import (
     StagedUpload,
@@ -130,7 +135,14 @@ def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpl
     try:
         upload = stage(root)
         validated = validate_in_child(upload, settings)
+        archive_bytes = upload.archive.stat().st_size if upload.archive is not None else 0
+        require_room(settings, counted_apart=archive_bytes, what=f"the scene ({validated.size_bytes} bytes unpacked)")
         return _commit(settings, upload.root, name, validated.summary, validated.size_bytes)
+    except OSError as err:
+        if err.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise InsufficientStorage(f"the server's disk filled up while the upload was stored ({err.strerror}); "
+                                      "nothing was kept: free space, then upload again") from None
+        raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
