@@ -175,20 +175,24 @@ def _train_claimed(settings: Settings, job, lease: Lease) -> dict | None:
 def _train_and_report(settings: Settings, job, lease: Lease, writer: ProgressWriter) -> dict:
     """Fetch what the job needs, train it and return its final columns from the report."""
     config = job_config(settings, job.options)
-    scene_dir = storage.ensure_scene(settings, job.scene_id)
-    _kill_if_poison_test(settings, job.scene_id)
-    run_dir = storage.ensure_run(settings, job.id)
-    with storage.RunPublisher(settings, job.id, run_dir, may_upload=lease.still_owned):
-        report = train(
-            scene_dir,
-            run_dir,
-            config,
-            on_progress=writer,
-            should_stop=lease.should_stop,
-            resume=True,
-            progress_bar=False,
-            may_write=lease.still_owned,
-        )
+    with (storage.cache_entry_in_use(settings, storage.SCENES, job.scene_id),
+          storage.cache_entry_in_use(settings, storage.RUNS, job.id)):
+        storage.prune_cache(settings)  # room for what is fetched next (an object store's cache only)
+        scene_dir = storage.ensure_scene(settings, job.scene_id)
+        _kill_if_poison_test(settings, job.scene_id)
+        run_dir = storage.ensure_run(settings, job.id)
+        with storage.RunPublisher(settings, job.id, run_dir, may_upload=lease.still_owned):
+            report = train(
+                scene_dir,
+                run_dir,
+                config,
+                on_progress=writer,
+                should_stop=lease.should_stop,
+                resume=True,
+                progress_bar=False,
+                may_write=lease.still_owned,
+            )
+    storage.prune_cache(settings)  # the run grew
     state, values = jobstore.report_outcome(settings, job.id, report, writer.progress)
     return {"state": state, **values}
 
@@ -203,7 +207,10 @@ def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:
     """Render ``request`` with job ``job_id``'s model (loaded through the cache)."""
     settings = get_settings()
     try:
-        trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
+        with storage.cache_entry_in_use(settings, storage.RUNS, job_id):
+            if storage.open_store(settings) is not None and not (settings.runs_dir / job_id / CHECKPOINT).is_file():
+                storage.prune_cache(settings)  # room for the checkpoint about to be fetched
+            trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
     except (RunError, storage.StorageError) as err:
         return RenderOutcome(409, detail=f"job {job_id} cannot be rendered: {err}")
     try:  # the scene's default size is only known here, so the pixel limit is checked here too

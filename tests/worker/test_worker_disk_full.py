@@ -33,6 +33,7 @@ OPTIONS = {"max_iters": 60, "compile": False, "downscale": 2}
 FULL_DISK = '''
 import errno
 import os
+from pathlib import Path
 
 _COUNT = Path({count!r})
 _ALLOWED = {allowed}
