@@ -336,6 +336,60 @@ def test_service_with_separate_data_dirs(tmp_path, moto_endpoint, store_url):
         redis.stop()
 
 
+def test_a_worker_cache_past_its_size_is_pruned_and_fetched_again(tmp_path, tmp_path_factory, moto_endpoint,
+                                                                  store_url):
+    """Real workers whose cache may hold 1 byte (``VOXNERF_WORKER_CACHE_BYTES``): after training, the train
+    worker removes the scene and the run (the store holds both); a render fetches the run again, and a second
+    job on the scene fetches the scene again."""
+    from synthetic_fixtures import make_micro_scene
+
+    redis = start_redis(tmp_path / "redis")
+    common = {
+        "VOXNERF_STORAGE_URL": store_url,
+        "VOXNERF_STORAGE_ENDPOINT_URL": moto_endpoint,
+        "VOXNERF_STORAGE_KEY": KEY,
+        "VOXNERF_STORAGE_SECRET": SECRET,
+        "VOXNERF_DATABASE_URL": f"sqlite:///{tmp_path / 'jobs.sqlite'}",
+        "OMP_NUM_THREADS": "1",
+    }
+    api = workers = None
+    try:
+        api = start_service(tmp_path / "api", broker_url=redis.url, settings=common, workers=False)
+        worker_data = tmp_path / "workers" / "data"
+        worker_data.mkdir(parents=True)
+        workers = Service(tmp_path / "workers", dict(api.env, VOXNERF_DATA_DIR=str(worker_data),
+                                                     VOXNERF_WORKER_CACHE_BYTES="1"), api.port, None, "redis")
+        workers.start_worker("train")
+        workers.start_worker("render")
+        api.wait_healthy()
+        with api.client() as client:
+            archive = zip_scene(make_micro_scene(tmp_path_factory, "cache-scene"))
+            scene_id = client.post("/scenes", files={"file": ("room.zip", archive, "application/zip")}).json()["id"]
+
+            def trained() -> dict:
+                response = client.post(f"/scenes/{scene_id}/jobs", json={"max_iters": 2, "compile": False})
+                assert response.status_code == 202, response.text
+                job_id = response.json()["id"]
+                job = wait_for(lambda: (j := client.get(f"/jobs/{job_id}").json())["state"] in (
+                    "succeeded", "failed", "cancelled") and j, 300, f"job {job_id} to finish", 0.5)
+                assert job["state"] == "succeeded", f"{job}\n{workers.logs()}"
+                return job
+
+            job = trained()
+            wait_for(lambda: not any(any((worker_data / kind).iterdir()) for kind in ("scenes", "runs")), 30,
+                     "the train worker to prune its cache")
+            assert "worker cache: removed" in (workers.root / "worker-train.log").read_text()
+            response = client.post("/render", json={"job_id": job["id"], "transform_matrix": np.eye(4).tolist(),
+                                                    "width": 16, "height": 12})
+            assert response.status_code == 200, f"{response.text}\n{workers.logs()}"
+            trained()  # the scene is fetched again
+    finally:
+        for service in (workers, api):
+            if service is not None:
+                service.stop()
+        redis.stop()
+
+
 def test_upload_refused_with_503_when_the_store_is_down(tmp_path):
     """The API keeps no scene the store did not take: no directory, no row, a 503 naming the cause."""
     from app.core import jobstore
