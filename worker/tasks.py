@@ -150,7 +150,7 @@ def disk_full_outcome(settings: Settings, job, cause: OSError, progress: float) 
     log.warning("job %s: %s; stopped, its checkpoint of iteration %d kept", job.id, why, iteration)
     return {"state": "cancelled", "stage": "cancelled", "iteration": iteration, "progress": progress, "eta_s": None,
             "error": public_error(f"{why}; stopped with its last checkpoint (iteration {iteration}) kept, which "
-                                  "renders and outputs use; free space and train again to continue", settings)}
+                                  "renders and outputs use; free space before training again", settings)}
 
 
 def _train_claimed(settings: Settings, job, lease: Lease) -> dict | None:
