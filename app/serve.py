@@ -25,7 +25,7 @@ from app.core.celery_app import OUTPUTS_QUEUE, RENDER_QUEUE, TRAIN_QUEUE
 from app.core.redact import install_log_masking
 from app.core.settings import get_settings
 from app.main import create_app
-from app.origin_guard import UnsafeBindError, check_bind
+from app.origin_guard import SERVER_OPTIONS, UnsafeBindError, check_bind
 
 STOP_GRACE_S = 15.0
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
@@ -91,7 +91,7 @@ def serve(host: str, port: int, workers: bool = True) -> None:
         log.info("data in %s; broker %s", settings.data_dir, settings.broker_url or "embedded filesystem queue")
         try:
             if not received:  # a signal during start-up: stop at once
-                uvicorn.run(create_app(settings), host=host, port=port)
+                uvicorn.run(create_app(settings), host=host, port=port, **SERVER_OPTIONS)
         finally:
             if received:
                 log.info("received %s: stopping the workers", signal.Signals(received[0]).name)
