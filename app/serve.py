@@ -4,7 +4,8 @@ command; ``python -m app.serve --api-only`` serves the API alone (the API contai
 Both refuse to listen beyond loopback without an API token (:func:`app.origin_guard.check_bind`).
 SIGTERM and SIGINT both stop the server and then the workers: uvicorn catches either signal while it serves
 and raises it again once it has shut down, so :func:`serve` installs handlers that only note the signal for
-that moment; the workers are then stopped in the ``finally`` whichever signal it was.
+that moment; the workers are then stopped in the ``finally`` whichever signal it was. SIGKILL cannot be caught:
+each worker watches this process and stops itself the same way when it dies (``worker.parent_watch``).
 """
 
 from __future__ import annotations
@@ -33,9 +34,12 @@ log = logging.getLogger(__name__)
 
 
 def _spawn_worker(queue: str) -> subprocess.Popen:
-    """A worker process for ``queue`` in its own process group (so stopping it also stops its pool)."""
+    """A worker process for ``queue`` in its own process group (so stopping it also stops its pool), which
+    stops itself as :func:`_stop_all` would when this process dies without stopping it (SIGKILL)."""
     return subprocess.Popen(
-        [sys.executable, "-m", "worker", "--queues", queue, "--concurrency", "1"], start_new_session=True
+        [sys.executable, "-m", "worker", "--queues", queue, "--concurrency", "1",
+         "--exit-with-parent", str(os.getpid()), "--stop-grace-s", str(STOP_GRACE_S)],
+        start_new_session=True,
     )
 
 
