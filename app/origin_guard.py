@@ -205,6 +205,9 @@ def log_exposure(settings: Settings) -> None:
         )
     else:
         log.info("no API token set: answering loopback clients only")
+    if settings.api_token is None and "*" in settings.allowed_hosts:
+        log.warning("VOXNERF_ALLOWED_HOSTS holds '*' and no VOXNERF_API_TOKEN is set: any web page whose name "
+                    "resolves to this machine (DNS rebinding) can use the service")
 
 
 def _origin_key(scheme: str, netloc: str) -> tuple[str, int | None] | None:

@@ -24,7 +24,7 @@ from service_fixtures import free_port, wait_for
 
 from app.core.settings import Settings
 from app.main import create_app
-from app.origin_guard import SERVER_OPTIONS, host_allowed
+from app.origin_guard import SERVER_OPTIONS, host_allowed, log_exposure
 
 TOKEN = "rebinding-token"
 JOB_ID = "0" * 32
@@ -147,6 +147,14 @@ def test_a_request_without_a_host_header_is_refused(tmp_path):
 )
 def test_host_allowed(host, allowed):
     assert host_allowed(host, []) is allowed
+
+
+def test_any_host_without_a_token_is_a_start_up_warning(tmp_path, caplog):
+    with caplog.at_level("WARNING", logger="app.origin_guard"):
+        log_exposure(_settings(tmp_path, allowed_hosts="*", api_token=TOKEN))
+        assert not caplog.records
+        log_exposure(_settings(tmp_path, allowed_hosts="*"))
+    assert [r.levelname for r in caplog.records] == ["WARNING"] and "DNS rebinding" in caplog.text
 
 
 def test_allowed_hosts_and_trusted_proxies_read_from_the_environment(monkeypatch, tmp_path):
