@@ -262,10 +262,7 @@ class RequestGuardMiddleware:
             return
         client = scope.get("client")
         if not remote_allowed(self.settings) and not request_is_local(client, scope["headers"], self.trusted_proxies):
-            proxied = _proxy_header_names(scope["headers"])
-            peer = client[0] if client else "a Unix socket"
-            await _refuse(send, PROXIED_REFUSED.format(headers=", ".join(proxied), peer=peer) if proxied
-                          else REMOTE_REFUSED)
+            await _refuse(send, self._remote_refusal(client, scope["headers"]))
             return
         headers = {name.lower(): value for name, value in scope["headers"]}
         host = headers[b"host"].decode("latin-1") if b"host" in headers else None
@@ -285,3 +282,12 @@ class RequestGuardMiddleware:
             await send(message)
 
         await self.app(scope, receive, send_with_headers)
+
+    def _remote_refusal(self, client: tuple[str, int] | None, headers: Sequence[tuple[bytes, bytes]]) -> str:
+        """Why a request is refused as remote: it came through a proxy that is not trusted, or its client
+        (the peer, or the one a trusted proxy named) is not on this machine."""
+        proxied = _proxy_header_names(headers)
+        if proxied and (client is None or not _in_networks(client[0], self.trusted_proxies)):
+            peer = client[0] if client else "a Unix socket"
+            return PROXIED_REFUSED.format(headers=", ".join(proxied), peer=peer)
+        return REMOTE_REFUSED

@@ -214,3 +214,5 @@ def test_a_trusted_proxy_names_the_client(tmp_path, headers, status):
     with _serving(settings, **SERVER_OPTIONS) as url, _client(url, None) as client:
         response = client.get("/scenes", headers=headers)
     assert response.status_code == status, response.text
+    if status == 403:  # the proxy is trusted: its client is remote, and the detail says that alone
+        assert "only loopback clients" in response.json()["detail"] and "proxy" not in response.json()["detail"]
