@@ -297,14 +297,15 @@ def _lens(bag: _Bag, topic: str, model: str, d: list[float]) -> tuple[str, dict]
 
 
 def _transforms(bag: _Bag, skip_child: str | None = None) -> TransformTree:
-    """The tree of ``/tf`` and ``/tf_static`` (leaving out the dynamic edge to ``skip_child``)."""
+    """The tree of ``/tf`` and ``/tf_static``, leaving out the edge to ``skip_child`` (a pose topic's body frame,
+    whose pose the topic gives instead)."""
     tree = TransformTree()
     for topic, static in ((TF_STATIC_TOPIC, True), (TF_TOPIC, False)):
         if bag.topics.get(topic) != TF_MESSAGE:
             continue
         for _, msg in bag.messages(topic):
             for tf in msg.transforms:
-                if not static and tf.child_frame_id.lstrip("/") == skip_child:
+                if tf.child_frame_id.lstrip("/") == skip_child:
                     continue
                 t, r = tf.transform.translation, tf.transform.rotation
                 try:
@@ -351,7 +352,8 @@ def _pose_tree(bag: _Bag, options: RosbagOptions, camera_frame: str) -> tuple[Tr
         return _tree_with_poses(bag, pose_topics[0], camera_frame, options.pose_frame), f"pose topic {pose_topics[0]}"
     if pose_topics:
         raise bag.error(f"no {TF_TOPIC} transform moves the camera frame {camera_frame!r} and there are "
-                        f"{len(pose_topics)} pose topics ({', '.join(pose_topics)}): choose one with --pose-topic TOPIC")
+                        f"{len(pose_topics)} pose topics ({', '.join(pose_topics)}): choose one with "
+                        "--pose-topic TOPIC")
     reached = "only static transforms reach it" if camera_frame in tree.frames() else (
         f"{TF_TOPIC} and {TF_STATIC_TOPIC} do not reach it")
     raise bag.error(f"no pose for the camera frame {camera_frame!r}: {reached}, and there is no PoseStamped, "
@@ -429,9 +431,10 @@ def _raw_pixels(msg, channels: int, dtype: np.dtype) -> np.ndarray:
     row = msg.width * channels * dtype.itemsize
     data = np.asarray(msg.data, dtype=np.uint8)
     if msg.step < row or data.size < msg.step * msg.height:
-        raise ValueError(f"{data.size} bytes for {msg.width}x{msg.height}x{channels} {dtype.name} with step {msg.step}")
-    rows = data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, :row]
-    return np.ascontiguousarray(rows).view(dtype).reshape(msg.height, msg.width, channels).astype(dtype.newbyteorder("="))
+        raise ValueError(f"{data.size} bytes for {msg.width}x{msg.height}x{channels} {dtype.name} "
+                         f"with step {msg.step}")
+    rows = np.ascontiguousarray(data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, :row])
+    return rows.view(dtype).reshape(msg.height, msg.width, channels).astype(dtype.newbyteorder("="))
 
 
 def _colour_file(msg, msgtype: str) -> tuple[str, bytes, tuple[int, int]]:
@@ -512,30 +515,45 @@ class _Plan:
     depth_topic: str | None
     camera: _Camera
     depth_camera: _Camera | None
-    frames: list[_Image]
+    frames: list[_Image]  # kept, in capture order
     total: int  # colour images in the bag
     source: str  # where the poses came from
     fixed: str
     camera_frame: str
 
 
-def _plan(bag: _Bag, options: RosbagOptions) -> _Plan:
-    encodings = _encodings(bag)
+def _colour_camera(bag: _Bag, options: RosbagOptions, encodings: dict) -> tuple[str, list[_Image], str, str,
+                                                                                  _Camera]:
+    """The colour topic, its images (headers), the camera frame, the CameraInfo topic and its camera."""
     colour_topic = _colour_topic(bag, options, encodings)
     colour_type = bag.topics[colour_topic]
     colour = _headers(bag, colour_topic, encodings.get(colour_topic) if colour_type == IMAGE else None)
     frame_ids = sorted({image.frame_id for image in colour})
     if len(frame_ids) != 1 or not frame_ids[0]:
         raise bag.error(f"the images must name one camera frame in header.frame_id, got {frame_ids}", colour_topic)
-    camera_frame = frame_ids[0]
-    depth_topic = _depth_topic(bag, options, encodings, colour_topic)
     first = bag.first(colour_topic)
     size = (int(first.width), int(first.height)) if colour_type == IMAGE else None
-    info_topic = _camera_info_topic(bag, colour_topic, camera_frame, options.camera_info, None, "--camera-info")
+    info_topic = _camera_info_topic(bag, colour_topic, frame_ids[0], options.camera_info, None, "--camera-info")
     if info_topic is None:
         raise bag.error(f"no sensor_msgs/CameraInfo topic for {colour_topic} (name one with --camera-info TOPIC)")
-    camera = _camera(bag, info_topic, size)
+    return colour_topic, colour, frame_ids[0], info_topic, _camera(bag, info_topic, size)
 
+
+def _depth_camera(bag: _Bag, plan: _Plan, tree: TransformTree, encoding: str, info_topic: str,
+                  tolerance: float) -> None:
+    """Match the depth images to the kept frames and find the depth camera (``plan.depth_camera``)."""
+    depth = _headers(bag, plan.depth_topic, encoding)
+    _check_depth_frame(bag, tree, plan.depth_topic, depth[0].frame_id, plan.camera_frame)
+    depth_info = _camera_info_topic(bag, plan.depth_topic, depth[0].frame_id, None, info_topic, "--camera-info")
+    if depth_info is not None:
+        plan.depth_camera = _camera(bag, depth_info, None)
+    _match_depth(bag, plan.frames, depth, tolerance)
+
+
+def _plan(bag: _Bag, options: RosbagOptions) -> _Plan:
+    encodings = _encodings(bag)
+    colour_topic, colour, camera_frame, info_topic, camera = _colour_camera(bag, options, encodings)
+    depth_topic = _depth_topic(bag, options, encodings, colour_topic)
     tree, source = _pose_tree(bag, options, camera_frame)
     fixed = (options.fixed_frame or tree.root(camera_frame)).lstrip("/")
     if fixed not in tree.frames() or not tree.connected(fixed, camera_frame):
@@ -544,27 +562,26 @@ def _plan(bag: _Bag, options: RosbagOptions) -> _Plan:
     if tree.ignored:
         bag.notes.append(f"{tree.ignored} transform(s) ignored: non-finite values or a quaternion far from unit length")
     frames = _by_motion(bag, _pose_frames(bag, colour, tree, fixed, camera_frame), options)
-
-    depth_camera = None
+    plan = _Plan(colour_topic, depth_topic, camera, None, frames, len(colour), source, fixed, camera_frame)
     if depth_topic is not None:
-        depth = _headers(bag, depth_topic, encodings[depth_topic])
-        _check_depth_frame(bag, tree, depth_topic, depth[0].frame_id, camera_frame)
-        depth_info = _camera_info_topic(bag, depth_topic, depth[0].frame_id, None, info_topic, "--camera-info")
-        if depth_info is not None:
-            depth_camera = _camera(bag, depth_info, None)
-        _match_depth(bag, frames, depth, options.sync_tolerance)
+        _depth_camera(bag, plan, tree, encodings[depth_topic], info_topic, options.sync_tolerance)
     if not frames:
         raise bag.error(f"no usable frame: all {len(colour)} colour images of {colour_topic} are dropped "
                         f"({bag.skipped})")
-    return _Plan(colour_topic, depth_topic, camera, depth_camera, frames, len(colour), source, fixed, camera_frame)
+    return plan
 
 
-def _write_images(bag: _Bag, root: Path, plan: _Plan) -> dict[int, dict]:
-    """Colour (and matched depth) files of the kept frames; frame entries by colour message index."""
+def _write(root: Path, name: str, data: bytes) -> None:
+    (root / name).parent.mkdir(parents=True, exist_ok=True)
+    (root / name).write_bytes(data)
+
+
+def _write_colour(bag: _Bag, root: Path, plan: _Plan, order: dict[int, int]) -> dict[int, dict]:
+    """The kept frames' colour files; their transforms.json entries by colour message index."""
     entries: dict[int, dict] = {}
-    order = {frame.index: n for n, frame in enumerate(plan.frames)}
     wanted = {frame.index: frame for frame in plan.frames}
     msgtype = bag.topics[plan.colour_topic]
+    want_size = (plan.camera.keys["w"], plan.camera.keys["h"])
     for index, msg in bag.messages(plan.colour_topic):
         if index not in wanted:
             continue
@@ -572,29 +589,30 @@ def _write_images(bag: _Bag, root: Path, plan: _Plan) -> dict[int, dict]:
             suffix, data, size = _colour_file(msg, msgtype)
         except (ValueError, OSError) as err:
             raise bag.error(f"message {index}: {writer.one_line(err)}", plan.colour_topic) from None
-        if size != (plan.camera.keys["w"], plan.camera.keys["h"]):
-            raise bag.error(f"message {index} is {size[0]}x{size[1]}, the CameraInfo "
-                            f"{plan.camera.keys['w']}x{plan.camera.keys['h']}", plan.colour_topic)
+        if size != want_size:
+            raise bag.error(f"message {index} is {size[0]}x{size[1]}, the CameraInfo {want_size[0]}x{want_size[1]}",
+                            plan.colour_topic)
         name = f"images/frame_{order[index]:05d}{suffix}"
-        (root / name).parent.mkdir(parents=True, exist_ok=True)
-        (root / name).write_bytes(data)
+        _write(root, name, data)
         entries[index] = {"file_path": name, "transform_matrix": writer.pose_list(wanted[index].c2w)}
-    if plan.depth_topic is not None:
-        depth_of = {frame.depth.index: frame.index for frame in plan.frames if frame.depth is not None}
-        for index, msg in bag.messages(plan.depth_topic):
-            if index not in depth_of:
-                continue
-            try:
-                suffix, data, size = _depth_file(msg)
-            except ValueError as err:
-                raise bag.error(f"message {index}: {writer.one_line(err)}", plan.depth_topic) from None
-            _check_depth_size(bag, plan, size)
-            colour_index = depth_of[index]
-            name = f"depth/frame_{order[colour_index]:05d}{suffix}"
-            (root / name).parent.mkdir(parents=True, exist_ok=True)
-            (root / name).write_bytes(data)
-            entries[colour_index]["depth_file_path"] = name
     return entries
+
+
+def _write_depth(bag: _Bag, root: Path, plan: _Plan, order: dict[int, int], entries: dict[int, dict]) -> None:
+    """The matched depth files, named as their colour frames; ``depth_file_path`` added to ``entries``."""
+    depth_of = {frame.depth.index: frame.index for frame in plan.frames if frame.depth is not None}
+    for index, msg in bag.messages(plan.depth_topic):
+        if index not in depth_of:
+            continue
+        try:
+            suffix, data, size = _depth_file(msg)
+        except ValueError as err:
+            raise bag.error(f"message {index}: {writer.one_line(err)}", plan.depth_topic) from None
+        _check_depth_size(bag, plan, size)
+        colour_index = depth_of[index]
+        name = f"depth/frame_{order[colour_index]:05d}{suffix}"
+        _write(root, name, data)
+        entries[colour_index]["depth_file_path"] = name
 
 
 def _check_depth_size(bag: _Bag, plan: _Plan, size: tuple[int, int]) -> None:
@@ -610,7 +628,10 @@ def _check_depth_size(bag: _Bag, plan: _Plan, size: tuple[int, int]) -> None:
 
 
 def _fill(root: Path, bag: _Bag, plan: _Plan, splits: PaperSplitRule | None) -> dict:
-    entries = _write_images(bag, root, plan)
+    order = {frame.index: n for n, frame in enumerate(plan.frames)}
+    entries = _write_colour(bag, root, plan, order)
+    if plan.depth_topic is not None:
+        _write_depth(bag, root, plan, order, entries)
     meta: dict = dict(plan.camera.keys)
     depth_frames = sum("depth_file_path" in e for e in entries.values())
     if depth_frames:

@@ -18,7 +18,7 @@ import numpy as np
 
 from voxnerf.data.importers.ros_transforms import matrix_quaternion, quaternion_matrix
 
-REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "redkitchen"
+REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 CAMERA_FRAME = "camera_color_optical_frame"
 OPTICAL_IN_LINK = np.array([-0.5, 0.5, -0.5, 0.5])  # REP 103: z forward, x right, y down in a x-forward link frame
@@ -85,6 +85,7 @@ class BagSpec:
     depth_encoding: str | None = "16UC1"  # 16UC1, 32FC1, None for no depth, or any other string as written
     distortion: tuple[str, list[float]] = ("plumb_bob", [0.0, 0.0, 0.0, 0.0, 0.0])
     tf: str = "exact"  # "exact" (samples at the image stamps), "bracket" (samples 10 ms either side), "none"
+    tf_frames: int | None = None  # /tf for the first this many images only (None: all)
     pose_topic: str | None = None  # "pose" (PoseStamped of the optical frame in map), "odom" (Odometry of base_link)
     extra_colour: bool = False  # a second rgb8 topic (an infrared-like camera) to make the choice ambiguous
     image_topic: str = "/camera/color/image_raw"
@@ -113,7 +114,6 @@ def write_bag(path: Path, spec: BagSpec, kind: str = "sqlite3") -> Path:
 
     if kind == "ros1":
         from rosbags.rosbag1 import Writer
-
         from rosbags.typesys import get_types_from_msg
 
         store = get_typestore(Stores.ROS1_NOETIC)
@@ -167,7 +167,9 @@ def _messages(spec: BagSpec, m: _Messages):
             mm = iio.imread(frame.depth)[::step, ::step]
             yield spec.depth_topic, m.depth(frame.stamp, CAMERA_FRAME, mm, spec.depth_encoding), frame.stamp
         t_map_odom, t_odom_base = map_to_odom(i), base_pose(frame, i)
-        if spec.tf == "exact":
+        if spec.tf_frames is not None and i >= spec.tf_frames:
+            pass
+        elif spec.tf == "exact":
             yield "/tf", m.tf([("map", "odom", frame.stamp, t_map_odom), ("odom", "base_link", frame.stamp,
                                                                               t_odom_base)]), frame.stamp
         elif spec.tf == "bracket":
