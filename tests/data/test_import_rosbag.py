@@ -12,8 +12,8 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pytest
-
 from rosbag_fixtures import REDKITCHEN, BagSpec, make_frames, write_bag
+
 from voxnerf.cli import main
 from voxnerf.data.importers import PaperSplitRule, RosbagOptions, import_rosbag, paper_splits
 from voxnerf.errors import SceneError
@@ -195,7 +195,7 @@ def refused(bag: Path, out: Path, match: str, options: RosbagOptions = ALL) -> N
     ({"tf": "none"}, r"no pose for the camera frame 'camera_color_optical_frame': only static transforms reach it, "
                      r"and there is no PoseStamped.*--pose-topic"),
     ({"depth_encoding": "mono16"}, r"/camera/aligned_depth_to_color/image_raw: depth encoding 'mono16' is not "
-                                   r"supported \(16UC1 millimetres or 32FC1 metres; --depth none imports colour only\)"),
+     r"supported \(16UC1 millimetres or 32FC1 metres; --depth none imports colour only\)"),
     ({"extra_colour": True}, r"2 colour image topics \(/camera/color/image_raw, /camera/infra_rgb/image_raw\): "
                              r"choose one with --rgb TOPIC"),
     ({"colour_encoding": "yuv422"}, r"no camera topic"),
