@@ -79,10 +79,11 @@ class BagSpec:
     """What goes into a test bag; every field has the ordinary robot's value."""
 
     frames: list[Frame]
-    colour: str = "raw"  # "raw" (sensor_msgs/Image), "jpeg" (CompressedImage, the JPEG bytes) or "none"
+    colour: str = "raw"  # "raw" (sensor_msgs/Image), "jpeg" (CompressedImage, the JPEG bytes), "both" or "none"
     colour_encoding: str = "rgb8"
     scale: int = 2  # colour and depth are shrunk by this (raw colour only)
     depth_encoding: str | None = "16UC1"  # 16UC1, 32FC1, None for no depth, or any other string as written
+    depth_scale: int | None = None  # depth shrunk by this from 640x480, with its own CameraInfo (None: as colour)
     distortion: tuple[str, list[float]] = ("plumb_bob", [0.0, 0.0, 0.0, 0.0, 0.0])
     tf: str = "exact"  # "exact" (samples at the image stamps), "bracket" (samples 10 ms either side), "none"
     tf_frames: int | None = None  # /tf for the first this many images only (None: all)
@@ -142,28 +143,42 @@ def write_bag(path: Path, spec: BagSpec, kind: str = "sqlite3") -> Path:
     return path
 
 
+def _k(w: int) -> list[float]:
+    """redkitchen's K (585 px focal length at 640x480, centred) at width ``w``, in ROS's pixel-index convention."""
+    s = w / 640
+    return [585.0 * s, 0, 320.0 * s - 0.5, 0, 585.0 * s, 240.0 * s - 0.5, 0, 0, 1]
+
+
+def _namespace(topic: str) -> str:
+    return topic.rsplit("/", 1)[0]
+
+
 def _messages(spec: BagSpec, m: _Messages):
     """(topic, message, stamp) of every message of the bag."""
     first = spec.frames[0].stamp
     w, h = 640 // spec.scale, 480 // spec.scale
     if spec.colour == "jpeg":
         w, h = 640, 480
-    k = [585.0 / (640 / w), 0, 320.0 / (640 / w) - 0.5, 0, 585.0 / (640 / w), 240.0 / (640 / w) - 0.5, 0, 0, 1]
     model, d = spec.distortion
-    yield "/camera/color/camera_info", m.camera_info(first, CAMERA_FRAME, w, h, k, model, d), first
+    yield "/camera/color/camera_info", m.camera_info(first, CAMERA_FRAME, w, h, _k(w), model, d), first
+    depth_w = 640 // spec.depth_scale if spec.depth_scale else w
+    if spec.depth_scale:
+        yield (_namespace(spec.depth_topic) + "/camera_info",
+               m.camera_info(first, CAMERA_FRAME, depth_w, depth_w * 3 // 4, _k(depth_w), "plumb_bob", [0.0] * 5),
+               first)
     yield "/tf_static", m.tf([("base_link", "camera_link", first, MOUNT),
                               ("camera_link", CAMERA_FRAME, first, LINK_TO_OPTICAL)]), first
     for i, frame in enumerate(spec.frames):
-        if spec.colour == "raw":
+        if spec.colour in ("raw", "both"):
             rgb = iio.imread(frame.colour)[:: spec.scale, :: spec.scale]
             yield spec.image_topic, m.image(frame.stamp, CAMERA_FRAME, rgb, spec.colour_encoding), frame.stamp
-        elif spec.colour == "jpeg":
+        if spec.colour in ("jpeg", "both"):
             yield spec.image_topic + "/compressed", m.compressed(frame.stamp, frame.colour.read_bytes()), frame.stamp
         if spec.extra_colour:
             rgb = iio.imread(frame.colour)[:: spec.scale * 2, :: spec.scale * 2]
             yield "/camera/infra_rgb/image_raw", m.image(frame.stamp, CAMERA_FRAME, rgb, "rgb8"), frame.stamp
         if spec.depth_encoding is not None and frame.depth is not None:
-            step = 640 // w
+            step = 640 // depth_w
             mm = iio.imread(frame.depth)[::step, ::step]
             yield spec.depth_topic, m.depth(frame.stamp, CAMERA_FRAME, mm, spec.depth_encoding), frame.stamp
         t_map_odom, t_odom_base = map_to_odom(i), base_pose(frame, i)

@@ -92,6 +92,20 @@ def test_mcap_jpeg_metre_depth_and_interpolated_transforms(bags, frames, tmp_pat
         np.testing.assert_allclose(depth[mm > 0], mm[mm > 0] / 1000.0, rtol=1e-6)
 
 
+def test_depth_at_its_own_resolution_and_a_compressed_twin(few, tmp_path):
+    """A depth camera with its own lower-resolution CameraInfo gives depth_intrinsics; image_transport's
+    ``<raw>/compressed`` twin of the colour topic is not a second camera."""
+    spec = BagSpec(few, colour="both", depth_topic="/camera/depth/image_rect_raw", depth_scale=4)
+    summary = import_rosbag(write_bag(tmp_path / "bag", spec, "sqlite3"), tmp_path / "scene", options=ALL)
+    meta = scene(tmp_path / "scene")
+    assert summary["topics"]["rgb"] == "/camera/color/image_raw" and summary["depth_frames"] == 4
+    assert meta["depth_intrinsics"] == {"fl_x": 146.25, "fl_y": 146.25, "cx": 80.0, "cy": 60.0, "w": 160, "h": 120}
+    assert iio.imread(tmp_path / "scene" / meta["frames"][0]["depth_file_path"]).shape == (120, 160)
+    from voxnerf.data.scene import load_scene
+
+    load_scene(tmp_path / "scene")
+
+
 def test_imported_scene_loads(bags, tmp_path):
     from voxnerf.data.scene import inspect_scene
 
@@ -214,6 +228,8 @@ def test_the_flags_resolve_what_the_bag_leaves_open(few, tmp_path):
     summary = import_rosbag(bag, tmp_path / "scene", options=options)
     assert summary["frames"] == 4 and summary["depth_frames"] == 0 and summary["topics"]["depth"] is None
     assert_poses(scene(tmp_path / "scene"), few)
+    refused(bag, tmp_path / "x", r"/camera/aligned_depth_to_color/image_raw: colour encoding 'mono16' is not "
+            r"supported \(rgb8, bgr8", replace(ALL, rgb="/camera/aligned_depth_to_color/image_raw"))
     refused(bag, tmp_path / "x", r"--rgb /nope: no such topic \(topics: /camera/aligned", replace(ALL, rgb="/nope"))
     refused(bag, tmp_path / "x", r"/tf_static: --pose-topic: topic is tf2_msgs/msg/TFMessage, expected",
             replace(options, pose_topic="/tf_static"))
@@ -234,3 +250,21 @@ def test_not_a_bag(tmp_path):
     path.write_bytes(b"not a bag at all")
     refused(path, tmp_path / "scene", r"not a readable ROS 1 or ROS 2 bag: ")
     refused(tmp_path / "missing_bag", tmp_path / "scene", r"not found")
+
+
+def test_raw_pixels_honour_row_padding_and_byte_order():
+    """A row ``step`` longer than the pixels (drivers pad rows) and big-endian 16-bit depth."""
+    from types import SimpleNamespace
+
+    from voxnerf.data.importers.rosbag import _depth_file
+
+    mm = np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000
+    rows = np.zeros((3, 10), dtype=np.uint8)
+    rows[:, :8] = mm.astype(">u2").view(np.uint8).reshape(3, 8)
+    msg = SimpleNamespace(encoding="16UC1", width=4, height=3, step=10, is_bigendian=1, data=rows.reshape(-1))
+    suffix, data, size = _depth_file(msg)
+    assert suffix == ".png" and size == (4, 3)
+    np.testing.assert_array_equal(iio.imread(data, extension=".png"), mm)
+    short = SimpleNamespace(**{**vars(msg), "data": rows.reshape(-1)[:-1]})
+    with pytest.raises(ValueError, match="29 bytes for 4x3x1 uint16 with step 10"):
+        _depth_file(short)

@@ -527,6 +527,9 @@ def _colour_camera(bag: _Bag, options: RosbagOptions, encodings: dict) -> tuple[
     """The colour topic, its images (headers), the camera frame, the CameraInfo topic and its camera."""
     colour_topic = _colour_topic(bag, options, encodings)
     colour_type = bag.topics[colour_topic]
+    if colour_type == IMAGE and encodings.get(colour_topic, "rgb8") not in COLOUR_ENCODINGS:
+        raise bag.error(f"colour encoding {encodings[colour_topic]!r} is not supported "
+                        f"({', '.join(COLOUR_ENCODINGS)})", colour_topic)
     colour = _headers(bag, colour_topic, encodings.get(colour_topic) if colour_type == IMAGE else None)
     frame_ids = sorted({image.frame_id for image in colour})
     if len(frame_ids) != 1 or not frame_ids[0]:
