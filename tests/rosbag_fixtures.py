@@ -21,6 +21,7 @@ from voxnerf.data.importers.ros_transforms import matrix_quaternion, quaternion_
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen"
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 CAMERA_FRAME = "camera_color_optical_frame"
+DEPTH_FRAME = "camera_depth_optical_frame"
 OPTICAL_IN_LINK = np.array([-0.5, 0.5, -0.5, 0.5])  # REP 103: z forward, x right, y down in a x-forward link frame
 T0 = 1_700_000_000 * 10**9  # first stamp, ns
 PERIOD = 33_333_333  # ns between images (30 Hz)
@@ -84,6 +85,7 @@ class BagSpec:
     scale: int = 2  # colour and depth are shrunk by this (raw colour only)
     depth_encoding: str | None = "16UC1"  # 16UC1, 32FC1, None for no depth, or any other string as written
     depth_scale: int | None = None  # depth shrunk by this from 640x480, with its own CameraInfo (None: as colour)
+    depth_offset: list[float] | None = None  # depth in its own optical frame, this far (metres) from the colour one
     distortion: tuple[str, list[float]] = ("plumb_bob", [0.0, 0.0, 0.0, 0.0, 0.0])
     tf: str = "exact"  # "exact" (samples at the image stamps), "bracket" (samples 10 ms either side), "none"
     tf_frames: int | None = None  # /tf for the first this many images only (None: all)
@@ -168,6 +170,11 @@ def _messages(spec: BagSpec, m: _Messages):
                first)
     yield "/tf_static", m.tf([("base_link", "camera_link", first, MOUNT),
                               ("camera_link", CAMERA_FRAME, first, LINK_TO_OPTICAL)]), first
+    depth_frame = CAMERA_FRAME
+    if spec.depth_offset is not None:
+        depth_frame = DEPTH_FRAME
+        yield "/tf_static", m.tf([("camera_link", DEPTH_FRAME, first,
+                                   LINK_TO_OPTICAL @ rigid(np.eye(3), spec.depth_offset))]), first
     for i, frame in enumerate(spec.frames):
         if spec.colour in ("raw", "both"):
             rgb = iio.imread(frame.colour)[:: spec.scale, :: spec.scale]
@@ -180,7 +187,7 @@ def _messages(spec: BagSpec, m: _Messages):
         if spec.depth_encoding is not None and frame.depth is not None:
             step = 640 // depth_w
             mm = iio.imread(frame.depth)[::step, ::step]
-            yield spec.depth_topic, m.depth(frame.stamp, CAMERA_FRAME, mm, spec.depth_encoding), frame.stamp
+            yield spec.depth_topic, m.depth(frame.stamp, depth_frame, mm, spec.depth_encoding), frame.stamp
         t_map_odom, t_odom_base = map_to_odom(i), base_pose(frame, i)
         if spec.tf_frames is not None and i >= spec.tf_frames:
             pass

@@ -106,6 +106,16 @@ def test_depth_at_its_own_resolution_and_a_compressed_twin(few, tmp_path):
     load_scene(tmp_path / "scene")
 
 
+def test_depth_in_its_own_frame_must_be_registered_to_the_colour_camera(few, tmp_path):
+    bag = write_bag(tmp_path / "near", BagSpec(few, scale=4, depth_offset=[0.0002, 0.0, 0.0]), "mcap")
+    summary = import_rosbag(bag, tmp_path / "scene", options=ALL)
+    assert summary["depth_frames"] == 4
+    bag = write_bag(tmp_path / "apart", BagSpec(few, scale=4, depth_offset=[0.015, 0.0, 0.0]), "mcap")
+    refused(bag, tmp_path / "scene2", r"/camera/aligned_depth_to_color/image_raw: depth is in frame "
+            r"'camera_depth_optical_frame', 15.0 mm and 0.00 degrees from the colour frame "
+            r"'camera_color_optical_frame': the scene format needs depth registered to the colour camera")
+
+
 def test_imported_scene_loads(bags, tmp_path):
     from voxnerf.data.scene import inspect_scene
 

@@ -180,7 +180,7 @@ def _colour_topic(bag: _Bag, options: RosbagOptions, encodings: dict) -> str:
         return _given_topic(bag, options.rgb, (IMAGE, COMPRESSED_IMAGE), "--rgb")
     raw = [t for t in _typed(bag, IMAGE) if encodings.get(t) in COLOUR_ENCODINGS]
     rgb = [t for t in raw if encodings[t] != "mono8"]
-    compressed = [t for t in _typed(bag, COMPRESSED_IMAGE) if "depth" not in encodings.get(t, "").lower()
+    compressed = [t for t in _typed(bag, COMPRESSED_IMAGE) if t in encodings and "depth" not in encodings[t].lower()
                   and _namespace(t) not in raw]  # image_transport's <raw>/compressed repeats a raw topic
     candidates = rgb + compressed or raw
     if not candidates:
@@ -486,15 +486,15 @@ def _match_depth(bag: _Bag, frames: list[_Image], depth: list[_Image], tolerance
         bag.notes.append(f"{unmatched} kept frame(s) without depth: no depth image within {tolerance:g} s")
 
 
-def _check_depth_frame(bag: _Bag, tree: TransformTree, topic: str, depth_frame: str, camera_frame: str) -> None:
-    """A depth image in another frame than the colour one must be registered to it (same pose)."""
+def _check_depth_frame(bag: _Bag, tree: TransformTree, topic: str, depth_frame: str, camera_frame: str,
+                       stamp: int) -> None:
+    """A depth image in another frame than the colour one must be registered to it (same pose) at ``stamp``."""
     if depth_frame in ("", camera_frame):
         return
     if depth_frame not in tree.frames() or not tree.connected(depth_frame, camera_frame):
         bag.notes.append(f"depth frame {depth_frame!r} is not linked to the colour frame {camera_frame!r} by the "
                          "transforms: the depth is taken as registered to the colour camera")
         return
-    stamp = next(iter(e.stamps[0] for e in tree.edges.values() if e.stamps), 0)
     t, _ = tree.lookup(camera_frame, depth_frame, stamp)
     if t is None:
         return
@@ -546,7 +546,8 @@ def _depth_camera(bag: _Bag, plan: _Plan, tree: TransformTree, encoding: str, in
                   tolerance: float) -> None:
     """Match the depth images to the kept frames and find the depth camera (``plan.depth_camera``)."""
     depth = _headers(bag, plan.depth_topic, encoding)
-    _check_depth_frame(bag, tree, plan.depth_topic, depth[0].frame_id, plan.camera_frame)
+    stamp = plan.frames[0].stamp if plan.frames else depth[0].stamp
+    _check_depth_frame(bag, tree, plan.depth_topic, depth[0].frame_id, plan.camera_frame, stamp)
     depth_info = _camera_info_topic(bag, plan.depth_topic, depth[0].frame_id, None, info_topic, "--camera-info")
     if depth_info is not None:
         plan.depth_camera = _camera(bag, depth_info, None)
