@@ -278,3 +278,18 @@ def test_raw_pixels_honour_row_padding_and_byte_order():
     short = SimpleNamespace(**{**vars(msg), "data": rows.reshape(-1)[:-1]})
     with pytest.raises(ValueError, match="29 bytes for 4x3x1 uint16 with step 10"):
         _depth_file(short)
+
+
+def test_the_benchmark_measures_a_small_bag(tmp_path):
+    """benchmarks/import_rosbag.py end to end on 15 frames: exact poses, every frame kept with --all-frames."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "import_rosbag.py"
+    subprocess.run([sys.executable, str(script), "--frames", "15", "--out", str(tmp_path / "bench")], check=True,
+                   capture_output=True, timeout=600)
+    results = json.loads((tmp_path / "bench" / "results.json").read_text())
+    assert results["all_frames"]["kept"] == 15 and results["all_frames"]["depth_frames"] == 3
+    assert 1 <= results["by_motion"]["kept"] < 15
+    for name in ("by_motion", "all_frames"):
+        assert results[name]["rotation_error_deg"] < 1e-4 and results[name]["centre_error_of_trajectory"] < 1e-9
