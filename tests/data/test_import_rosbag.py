@@ -293,3 +293,14 @@ def test_the_benchmark_measures_a_small_bag(tmp_path):
     assert 1 <= results["by_motion"]["kept"] < 15
     for name in ("by_motion", "all_frames"):
         assert results[name]["rotation_error_deg"] < 1e-4 and results[name]["centre_error_of_trajectory"] < 1e-9
+
+
+@pytest.mark.parametrize("kind", ["sqlite3", "mcap", "ros1"])
+def test_truncated_bags_are_one_line_errors(few, tmp_path, kind):
+    """A bag cut short (a copy that stopped, a recorder killed) is refused in one line, nothing written."""
+    bag = write_bag(tmp_path / ("bag.bag" if kind == "ros1" else "bag"), BagSpec(few, scale=4), kind)
+    data = bag if kind == "ros1" else next(p for p in bag.iterdir() if p.suffix in (".db3", ".mcap"))
+    raw = data.read_bytes()
+    data.write_bytes(raw[: len(raw) // 2])
+    refused(bag, tmp_path / "scene", r"not a readable ROS 1 or ROS 2 bag: (Cannot open database .*malformed|"
+            r"File end magic is invalid|Bag index looks damaged)")

@@ -102,11 +102,10 @@ class _Image:
 
 @dataclass
 class _Camera:
-    """A CameraInfo as the scene's intrinsics keys."""
+    """A CameraInfo as the scene's intrinsics keys, and its lens model."""
 
     keys: dict
     model: str
-    frame_id: str
 
 
 @dataclass
@@ -122,20 +121,28 @@ class _Bag:
     def error(self, message: str, topic: str | None = None) -> SceneError:
         return SceneError(self.path, message, key=topic)
 
-    def skip(self, reason: str, count: int = 1) -> None:
-        self.skipped[reason] = self.skipped.get(reason, 0) + count
+    def skip(self, reason: str) -> None:
+        self.skipped[reason] = self.skipped.get(reason, 0) + 1
 
     def connections(self, topic: str) -> list:
         return [c for c in self.reader.connections if c.topic == topic]
 
     def messages(self, topic: str):
-        """``(index, message)`` of ``topic`` in the bag's order; a message that does not decode is an error."""
-        conns = self.connections(topic)
-        for index, (conn, _, raw) in enumerate(self.reader.messages(connections=conns)):
+        """``(index, message)`` of ``topic`` in the bag's order; a message that cannot be read or decoded (a
+        truncated or corrupt bag) is an error."""
+        stream = self.reader.messages(connections=self.connections(topic))
+        index = 0
+        while True:
             try:
-                yield index, self.reader.deserialize(raw, conn.msgtype)
-            except Exception as err:  # rosbags raises several types for corrupt data
-                raise self.error(f"message {index} does not decode: {writer.one_line(err)}", topic) from None
+                item = next(stream, None)
+                if item is None:
+                    return
+                conn, _, raw = item
+                msg = self.reader.deserialize(raw, conn.msgtype)
+            except Exception as err:  # rosbags and its storage back-ends raise their own types for corrupt data
+                raise self.error(f"message {index} cannot be read: {writer.one_line(err)}", topic) from None
+            yield index, msg
+            index += 1
 
     def first(self, topic: str):
         return next((msg for _, msg in self.messages(topic)), None)
@@ -271,7 +278,7 @@ def _camera(bag: _Bag, topic: str, size: tuple[int, int] | None) -> _Camera:
     keys = {"fl_x": float(k[0, 0]), "fl_y": float(k[1, 1]), "cx": float(k[0, 2]) + 0.5, "cy": float(k[1, 2]) + 0.5,
             "w": w, "h": h}
     model, lens = _lens(bag, topic, first.distortion_model, [float(v) for v in _field(first, "d")])
-    return _Camera({"camera_model": model, **keys, **lens}, model, first.header.frame_id)
+    return _Camera({"camera_model": model, **keys, **lens}, model)
 
 
 def _lens(bag: _Bag, topic: str, model: str, d: list[float]) -> tuple[str, dict]:
