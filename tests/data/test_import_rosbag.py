@@ -304,3 +304,20 @@ def test_truncated_bags_are_one_line_errors(few, tmp_path, kind):
     data.write_bytes(raw[: len(raw) // 2])
     refused(bag, tmp_path / "scene", r"not a readable ROS 1 or ROS 2 bag: (Cannot open database .*malformed|"
             r"File end magic is invalid|Bag index looks damaged)")
+
+
+def test_a_ros2_bag_without_message_definitions_decodes_with_the_standard_messages(few, tmp_path):
+    """rosbag2 before format 8 stored no message definitions: the standard messages (Humble's) decode them."""
+    import sqlite3
+
+    from rosbags.highlevel import AnyReader
+
+    bag = write_bag(tmp_path / "bag", BagSpec(few, scale=4), "sqlite3")
+    db = sqlite3.connect(next(bag.glob("*.db3")))
+    db.execute("DELETE FROM message_definitions")
+    db.commit()
+    db.close()
+    with pytest.raises(Exception, match="no type definitions"):
+        AnyReader([bag]).open()
+    import_rosbag(bag, tmp_path / "scene", options=ALL)
+    assert_poses(scene(tmp_path / "scene"), few)
