@@ -89,7 +89,8 @@ class BagSpec:
     distortion: tuple[str, list[float]] = ("plumb_bob", [0.0, 0.0, 0.0, 0.0, 0.0])
     tf: str = "exact"  # "exact" (samples at the image stamps), "bracket" (samples 10 ms either side), "none"
     tf_frames: int | None = None  # /tf for the first this many images only (None: all)
-    pose_topic: str | None = None  # "pose" (PoseStamped of the optical frame in map), "odom" (Odometry of base_link)
+    pose_topic: str | None = None  # "pose" / "base_pose" (PoseStamped of the optical frame / base_link in map),
+    # "odom" (Odometry of base_link in map)
     extra_colour: bool = False  # a second rgb8 topic (an infrared-like camera) to make the choice ambiguous
     image_topic: str = "/camera/color/image_raw"
     depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
@@ -198,6 +199,8 @@ def _messages(spec: BagSpec, m: _Messages):
             yield from _bracketing(m, frame.stamp, t_map_odom, t_odom_base)
         if spec.pose_topic == "pose":
             yield "/camera_pose", m.pose_stamped(frame.stamp, "map", frame.c2w_gl @ FLIP), frame.stamp
+        elif spec.pose_topic == "base_pose":
+            yield "/base_pose", m.pose_stamped(frame.stamp, "map", map_to_odom(i) @ t_odom_base), frame.stamp
         elif spec.pose_topic == "odom":
             yield "/odom", m.odometry(frame.stamp, "map", "base_link", map_to_odom(i) @ t_odom_base), frame.stamp
     yield from spec.extra

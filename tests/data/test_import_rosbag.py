@@ -145,13 +145,15 @@ def test_frames_are_kept_by_motion(bags, frames, tmp_path):
     assert f"{len(kept)} of 20 colour images kept" in summary["notes"][0]
 
 
-@pytest.mark.parametrize("source", ["pose", "odom"])
+@pytest.mark.parametrize("source", ["pose", "odom", "base_pose"])
 def test_poses_from_a_pose_topic(frames, tmp_path, source):
-    """A PoseStamped of the optical frame, or an Odometry of base_link chained to the camera by /tf_static."""
+    """A PoseStamped of the optical frame, an Odometry of base_link, or a PoseStamped of base_link named by
+    --pose-frame; base_link is chained to the camera by /tf_static."""
     bag = write_bag(tmp_path / "bag", BagSpec(frames[:6], tf="none", pose_topic=source), "mcap")
-    summary = import_rosbag(bag, tmp_path / "scene", options=ALL)
+    options = replace(ALL, pose_frame="base_link") if source == "base_pose" else ALL
+    summary = import_rosbag(bag, tmp_path / "scene", options=options)
     assert_poses(scene(tmp_path / "scene"), frames[:6])
-    topic = {"pose": "/camera_pose", "odom": "/odom"}[source]
+    topic = {"pose": "/camera_pose", "odom": "/odom", "base_pose": "/base_pose"}[source]
     assert summary["topics"]["poses"] == f"pose topic {topic}" and summary["fixed_frame"] == "map"
 
 

@@ -324,7 +324,8 @@ def _transforms(bag: _Bag, skip_child: str | None = None) -> TransformTree:
 
 
 def _pose_samples(bag: _Bag, topic: str, camera_frame: str, pose_frame: str | None):
-    """``(parent, child, [(stamp, translation, quaternion)])`` of a pose topic."""
+    """``(parent, child, [(stamp, translation, quaternion)])`` of a pose topic: the pose of ``child_frame_id``
+    (Odometry, TransformStamped), else of ``pose_frame``, else of the camera frame, in ``header.frame_id``."""
     msgtype = bag.topics[topic]
     samples, parent, child = [], None, None
     for _, msg in bag.messages(topic):
@@ -335,7 +336,7 @@ def _pose_samples(bag: _Bag, topic: str, camera_frame: str, pose_frame: str | No
             pose = msg.pose.pose if msgtype in (ODOMETRY, POSE_WITH_COVARIANCE) else msg.pose
             t, r = pose.position, pose.orientation
             body = msg.child_frame_id if msgtype == ODOMETRY and msg.child_frame_id else None
-        body = (pose_frame or body or camera_frame).lstrip("/")
+        body = (body or pose_frame or camera_frame).lstrip("/")
         origin = msg.header.frame_id.lstrip("/") or "pose_origin"
         if (parent, child) not in ((None, None), (origin, body)):
             raise bag.error(f"poses change frames, from {parent} -> {child} to {origin} -> {body}", topic)
