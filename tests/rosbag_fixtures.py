@@ -89,6 +89,7 @@ class BagSpec:
     distortion: tuple[str, list[float]] = ("plumb_bob", [0.0, 0.0, 0.0, 0.0, 0.0])
     tf: str = "exact"  # "exact" (samples at the image stamps), "bracket" (samples 10 ms either side), "none"
     tf_frames: int | None = None  # /tf for the first this many images only (None: all)
+    tf_late: bool = False  # /tf recorded after everything else, newest first (a buffered, reordering relay)
     pose_topic: str | None = None  # "pose" / "base_pose" (PoseStamped of the optical frame / base_link in map),
     # "odom" (Odometry of base_link in map)
     extra_colour: bool = False  # a second rgb8 topic (an infrared-like camera) to make the choice ambiguous
@@ -141,7 +142,13 @@ def write_bag(path: Path, spec: BagSpec, kind: str = "sqlite3") -> Path:
                 conns[topic] = bag.add_connection(topic, msg.__msgtype__, typestore=store)
             bag.write(conns[topic], stamp, serialize(msg, msg.__msgtype__))
 
-        for topic, msg, stamp in sorted(_messages(spec, maker), key=lambda m: m[2]):
+        messages = sorted(_messages(spec, maker), key=lambda m: m[2])
+        if spec.tf_late:
+            tf = [m for m in messages if m[0] == "/tf"]
+            end = messages[-1][2]
+            messages = [m for m in messages if m[0] != "/tf"] + [
+                (topic, msg, end + n + 1) for n, (topic, msg, _) in enumerate(reversed(tf))]
+        for topic, msg, stamp in messages:
             put(topic, msg, stamp)
     return path
 

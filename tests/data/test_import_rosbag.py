@@ -249,6 +249,13 @@ def test_the_flags_resolve_what_the_bag_leaves_open(few, tmp_path):
             replace(options, fixed_frame="earth"))
 
 
+def test_transforms_recorded_out_of_order(frames, tmp_path):
+    """/tf messages recorded newest first, after the images: the samples are ordered by their own stamps."""
+    bag = write_bag(tmp_path / "bag", BagSpec(frames[:8], scale=4, tf="bracket", tf_late=True), "mcap")
+    import_rosbag(bag, tmp_path / "scene", options=ALL)
+    assert_poses(scene(tmp_path / "scene"), frames[:8])
+
+
 def test_images_outside_the_transforms_are_dropped_and_counted(frames, tmp_path):
     """/tf ends before the last images: those have no pose and are counted, the rest imported."""
     bag = write_bag(tmp_path / "bag", BagSpec(frames[:8], scale=4, tf_frames=5), "mcap")

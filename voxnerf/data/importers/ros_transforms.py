@@ -140,10 +140,13 @@ class TransformTree:
         edge.quaternions.append(q)
 
     def finish(self) -> None:
-        """Sort every dynamic edge's samples by stamp (call once, after the last :meth:`add`)."""
+        """Sort every dynamic edge's samples by stamp, and check that the frames form no loop (call after the
+        last :meth:`add`, before any lookup); TransformTreeError on a loop."""
         for edge in self.edges.values():
             if not edge.static:
                 edge.sorted()
+        for frame in self.edges:
+            self.ancestors(frame)
 
     def frames(self) -> set[str]:
         return set(self.edges) | {edge.parent for edge in self.edges.values()}

@@ -320,6 +320,10 @@ def _transforms(bag: _Bag, skip_child: str | None = None) -> TransformTree:
                              (r.x, r.y, r.z, r.w), static)
                 except TransformTreeError as err:
                     raise bag.error(str(err), topic) from None
+    try:
+        tree.finish()
+    except TransformTreeError as err:
+        raise bag.error(str(err), f"{TF_TOPIC} and {TF_STATIC_TOPIC}") from None
     return tree
 
 
@@ -378,6 +382,7 @@ def _tree_with_poses(bag: _Bag, topic: str, camera_frame: str, pose_frame: str |
     try:
         for stamp, translation, quaternion in samples:
             tree.add(parent, child, stamp, translation, quaternion, static=False)
+        tree.finish()
     except TransformTreeError as err:
         raise bag.error(f"{err} (the pose topic gives {parent} -> {child})", topic) from None
     if not tree.connected(child, camera_frame):
