@@ -80,7 +80,8 @@ class BagSpec:
     """What goes into a test bag; every field has the ordinary robot's value."""
 
     frames: list[Frame]
-    colour: str = "raw"  # "raw" (sensor_msgs/Image), "jpeg" (CompressedImage, the JPEG bytes), "both" or "none"
+    colour: str = "raw"  # "raw" (sensor_msgs/Image), "jpeg" (CompressedImage, the JPEG bytes), "both", "none",
+    # or "broken_jpeg" (CompressedImage of a truncated JPEG)
     colour_encoding: str = "rgb8"
     scale: int = 2  # colour and depth are shrunk by this (raw colour only)
     depth_encoding: str | None = "16UC1"  # 16UC1, 32FC1, None for no depth, or any other string as written
@@ -189,6 +190,9 @@ def _messages(spec: BagSpec, m: _Messages):
             yield spec.image_topic, m.image(frame.stamp, CAMERA_FRAME, rgb, spec.colour_encoding), frame.stamp
         if spec.colour in ("jpeg", "both"):
             yield spec.image_topic + "/compressed", m.compressed(frame.stamp, frame.colour.read_bytes()), frame.stamp
+        elif spec.colour == "broken_jpeg":  # a JPEG's first 600 bytes: its header, and pixels cut short
+            yield spec.image_topic + "/compressed", m.compressed(frame.stamp, frame.colour.read_bytes()[:600]), \
+                frame.stamp
         if spec.extra_colour:
             rgb = iio.imread(frame.colour)[:: spec.scale * 2, :: spec.scale * 2]
             yield "/camera/infra_rgb/image_raw", m.image(frame.stamp, CAMERA_FRAME, rgb, "rgb8"), frame.stamp

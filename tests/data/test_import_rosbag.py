@@ -225,6 +225,7 @@ def refused(bag: Path, out: Path, match: str, options: RosbagOptions = ALL) -> N
     ({"extra_colour": True}, r"2 colour image topics \(/camera/color/image_raw, /camera/infra_rgb/image_raw\): "
                              r"choose one with --rgb TOPIC"),
     ({"colour_encoding": "yuv422"}, r"no camera topic"),
+    ({"colour": "broken_jpeg"}, r"/camera/color/image_raw/compressed: message 0: cannot decode image: "),
     ({"distortion": ("rational_polynomial", [0.1, 0, 0, 0, 0, 0.2, 0, 0])}, r"/camera/color/camera_info: "
      r"rational_polynomial with k4-k6 \[0.2, 0.0, 0.0\] has no lens model in the engine"),
     ({"distortion": ("kannala_brandt", [0.1, 0, 0, 0])}, r"distortion_model 'kannala_brandt' is not supported"),

@@ -37,9 +37,8 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
-from PIL import Image as PILImage
 
-from voxnerf.data.image_io import PNG_SIGNATURE
+from voxnerf.data.image_io import PNG_SIGNATURE, read_rgb
 from voxnerf.data.importers import writer
 from voxnerf.data.importers.ros_transforms import TransformTree, TransformTreeError
 from voxnerf.data.importers.splits import PaperSplitRule, SplitError, split_keys
@@ -450,22 +449,21 @@ def _raw_pixels(msg, channels: int, dtype: np.dtype) -> np.ndarray:
     return rows.view(dtype).reshape(msg.height, msg.width, channels).astype(dtype.newbyteorder("="))
 
 
-def _colour_file(msg, msgtype: str) -> tuple[str, bytes, tuple[int, int]]:
-    """``(suffix, file bytes, (w, h))`` of a colour message; ValueError when it cannot be decoded."""
+def _colour_file(msg, msgtype: str) -> tuple[str, bytes]:
+    """``(suffix, file bytes)`` of a colour message: a compressed image's bytes as recorded, raw pixels as PNG;
+    ValueError when neither can be."""
     if msgtype == COMPRESSED_IMAGE:
         data = bytes(msg.data)
         suffix = ".jpg" if data.startswith(JPEG_MAGIC) else ".png" if data.startswith(PNG_SIGNATURE) else None
         if suffix is None:
             raise ValueError(f"compressed format {msg.format!r} is neither JPEG nor PNG")
-        with PILImage.open(io.BytesIO(data)) as img:
-            img.load()
-            return suffix, data, img.size
+        return suffix, data
     if msg.encoding not in COLOUR_ENCODINGS:
         raise ValueError(f"colour encoding {msg.encoding!r} is not supported ({', '.join(COLOUR_ENCODINGS)})")
     channels, order = COLOUR_ENCODINGS[msg.encoding]
     pixels = _raw_pixels(msg, channels, np.uint8)
     pixels = pixels[:, :, 0] if order is None else pixels[:, :, list(order)]
-    return ".png", iio.imwrite("<bytes>", pixels, extension=".png"), (int(msg.width), int(msg.height))
+    return ".png", iio.imwrite("<bytes>", pixels, extension=".png")
 
 
 def _depth_file(msg) -> tuple[str, bytes, tuple[int, int]]:
@@ -603,14 +601,18 @@ def _write_colour(bag: _Bag, root: Path, plan: _Plan, order: dict[int, int]) -> 
         if index not in wanted:
             continue
         try:
-            suffix, data, size = _colour_file(msg, msgtype)
-        except (ValueError, OSError) as err:
+            suffix, data = _colour_file(msg, msgtype)
+        except ValueError as err:
             raise bag.error(f"message {index}: {writer.one_line(err)}", plan.colour_topic) from None
+        name = f"images/frame_{order[index]:05d}{suffix}"
+        _write(root, name, data)
+        try:  # decoded as the scene loader will decode it (a compressed image is written as recorded)
+            size = read_rgb(root / name).shape[1::-1]
+        except SceneError as err:
+            raise bag.error(f"message {index}: {err.message}", plan.colour_topic) from None
         if size != want_size:
             raise bag.error(f"message {index} is {size[0]}x{size[1]}, the CameraInfo {want_size[0]}x{want_size[1]}",
                             plan.colour_topic)
-        name = f"images/frame_{order[index]:05d}{suffix}"
-        _write(root, name, data)
         entries[index] = {"file_path": name, "transform_matrix": writer.pose_list(wanted[index].c2w)}
     return entries
 
