@@ -376,10 +376,11 @@ def _import(args: argparse.Namespace) -> int:
 def _import_rosbag(args: argparse.Namespace) -> int:
     from voxnerf.data.importers import PaperSplitRule, RosbagOptions, describe, import_rosbag
 
+    given = {name: getattr(args, name) for name in ("min_translation", "min_rotation", "sync_tolerance")
+             if hasattr(args, name)}
     options = RosbagOptions(rgb=args.rgb, depth=args.depth, camera_info=args.camera_info,
                             fixed_frame=args.fixed_frame, pose_topic=args.pose_topic, pose_frame=args.pose_frame,
-                            all_frames=args.all_frames, min_translation=args.min_translation,
-                            min_rotation=args.min_rotation, sync_tolerance=args.sync_tolerance)
+                            all_frames=args.all_frames, **given)
     summary = import_rosbag(args.bag, args.out, PaperSplitRule() if args.splits == "paper" else None, options)
     for line in describe(summary):
         print(line)
@@ -580,10 +581,9 @@ def _add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import_command(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("import", help="write a COLMAP model, a ScanNet export or a ROS bag as a scene "
-                       "(docs/scene-format.md)",
-                       description="Write a COLMAP sparse model, a ScanNet export or a ROS bag as a scene in the "
-                       "project's format; see docs/scene-format.md.")
+    p = sub.add_parser("import", help="write a COLMAP model or a ScanNet export as a scene (docs/scene-format.md)",
+                       description="Write a COLMAP sparse model or a ScanNet export as a scene in the project's "
+                       "format; see docs/scene-format.md.")
     layouts = p.add_subparsers(dest="layout", required=True)
     colmap = layouts.add_parser("colmap", help="a COLMAP sparse model (sparse/0, sparse or DIR; text or binary)")
     colmap.add_argument("--images", help="the image folder (default DIR/images)")
@@ -598,16 +598,15 @@ def _add_import_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import_rosbag(layouts: argparse._SubParsersAction) -> None:
-    from voxnerf.data.importers.rosbag import NO_DEPTH, RosbagOptions
-
-    defaults = RosbagOptions()
+    # The numeric flags default to RosbagOptions' values (absent here, so that building the parser does not load
+    # the importers); tests/data/test_import_rosbag.py checks that the help states those values.
     q = layouts.add_parser("rosbag", help="a robot's ROS 1 .bag or ROS 2 bag (sqlite3 or MCAP): colour, depth, "
                            "CameraInfo and poses from /tf or a pose topic")
     q.add_argument("bag", metavar="BAG", help="a ROS 1 .bag file, a ROS 2 bag folder, or its .db3 / .mcap file")
     q.add_argument("--out", required=True, metavar="SCENE", help="scene directory to write (absent or empty)")
     q.add_argument("--rgb", metavar="TOPIC", help="the colour Image or CompressedImage topic (default: the only one)")
-    q.add_argument("--depth", metavar="TOPIC", help=f"the depth Image topic, 16UC1 mm or 32FC1 m (default: the only "
-                   f"one); '{NO_DEPTH}' imports colour only")
+    q.add_argument("--depth", metavar="TOPIC", help="the depth Image topic, 16UC1 mm or 32FC1 m (default: the only "
+                   "one); 'none' imports colour only")
     q.add_argument("--camera-info", metavar="TOPIC", help="the colour camera's CameraInfo topic (default: the one "
                    "beside the colour topic, or the only one)")
     q.add_argument("--fixed-frame", metavar="FRAME", help="the world frame of the scene (default: the root of the "
@@ -618,13 +617,12 @@ def _add_import_rosbag(layouts: argparse._SubParsersAction) -> None:
                    "camera's frame); linked to the camera by the transforms")
     q.add_argument("--all-frames", action="store_true", help="keep every posed frame (default: keep a frame when "
                    "the camera moved --min-translation or turned --min-rotation since the last kept one)")
-    q.add_argument("--min-translation", type=_non_negative, default=defaults.min_translation, metavar="M",
-                   help=f"metres (default {defaults.min_translation})")
-    q.add_argument("--min-rotation", type=_non_negative, default=defaults.min_rotation, metavar="DEG",
-                   help=f"degrees (default {defaults.min_rotation})")
-    q.add_argument("--sync-tolerance", type=_non_negative, default=defaults.sync_tolerance, metavar="S",
-                   help="seconds between a colour image and the depth image it takes "
-                   f"(default {defaults.sync_tolerance})")
+    q.add_argument("--min-translation", type=_non_negative, default=argparse.SUPPRESS, metavar="M",
+                   help="metres (default 0.05)")
+    q.add_argument("--min-rotation", type=_non_negative, default=argparse.SUPPRESS, metavar="DEG",
+                   help="degrees (default 5)")
+    q.add_argument("--sync-tolerance", type=_non_negative, default=argparse.SUPPRESS, metavar="S",
+                   help="seconds between a colour image and the depth image it takes (default 0.02)")
     q.add_argument("--splits", choices=["paper"],
                    help="write the paper's train / interpolation / extrapolation splits (default: none)")
     q.set_defaults(func=_import_rosbag)

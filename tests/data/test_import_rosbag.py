@@ -190,10 +190,27 @@ def test_camera_info_lens_models(few, tmp_path, model, d, camera_model, coeffici
     load_scene(tmp_path / "scene")  # the engine takes the lens
 
 
+def test_cli_help_states_the_importer_s_defaults(capsys):
+    from voxnerf.data.importers.rosbag import NO_DEPTH
+
+    with pytest.raises(SystemExit):
+        main(["import", "rosbag", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    defaults = RosbagOptions()
+    assert f"metres (default {defaults.min_translation:g})" in text
+    assert f"degrees (default {defaults.min_rotation:g})" in text
+    assert f"it takes (default {defaults.sync_tolerance:g})" in text and f"'{NO_DEPTH}' imports colour only" in text
+
+
 def test_cli_imports_and_reports(bags, tmp_path, capsys):
     assert main(["import", "rosbag", str(bags["ros1"]), "--out", str(tmp_path / "scene"), "--all-frames"]) == 0
     out = capsys.readouterr().out
     assert "rosbag: imported 20 frames" in out and "poses from /tf and /tf_static in frame 'map'" in out
+    assert main(["import", "rosbag", str(bags["ros1"]), "--out", str(tmp_path / "moved"), "--min-translation",
+                 "0.3", "--min-rotation", "90"]) == 0
+    kept = len(scene(tmp_path / "moved")["frames"])
+    assert f"rosbag: imported {kept} frames, skipped {20 - kept} (" in capsys.readouterr().out
+    assert 1 <= kept < 8  # fewer than the default rule keeps on these frames
     with pytest.raises(SystemExit) as exit_:
         main(["import", "rosbag", str(bags["ros1"]), "--out", str(tmp_path / "other"), "--min-translation", "-1"])
     assert exit_.value.code == 2 and "must be a finite number >= 0, got '-1'" in capsys.readouterr().err
