@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -86,6 +87,7 @@ class BagSpec:
     scale: int = 2  # colour and depth are shrunk by this (raw colour only)
     depth_encoding: str | None = "16UC1"  # 16UC1, 32FC1, None for no depth, or any other string as written
     depth_scale: int | None = None  # depth shrunk by this from 640x480, with its own CameraInfo (None: as colour)
+    depth_compressed: bool = False  # depth as image_transport's compressedDepth PNG on <depth_topic>/compressedDepth
     depth_offset: list[float] | None = None  # depth in its own optical frame, this far (metres) from the colour one
     distortion: tuple[str, list[float]] = ("plumb_bob", [0.0, 0.0, 0.0, 0.0, 0.0])
     tf: str = "exact"  # "exact" (samples at the image stamps), "bracket" (samples 10 ms either side), "none"
@@ -199,7 +201,11 @@ def _messages(spec: BagSpec, m: _Messages):
         if spec.depth_encoding is not None and frame.depth is not None:
             step = 640 // depth_w
             mm = iio.imread(frame.depth)[::step, ::step]
-            yield spec.depth_topic, m.depth(frame.stamp, depth_frame, mm, spec.depth_encoding), frame.stamp
+            if spec.depth_compressed:
+                yield (spec.depth_topic + "/compressedDepth",
+                       m.compressed_depth(frame.stamp, depth_frame, mm, spec.depth_encoding), frame.stamp)
+            else:
+                yield spec.depth_topic, m.depth(frame.stamp, depth_frame, mm, spec.depth_encoding), frame.stamp
         t_map_odom, t_odom_base = map_to_odom(i), base_pose(frame, i)
         if spec.tf_frames is not None and i >= spec.tf_frames:
             pass
@@ -261,6 +267,23 @@ class _Messages:
         return self.types["sensor_msgs/msg/Image"](
             header=self.header(stamp, frame_id), height=h, width=w, encoding=encoding, is_bigendian=0,
             step=values.strides[0], data=values.reshape(-1).view(np.uint8))
+
+    def compressed_depth(self, stamp: int, frame_id: str, mm: np.ndarray, encoding: str):
+        """image_transport's compressedDepth PNG: a 12-byte header (format enum, A, B), then a 16-bit PNG of the
+        millimetres (16UC1) or of the inverse depth quantised as the publisher does by default (depth_max 10 m,
+        depth_quantization 100: v = A / depth + B truncated, 0 beyond depth_max or for no depth) (32FC1)."""
+        if encoding == "32FC1":
+            metres = mm.astype(np.float32) / np.float32(1000.0)
+            quant_a = np.float32(100.0 * 101.0)
+            quant_b = np.float32(1.0) - quant_a / np.float32(10.0)
+            with np.errstate(divide="ignore"):
+                values = np.where((mm > 0) & (metres < 10.0), quant_a / metres + quant_b, 0).astype(np.uint16)
+        else:
+            quant_a, quant_b, values = 0.0, 0.0, mm.astype(np.uint16)
+        data = struct.pack("<iff", 0, quant_a, quant_b) + iio.imwrite("<bytes>", values, extension=".png")
+        return self.types["sensor_msgs/msg/CompressedImage"](
+            header=self.header(stamp, frame_id), format=f"{encoding}; compressedDepth png",
+            data=np.frombuffer(data, dtype=np.uint8))
 
     def compressed(self, stamp: int, data: bytes):
         return self.types["sensor_msgs/msg/CompressedImage"](

@@ -116,6 +116,28 @@ def test_depth_in_its_own_frame_must_be_registered_to_the_colour_camera(few, tmp
             r"'camera_color_optical_frame': the scene format needs depth registered to the colour camera")
 
 
+@pytest.mark.parametrize("encoding", ["16UC1", "32FC1"])
+def test_compressed_depth(few, tmp_path, encoding):
+    """image_transport's compressedDepth: 16UC1's PNG kept as recorded, 32FC1's quantised inverse depth decoded
+    to metres (within one quantisation step, depth^2 / A: 0.1 mm at 1 m with the publisher's defaults)."""
+    bag = write_bag(tmp_path / "bag", BagSpec(few, depth_encoding=encoding, depth_compressed=True), "mcap")
+    summary = import_rosbag(bag, tmp_path / "scene", options=ALL)
+    assert summary["topics"]["depth"] == "/camera/aligned_depth_to_color/image_raw/compressedDepth"
+    meta = scene(tmp_path / "scene")
+    for entry, frame in zip(meta["frames"], few, strict=True):
+        mm = iio.imread(frame.depth)[::2, ::2]
+        if encoding == "16UC1":
+            np.testing.assert_array_equal(iio.imread(tmp_path / "scene" / entry["depth_file_path"]), mm)
+        else:
+            depth = np.load(tmp_path / "scene" / entry["depth_file_path"])
+            np.testing.assert_array_equal(np.isnan(depth), mm == 0)
+            want = mm[mm > 0] / 1000.0
+            assert np.all(np.abs(depth[mm > 0] - want) <= want**2 / 10100.0 * 1.01 + 1e-6)
+    from voxnerf.data.scene import load_scene
+
+    load_scene(tmp_path / "scene")
+
+
 def test_imported_scene_loads(bags, tmp_path):
     from voxnerf.data.scene import inspect_scene
 
@@ -238,7 +260,7 @@ def refused(bag: Path, out: Path, match: str, options: RosbagOptions = ALL) -> N
     ({"tf": "none"}, r"no pose for the camera frame 'camera_color_optical_frame': only static transforms reach it, "
                      r"and there is no PoseStamped.*--pose-topic"),
     ({"depth_encoding": "mono16"}, r"/camera/aligned_depth_to_color/image_raw: depth encoding 'mono16' is not "
-     r"supported \(16UC1 millimetres or 32FC1 metres; --depth none imports colour only\)"),
+     r"supported \(16UC1 millimetres or 32FC1 metres, raw or compressedDepth png; --depth none imports colour only\)"),
     ({"extra_colour": True}, r"2 colour image topics \(/camera/color/image_raw, /camera/infra_rgb/image_raw\): "
                              r"choose one with --rgb TOPIC"),
     ({"colour_encoding": "yuv422"}, r"no camera topic"),

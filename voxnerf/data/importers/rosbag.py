@@ -5,10 +5,11 @@ Read with the pure-Python ``rosbags`` package (no ROS install). What is taken fr
 - **Colour**: one ``sensor_msgs/Image`` (``rgb8 bgr8 rgba8 bgra8 mono8``, written as lossless PNG) or
   ``sensor_msgs/CompressedImage`` (JPEG or PNG, written as the bytes recorded) topic.
 - **Depth** (optional): one ``sensor_msgs/Image`` topic in ``16UC1`` (millimetres, written as a 16-bit PNG with
-  ``depth_unit_scale_factor`` 0.001) or ``32FC1`` (metres, written as float32 ``.npy``; NaN and inf stay "no
-  depth", as REP 117 defines them). Each colour image takes the depth image nearest in stamp when within the
-  sync tolerance. The depth must be registered to the colour camera (same frame, or a frame the transforms put
-  within a millimetre and 0.1 degrees of it); its own ``CameraInfo`` gives ``depth_intrinsics``.
+  ``depth_unit_scale_factor`` 0.001) or ``32FC1`` (metres, written as float32 ``.npy``; NaN and inf stay "no depth",
+  as REP 117 defines them), or image_transport's ``compressedDepth`` PNG of either. Each colour image takes the
+  depth image nearest in stamp when within the sync tolerance. The depth must be registered to the colour camera
+  (same frame, or a frame the transforms put within a millimetre and 0.1 degrees of it); its own ``CameraInfo``
+  gives ``depth_intrinsics``.
 - **Camera**: ``sensor_msgs/CameraInfo``: ``K`` (OpenCV pixel-index convention, so the scene's continuous
   ``cx, cy`` are ``K``'s plus 0.5) and ``D`` by ``distortion_model``: ``plumb_bob`` (``k1 k2 p1 p2 k3``) and
   ``rational_polynomial`` whose ``k4 k5 k6`` are zero become ``OPENCV``, ``equidistant`` (``k1 k2 k3 k4``)
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import io
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,6 +61,8 @@ TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
 COLOUR_ENCODINGS = {"rgb8": (3, (0, 1, 2)), "bgr8": (3, (2, 1, 0)), "rgba8": (4, (0, 1, 2)),
                     "bgra8": (4, (2, 1, 0)), "mono8": (1, None)}
 DEPTH_ENCODINGS = {"16UC1": "millimetres", "32FC1": "metres"}
+COMPRESSED_DEPTH_FORMATS = ("compressedDepth", "compressedDepth png")  # image_transport's, after "ENCODING; "
+COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")  # its ConfigHeader: format enum, depthQuantA, depthQuantB
 DEPTH_UNIT_SCALE = 0.001
 JPEG_MAGIC = b"\xff\xd8\xff"
 REGISTERED_DEPTH_OFFSET = 1e-3  # metres: depth in another frame this close to the colour frame counts as registered
@@ -201,11 +205,11 @@ def _depth_topic(bag: _Bag, options: RosbagOptions, encodings: dict, colour: str
     if options.depth == NO_DEPTH:
         return None
     if options.depth:
-        topic = _given_topic(bag, options.depth, (IMAGE,), "--depth")
+        topic = _given_topic(bag, options.depth, (IMAGE, COMPRESSED_IMAGE), "--depth")
         _check_depth_encoding(bag, topic, encodings.get(topic))
         return topic
     images = [t for t in _typed(bag, IMAGE, COMPRESSED_IMAGE) if t != colour]
-    candidates = [t for t in images if encodings.get(t) in DEPTH_ENCODINGS]
+    candidates = [t for t in images if _readable_depth(encodings.get(t))]
     if not candidates:
         for topic in images:  # a depth stream the importer cannot read is an error, not a silent colour-only scene
             if "depth" in topic.lower() and encodings.get(topic) is not None:
@@ -213,10 +217,17 @@ def _depth_topic(bag: _Bag, options: RosbagOptions, encodings: dict, colour: str
     return _one_of(bag, candidates, "depth image", "--depth") if candidates else None
 
 
+def _readable_depth(encoding: str | None) -> bool:
+    """Whether depth in ``encoding`` (an Image's ``encoding`` or a CompressedImage's ``format``) can be read:
+    16UC1 or 32FC1, raw or in image_transport's compressedDepth PNG (not its RVL)."""
+    base, _, compression = (encoding or "").partition(";")
+    return base.strip() in DEPTH_ENCODINGS and (not compression or compression.strip() in COMPRESSED_DEPTH_FORMATS)
+
+
 def _check_depth_encoding(bag: _Bag, topic: str, encoding: str | None) -> None:
-    if encoding not in DEPTH_ENCODINGS:
-        raise bag.error(f"depth encoding {encoding!r} is not supported (16UC1 millimetres or 32FC1 metres; "
-                        f"--depth none imports colour only)", topic)
+    if not _readable_depth(encoding):
+        raise bag.error(f"depth encoding {encoding!r} is not supported (16UC1 millimetres or 32FC1 metres, raw or "
+                        f"compressedDepth png; --depth none imports colour only)", topic)
 
 
 def _camera_info_topic(bag: _Bag, image_topic: str, frame_id: str, given: str | None, exclude: str | None,
@@ -424,12 +435,17 @@ def _by_motion(bag: _Bag, frames: list[_Image], options: RosbagOptions) -> list[
 # ------------------------------------------------------------------------------------------------ images
 
 
+def _encoding(msg) -> str:
+    """An Image's ``encoding`` or a CompressedImage's ``format``."""
+    return msg.encoding if hasattr(msg, "encoding") else msg.format
+
+
 def _headers(bag: _Bag, topic: str, encoding_of: str | None) -> list[_Image]:
     """Every image of ``topic`` (header only), in stamp order; an encoding that changes is an error."""
     images = []
     for index, msg in bag.messages(topic):
-        if encoding_of is not None and msg.encoding != encoding_of:
-            raise bag.error(f"message {index} has encoding {msg.encoding!r}, the first {encoding_of!r}", topic)
+        if encoding_of is not None and _encoding(msg) != encoding_of:
+            raise bag.error(f"message {index} has encoding {_encoding(msg)!r}, the first {encoding_of!r}", topic)
         images.append(_Image(index, _stamp(msg.header), msg.header.frame_id.lstrip("/")))
     if not images:
         raise bag.error("no image message", topic)
@@ -466,19 +482,46 @@ def _colour_file(msg, msgtype: str) -> tuple[str, bytes]:
     return ".png", iio.imwrite("<bytes>", pixels, extension=".png")
 
 
+def _compressed_depth(msg) -> tuple[bytes, np.ndarray, float, float]:
+    """The PNG bytes, their uint16 values and the quantisation ``(A, B)`` of a compressedDepth message: a 12-byte
+    little-endian header (format enum, A, B) then a 16-bit PNG of millimetres (16UC1) or of quantised inverse
+    depth ``v`` with depth ``A / (v - B)`` metres and 0 for none (32FC1), as image_transport writes it."""
+    data = bytes(msg.data)
+    if len(data) <= COMPRESSED_DEPTH_HEADER.size or not data[COMPRESSED_DEPTH_HEADER.size:].startswith(PNG_SIGNATURE):
+        raise ValueError(f"format {msg.format!r}: no PNG after the {COMPRESSED_DEPTH_HEADER.size}-byte header")
+    _, quant_a, quant_b = COMPRESSED_DEPTH_HEADER.unpack_from(data)
+    png = data[COMPRESSED_DEPTH_HEADER.size:]
+    try:
+        values = iio.imread(png, extension=".png")
+    except (OSError, ValueError) as err:
+        raise ValueError(f"compressedDepth PNG does not decode: {err}") from None
+    if values.dtype != np.uint16 or values.ndim != 2:
+        raise ValueError(f"compressedDepth PNG is {values.dtype} {list(values.shape)}, expected 16-bit single-channel")
+    return png, values, quant_a, quant_b
+
+
 def _depth_file(msg) -> tuple[str, bytes, tuple[int, int]]:
     """``(suffix, file bytes, (w, h))`` of a depth message; ValueError when it cannot be decoded."""
-    if msg.encoding == "16UC1":
+    encoding = _encoding(msg).partition(";")[0].strip()
+    if hasattr(msg, "format"):  # compressedDepth: 16UC1's PNG is kept as recorded, 32FC1's decoded to metres
+        png, values, quant_a, quant_b = _compressed_depth(msg)
+        if encoding == "16UC1":
+            return ".png", png, values.shape[::-1]
+        with np.errstate(divide="ignore"):
+            depth = np.where(values > 0, quant_a / (values.astype(np.float32) - np.float32(quant_b)), np.nan)
+    elif encoding == "16UC1":
         depth = _raw_pixels(msg, 1, np.uint16)[:, :, 0]
         return ".png", iio.imwrite("<bytes>", depth, extension=".png"), (int(msg.width), int(msg.height))
-    depth = _raw_pixels(msg, 1, np.float32)[:, :, 0]
+    else:
+        depth = _raw_pixels(msg, 1, np.float32)[:, :, 0]
+    depth = depth.astype(np.float32)
     finite = np.isfinite(depth)
     if np.any(depth[finite] < 0):
         raise ValueError(f"negative depth (min {float(depth[finite].min()):.4g} m)")
     depth = np.where(finite, depth, np.float32(np.nan))  # REP 117's NaN, -inf (too near), +inf (too far): no depth
     buf = io.BytesIO()
-    np.save(buf, depth.astype(np.float32), allow_pickle=False)
-    return ".npy", buf.getvalue(), (int(msg.width), int(msg.height))
+    np.save(buf, depth, allow_pickle=False)
+    return ".npy", buf.getvalue(), depth.shape[::-1]
 
 
 def _match_depth(bag: _Bag, frames: list[_Image], depth: list[_Image], tolerance: float) -> None:
