@@ -87,7 +87,8 @@ class BagSpec:
     scale: int = 2  # colour and depth are shrunk by this (raw colour only)
     depth_encoding: str | None = "16UC1"  # 16UC1, 32FC1, None for no depth, or any other string as written
     depth_scale: int | None = None  # depth shrunk by this from 640x480, with its own CameraInfo (None: as colour)
-    depth_compressed: bool = False  # depth as image_transport's compressedDepth PNG on <depth_topic>/compressedDepth
+    depth_compressed: str | None = None  # image_transport's compressedDepth PNG on <depth_topic>/compressedDepth:
+    # "only", or "twin" (beside the raw depth topic)
     depth_offset: list[float] | None = None  # depth in its own optical frame, this far (metres) from the colour one
     distortion: tuple[str, list[float]] = ("plumb_bob", [0.0, 0.0, 0.0, 0.0, 0.0])
     tf: str = "exact"  # "exact" (samples at the image stamps), "bracket" (samples 10 ms either side), "none"
@@ -204,7 +205,7 @@ def _messages(spec: BagSpec, m: _Messages):
             if spec.depth_compressed:
                 yield (spec.depth_topic + "/compressedDepth",
                        m.compressed_depth(frame.stamp, depth_frame, mm, spec.depth_encoding), frame.stamp)
-            else:
+            if spec.depth_compressed != "only":
                 yield spec.depth_topic, m.depth(frame.stamp, depth_frame, mm, spec.depth_encoding), frame.stamp
         t_map_odom, t_odom_base = map_to_odom(i), base_pose(frame, i)
         if spec.tf_frames is not None and i >= spec.tf_frames:

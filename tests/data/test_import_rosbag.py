@@ -120,7 +120,7 @@ def test_depth_in_its_own_frame_must_be_registered_to_the_colour_camera(few, tmp
 def test_compressed_depth(few, tmp_path, encoding):
     """image_transport's compressedDepth: 16UC1's PNG kept as recorded, 32FC1's quantised inverse depth decoded
     to metres (within one quantisation step, depth^2 / A: 0.1 mm at 1 m with the publisher's defaults)."""
-    bag = write_bag(tmp_path / "bag", BagSpec(few, depth_encoding=encoding, depth_compressed=True), "mcap")
+    bag = write_bag(tmp_path / "bag", BagSpec(few, depth_encoding=encoding, depth_compressed="only"), "mcap")
     summary = import_rosbag(bag, tmp_path / "scene", options=ALL)
     assert summary["topics"]["depth"] == "/camera/aligned_depth_to_color/image_raw/compressedDepth"
     meta = scene(tmp_path / "scene")
@@ -136,6 +136,12 @@ def test_compressed_depth(few, tmp_path, encoding):
     from voxnerf.data.scene import load_scene
 
     load_scene(tmp_path / "scene")
+
+
+def test_a_compressed_depth_twin_is_not_a_second_depth_camera(few, tmp_path):
+    bag = write_bag(tmp_path / "bag", BagSpec(few, scale=4, depth_compressed="twin"), "mcap")
+    summary = import_rosbag(bag, tmp_path / "scene", options=ALL)
+    assert summary["topics"]["depth"] == "/camera/aligned_depth_to_color/image_raw"
 
 
 def test_imported_scene_loads(bags, tmp_path):

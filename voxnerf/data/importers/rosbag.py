@@ -209,7 +209,9 @@ def _depth_topic(bag: _Bag, options: RosbagOptions, encodings: dict, colour: str
         _check_depth_encoding(bag, topic, encodings.get(topic))
         return topic
     images = [t for t in _typed(bag, IMAGE, COMPRESSED_IMAGE) if t != colour]
-    candidates = [t for t in images if _readable_depth(encodings.get(t))]
+    raw = [t for t in _typed(bag, IMAGE) if t != colour and _readable_depth(encodings.get(t))]
+    candidates = raw + [t for t in _typed(bag, COMPRESSED_IMAGE) if _readable_depth(encodings.get(t))
+                        and _namespace(t) not in raw]  # image_transport's <raw>/compressedDepth repeats a raw topic
     if not candidates:
         for topic in images:  # a depth stream the importer cannot read is an error, not a silent colour-only scene
             if "depth" in topic.lower() and encodings.get(topic) is not None:
