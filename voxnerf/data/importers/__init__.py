@@ -2,6 +2,7 @@
 
 - :func:`import_colmap`: a COLMAP sparse model and its images (:mod:`voxnerf.data.importers.colmap`);
 - :func:`import_scannet`: ScanNet's exported frames (:mod:`voxnerf.data.importers.scannet`);
+- :func:`import_rosbag`: a robot's ROS 1 / ROS 2 bag (:mod:`voxnerf.data.importers.rosbag`);
 - ``splits=PaperSplitRule()``: the paper's train / interpolation / extrapolation splits
   (:mod:`voxnerf.data.importers.splits`), the same rule for every importer.
 
@@ -17,11 +18,12 @@ from collections.abc import Iterable
 from pathlib import Path, PurePosixPath
 
 from voxnerf.data.importers.colmap import import_colmap
+from voxnerf.data.importers.rosbag import RosbagOptions, import_rosbag
 from voxnerf.data.importers.scannet import import_scannet
 from voxnerf.data.importers.splits import PaperSplitRule, paper_splits
 
-__all__ = ["LAYOUTS", "PaperSplitRule", "describe", "detect_layout", "import_colmap", "import_scannet",
-           "paper_splits", "run_import"]
+__all__ = ["LAYOUTS", "PaperSplitRule", "RosbagOptions", "describe", "detect_layout", "import_colmap",
+           "import_rosbag", "import_scannet", "paper_splits", "run_import"]
 
 LAYOUTS = ("colmap", "scannet")
 COLMAP_MODEL_DIRS = ("sparse/0", "sparse", "")
