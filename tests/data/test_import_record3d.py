@@ -105,6 +105,13 @@ def test_missing_files_are_one_line_errors_naming_them(export, tmp_path):
     assert not (tmp_path / "scene").exists()
 
 
+def test_an_r3d_file_asks_for_the_exr_export(tmp_path):
+    (tmp_path / "scan.r3d").write_bytes(b"PK\x03\x04")
+    with pytest.raises(SceneError, match=r"scan\.r3d: Record3D's \.r3d files are not read: export the recording as "
+                                         r"'EXR \+ JPG sequence'"):
+        import_record3d(tmp_path / "scan.r3d", tmp_path / "scene")
+
+
 def test_a_broken_depth_file_leaves_nothing_behind(export, tmp_path):
     (export / "EXR_RGBD" / "depth" / "5.exr").write_bytes(b"not an exr")
     with pytest.raises(SceneError, match=r"depth/5\.exr: cannot read depth EXR"):

@@ -13,6 +13,10 @@ Depth EXR: float32 metres in channel ``R`` (or the file's only channel), at the 
 192 x 256 beside 720 x 960 colour). The export holds no confidence maps, so the depth is kept as exported (0,
 NaN and inf: no measurement). Frames without an image or with an invalid pose
 are skipped and counted; a frame without its EXR keeps its colour image. ``every``: keep every n-th frame.
+
+Record3D's own ``.r3d`` file (a zip of the same metadata with LZFSE-compressed depth) is refused with a message
+asking for the EXR + JPG export: its layout is documented only by ad-hoc scripts, and the EXR export carries the
+same poses, intrinsics and depth.
 """
 
 from __future__ import annotations
@@ -34,6 +38,9 @@ COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 def export_root(src: Path) -> Path:
     """``src`` or its ``EXR_RGBD`` folder, whichever holds ``metadata.json``; SceneError naming what is missing."""
+    if src.suffix.lower() == ".r3d" and src.is_file():
+        raise SceneError(src, "Record3D's .r3d files are not read: export the recording as 'EXR + JPG sequence' "
+                              "and import its folder")
     if not src.is_dir():
         raise SceneError(src, "not a directory")
     for root in (src, src / EXPORT_FOLDER):
