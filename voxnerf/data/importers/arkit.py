@@ -237,9 +237,10 @@ def _fill(root: Path, capture: Capture, splits: PaperSplitRule | None, min_confi
     notes = list(capture.notes)
     if tally.frames:
         share = tally.dropped / tally.measured if tally.measured else 0.0
-        notes.append(f"depth kept at its own resolution, registered through the scaled colour intrinsics; "
-                     f"{tally.dropped} of {tally.measured} measured depth pixels ({share:.1%}) below "
-                     f"{min_confidence} confidence dropped")
+        kept = (f"all {tally.measured} measured depth pixels kept (no confidence filter)" if min_level == 0 else
+                f"{tally.dropped} of {tally.measured} measured depth pixels ({share:.1%}) below {min_confidence} "
+                "confidence dropped")
+        notes.append(f"depth kept at its own resolution, registered through the scaled colour intrinsics; {kept}")
         notes.append("no prior file: the engine fuses one from the training frames' depth maps")
     if tally.without_confidence:
         notes.append(f"{tally.without_confidence} frame(s) have a depth map but no confidence map: their depth is "

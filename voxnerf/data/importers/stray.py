@@ -102,6 +102,10 @@ class _Video:
         self.size = tuple(int(v) for v in meta["size"])
         self._next = 0
 
+    def close(self) -> None:
+        """Stop the decoder (its ffmpeg process) before the end of the video."""
+        self._frames.close()
+
     def frame(self, index: int) -> np.ndarray | None:
         """Frame ``index`` as uint8 ``[H, W, 3]``, or None past the end of the video."""
         if index < self._next:
@@ -177,8 +181,9 @@ def _writer(video: _Video, index: int):
     return write
 
 
-def read_stray(src: str | Path, every: int = 1) -> arkit.Capture:
-    """The frames of the Stray Scanner recording at ``src`` (SceneError naming the file at fault)."""
+def read_stray(src: str | Path, every: int = 1) -> tuple[arkit.Capture, _Video]:
+    """The frames of the Stray Scanner recording at ``src``, and the video their images are decoded from as
+    they are written (close it after); SceneError naming the file at fault."""
     src = Path(src)
     _check_layout(src)
     k = read_camera_matrix(src / "camera_matrix.csv")
@@ -207,8 +212,9 @@ def read_stray(src: str | Path, every: int = 1) -> arkit.Capture:
                                                  _depth_source(src, frame)))
     numbers = [int(f.stem) for f in capture.frames]
     if any(b <= a for a, b in itertools.pairwise(numbers)):
+        video.close()
         raise SceneError(src / "odometry.csv", "frame numbers must increase from row to row")
-    return capture
+    return capture, video
 
 
 def import_stray(src: str | Path, out: str | Path, splits: PaperSplitRule | None = None,
@@ -221,4 +227,8 @@ def import_stray(src: str | Path, out: str | Path, splits: PaperSplitRule | None
     out = Path(out)
     writer.check_out_dir(out)
     arkit.confidence_threshold(min_confidence)
-    return arkit.write_capture(out, read_stray(src, every), splits, min_confidence)
+    capture, video = read_stray(src, every)
+    try:
+        return arkit.write_capture(out, capture, splits, min_confidence)
+    finally:
+        video.close()
