@@ -148,3 +148,16 @@ def test_cli(export, tmp_path, capsys):
     assert main(["import", "polycam", str(export), "--out", str(tmp_path / "scene"), "--min-confidence", "high"]) == 0
     out = capsys.readouterr().out
     assert f"polycam: imported {N_FRAMES} frames" in out and "below high confidence dropped" in out
+
+
+def test_a_keyframe_with_its_own_camera_keeps_it(export, tmp_path):
+    path = export / "keyframes" / "cameras" / f"{polycam_stem(5)}.json"
+    camera = json.loads(path.read_text())
+    camera.update(fx=590.0, fy=589.0, cx=321.5)
+    path.write_text(json.dumps(camera))
+    import_polycam(export, tmp_path / "scene")
+    meta = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    assert meta["fl_x"] == 585 and all("fl_x" not in f for i, f in enumerate(meta["frames"]) if i != 5)
+    frame = meta["frames"][5]
+    assert (frame["fl_x"], frame["fl_y"], frame["cx"], frame["cy"], frame["w"]) == (590, 589, 321.5, 240, WIDTH)
+    assert frame["depth_intrinsics"]["fl_x"] == pytest.approx(590 * DEPTH_W / WIDTH)

@@ -136,3 +136,20 @@ def test_cli(export, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err == f"voxnerf: error: {tmp_path / 'scene' / 'metadata.json'}: file not found (a Record3D EXR + JPG " \
                   "export has metadata.json, rgb/, depth/)"
+
+
+def test_per_frame_intrinsics_when_given_for_every_pose(export, tmp_path):
+    root = export / "EXR_RGBD"
+    meta = json.loads((root / "metadata.json").read_text())
+    meta["perFrameIntrinsicCoeffs"] = [[585.0, 585.0, 320.0, 240.0]] * N_FRAMES
+    meta["perFrameIntrinsicCoeffs"][5] = [580.0, 581.0, 318.0, 241.0]
+    (root / "metadata.json").write_text(json.dumps(meta))
+    import_record3d(export, tmp_path / "scene")
+    frames = json.loads((tmp_path / "scene" / "transforms.json").read_text())["frames"]
+    assert (frames[5]["fl_x"], frames[5]["fl_y"], frames[5]["cx"], frames[5]["cy"]) == (580, 581, 318, 241)
+    assert frames[5]["depth_intrinsics"]["cx"] == pytest.approx(318 * 0.4)
+    assert all("fl_x" not in f for i, f in enumerate(frames) if i != 5)
+    meta["perFrameIntrinsicCoeffs"] = meta["perFrameIntrinsicCoeffs"][:3]  # not one per pose: K for all
+    (root / "metadata.json").write_text(json.dumps(meta))
+    import_record3d(export, tmp_path / "other")
+    assert all("fl_x" not in f for f in json.loads((tmp_path / "other" / "transforms.json").read_text())["frames"])
