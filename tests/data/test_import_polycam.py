@@ -161,3 +161,11 @@ def test_a_keyframe_with_its_own_camera_keeps_it(export, tmp_path):
     frame = meta["frames"][5]
     assert (frame["fl_x"], frame["fl_y"], frame["cx"], frame["cy"], frame["w"]) == (590, 589, 321.5, 240, WIDTH)
     assert frame["depth_intrinsics"]["fl_x"] == pytest.approx(590 * DEPTH_W / WIDTH)
+
+
+def test_an_unreadable_image_names_the_apps_file(export, tmp_path):
+    image = export / "keyframes" / "images" / f"{polycam_stem(7)}.jpg"
+    image.write_bytes(b"not a jpeg")
+    with pytest.raises(SceneError, match=rf"^{image}: frame {polycam_stem(7)}: ") as err:
+        import_polycam(export, tmp_path / "scene")
+    assert ".tmp" not in str(err.value) and not (tmp_path / "scene").exists()

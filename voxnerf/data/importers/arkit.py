@@ -198,7 +198,11 @@ def _write_frame(root: Path, frame: CaptureFrame, top: Camera, min_level: int, t
     name = f"images/{frame.stem}{frame.image_suffix}"
     (root / "images").mkdir(exist_ok=True)
     frame.write_image(root / name)
-    got = image_size(root / name)
+    try:
+        got = image_size(root / name)
+    except SceneError as err:  # it names the copy being built; the fault is the app's file
+        message = err.message.replace(str(root / name), frame.origin.name)
+        raise SceneError(frame.origin, f"frame {frame.stem}: {message}") from None
     if got != (frame.camera.w, frame.camera.h):
         raise SceneError(frame.origin, f"frame {frame.stem}: image is {got[0]}x{got[1]} but its camera says "
                                        f"{frame.camera.w}x{frame.camera.h}")
