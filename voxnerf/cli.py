@@ -365,6 +365,8 @@ def _import(args: argparse.Namespace) -> int:
     splits = PaperSplitRule() if args.splits == "paper" else None
     if args.layout == "colmap":
         summary = import_colmap(args.dir, args.out, splits, images=args.images)
+    elif args.layout in PHONE_APP_LAYOUTS:
+        summary = _import_phone_app(args, splits)
     else:
         summary = import_scannet(args.dir, args.out, splits)
     for line in describe(summary):
@@ -386,6 +388,29 @@ def _import_rosbag(args: argparse.Namespace) -> int:
         print(line)
     print(f"wrote {args.out}")
     return 0
+PHONE_APP_LAYOUTS = ("record3d", "polycam", "stray")
+
+
+def _import_phone_app(args: argparse.Namespace, splits) -> dict:
+    """``voxnerf import record3d|polycam|stray``: a LiDAR phone app's export, its depth kept."""
+    if args.layout == "record3d":
+        from voxnerf.data.importers.record3d import import_record3d
+
+        return import_record3d(args.dir, args.out, splits, every=args.every)
+    if args.layout == "polycam":
+        from voxnerf.data.importers.polycam import import_polycam
+
+        return import_polycam(args.dir, args.out, splits, min_confidence=args.min_confidence)
+    from voxnerf.data.importers.stray import import_stray
+
+    return import_stray(args.dir, args.out, splits, min_confidence=args.min_confidence, every=args.every)
+
+
+def _at_least_one(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -581,14 +606,28 @@ def _add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import_command(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("import", help="write a COLMAP model or a ScanNet export as a scene (docs/scene-format.md)",
-                       description="Write a COLMAP sparse model or a ScanNet export as a scene in the project's "
-                       "format; see docs/scene-format.md.")
+    p = sub.add_parser("import", help="write a COLMAP model, a ScanNet export, a LiDAR phone app's export or a "
+                       "ROS bag as a scene (docs/scene-format.md)",
+                       description="Write a COLMAP sparse model, a ScanNet export, a Record3D / Polycam / Stray "
+                       "Scanner export or a robot's ROS bag as a scene in the project's format; see "
+                       "docs/scene-format.md.")
     layouts = p.add_subparsers(dest="layout", required=True)
     colmap = layouts.add_parser("colmap", help="a COLMAP sparse model (sparse/0, sparse or DIR; text or binary)")
     colmap.add_argument("--images", help="the image folder (default DIR/images)")
     scannet = layouts.add_parser("scannet", help="ScanNet's exported color/ depth/ pose/ intrinsic/ folders")
-    for q in (colmap, scannet):
+    record3d = layouts.add_parser("record3d", help="Record3D's EXR + JPG export (EXR_RGBD: metadata.json, rgb/, "
+                                  "depth/), LiDAR depth kept")
+    polycam = layouts.add_parser("polycam", help="Polycam's raw-data export (keyframes/ with images, cameras, depth, "
+                                 "confidence), LiDAR depth kept")
+    stray = layouts.add_parser("stray", help="a Stray Scanner recording (rgb.mp4, odometry.csv, camera_matrix.csv, "
+                               "depth/, confidence/), LiDAR depth kept")
+    for q in (polycam, stray):
+        q.add_argument("--min-confidence", choices=["low", "medium", "high"], default="medium",
+                       help="drop depth ARKit graded below this (default medium; low keeps all)")
+    for q in (record3d, stray):
+        q.add_argument("--every", type=_at_least_one, default=1, metavar="N",
+                       help="keep every N-th frame (the apps record up to 60 per second; default 1: all)")
+    for q in (colmap, scannet, record3d, polycam, stray):
         q.add_argument("dir", metavar="DIR")
         q.add_argument("--out", required=True, metavar="SCENE", help="scene directory to write (absent or empty)")
         q.add_argument("--splits", choices=["paper"],
