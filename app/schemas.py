@@ -61,11 +61,12 @@ class SceneSummary(BaseModel):
 
 
 class ImportSummary(BaseModel):
-    """What an importer (:mod:`voxnerf.data.importers`) made of a COLMAP or ScanNet upload."""
+    """What an importer (:mod:`voxnerf.data.importers`) made of an imported upload (COLMAP, ScanNet, Record3D,
+    Polycam)."""
 
     model_config = ConfigDict(extra="allow")
 
-    format: Literal["colmap", "scannet"]
+    format: Literal["colmap", "scannet", "record3d", "polycam", "stray"]
     frames: int = Field(description="frames written")
     skipped: dict[str, int] = Field(description="frames left out, counted by reason (missing image, invalid pose)")
     camera_models: list[str] = Field(description="camera models, e.g. 'SIMPLE_RADIAL -> OPENCV' (COLMAP -> ours)")
@@ -87,7 +88,8 @@ class SceneOut(BaseModel):
     size_bytes: int
     summary: SceneSummary
     imported: ImportSummary | None = Field(
-        None, description="for a COLMAP or ScanNet upload, what its importer wrote; null for a scene directory"
+        None, description="for an imported upload (COLMAP, ScanNet, Record3D, Polycam), what its importer wrote; "
+        "null for a scene directory"
     )
 
     @classmethod

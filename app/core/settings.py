@@ -12,14 +12,17 @@ results then travel through Redis, so no directory needs to be shared at all.
 
 from __future__ import annotations
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, SecretStr, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MiB = 1024 * 1024
+# A list read from one variable as comma-separated entries ("a.example, b.example"), not as JSON.
+CommaList = Annotated[list[str], NoDecode]
 
 
 class Settings(BaseSettings):
@@ -51,6 +54,18 @@ class Settings(BaseSettings):
         default=False,
         description="without api_token the service answers only loopback clients and refuses to bind another "
         "address; true lifts both (logged as a WARNING): anyone who reaches the port then controls the service",
+    )
+    allowed_hosts: CommaList = Field(
+        default_factory=list,
+        description="Host names the service answers besides localhost, 127.0.0.1 and [::1] (always answered), "
+        "comma-separated: a name, *.example.org (its subdomains) or * (any). A request whose Host header names "
+        "another is refused with 400: a web page re-resolving its own name to this machine (DNS rebinding)",
+    )
+    trusted_proxies: CommaList = Field(
+        default_factory=list,
+        description="addresses or networks (comma-separated) of reverse proxies whose Forwarded or "
+        "X-Forwarded-For header names the client; a request carrying Forwarded, Via or X-Forwarded-* from any "
+        "other address counts as remote (it needs the token)",
     )
 
     max_upload_bytes: int = Field(default=2048 * MiB, gt=0, description="request body of POST /scenes")
@@ -198,6 +213,23 @@ class Settings(BaseSettings):
         description="with storage_url: the most bytes of scenes and runs a worker machine keeps in its local "
         "cache; the least recently used ones no task is using are removed past it (the store keeps them)",
     )
+
+    @field_validator("allowed_hosts", "trusted_proxies", mode="before")
+    @classmethod
+    def _comma_separated(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            return [entry.strip() for entry in value.split(",") if entry.strip()]
+        return value
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _networks(cls, value: list[str]) -> list[str]:
+        for entry in value:
+            try:
+                ipaddress.ip_network(entry, strict=False)
+            except ValueError:
+                raise ValueError(f"{entry!r} is not an IP address or network (e.g. 10.0.0.5, 10.0.0.0/24)") from None
+        return value
 
     @field_validator("data_dir")
     @classmethod

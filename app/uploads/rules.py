@@ -39,7 +39,7 @@ class ValidatedScene:
 ALLOWED_SUFFIXES = frozenset(
     {".json", ".png", ".jpg", ".jpeg", ".npy", ".ply", ".obj", ".mtl", ".glb", ".off"}
 )
-IMPORT_SUFFIXES = frozenset({".txt", ".bin"})  # COLMAP models and ScanNet poses: only in an import layout
+IMPORT_SUFFIXES = frozenset({".txt", ".bin", ".exr"})  # COLMAP models, ScanNet poses, Record3D depth: only imported
 IGNORED_PREFIXES = ("__MACOSX/",)  # resource forks written by macOS's archiver
 IGNORED_NAMES = frozenset({".DS_Store", "Thumbs.db"})
 MAX_PATH_BYTES = 1024  # a relative path inside a scene; with the staging prefix well under Linux's PATH_MAX

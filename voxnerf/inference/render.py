@@ -19,7 +19,7 @@ from voxnerf.files import CHECKPOINT
 from voxnerf.inference.encoding import OUTPUT_NAMES
 from voxnerf.inference.fast_path import FAST, render_rays_fast
 from voxnerf.model.voxnerf_model import VoxNeRFModel
-from voxnerf.training.checkpoint import load_checkpoint
+from voxnerf.training.checkpoint import load_checkpoint, stored_scene_dir
 
 OUTPUTS = OUTPUT_NAMES
 RENDER_PATHS = ("auto", "fast", "full")
@@ -56,7 +56,7 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
             Intrinsics(**state["default_intrinsics"]),  # a "lens" dict becomes a Lens
             float(state["depth_unit_scale"]),
             int(state["iteration"]),
-            state.get("scene_dir"),
+            stored_scene_dir(state.get("scene_dir"), Path(run_dir)),
         )
     # TypeError, KeyError, AttributeError: not a checkpoint's dict; RuntimeError: weights of another shape
     except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as exc:
