@@ -10,6 +10,8 @@ counting rules are tested directly (no filesystem here can be filled without roo
 
 from __future__ import annotations
 
+import errno
+import os
 import shutil
 import time
 from collections.abc import Iterator
@@ -25,6 +27,7 @@ from app.core.db import session_scope
 from app.core.disk_space import InsufficientStorage, directory_bytes, require_room
 from app.core.models import JobRow, OutputRow, SceneRow
 from app.core.settings import Settings
+from app.uploads import staging
 
 MiB = 1024 * 1024
 QUOTA = 64 * MiB
@@ -152,3 +155,20 @@ def test_the_quota_counts_every_file_once_and_what_is_counted_apart(tmp_path):
     with pytest.raises(InsufficientStorage, match="quota"):
         require_room(settings, incoming_bytes=501)
     require_room(settings, incoming_bytes=1500, counted_apart=1000)  # an upload's zip, gone once unpacked
+
+
+def test_a_disk_that_fills_up_while_an_upload_is_written_is_a_507_leaving_nothing(tmp_path):
+    """The write itself fails (ENOSPC from the copy into staging): 507, the staging directory removed."""
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", min_free_bytes=0)
+
+    def stage(root: Path):
+        (root / "images").mkdir()
+        (root / "images" / "0001.png").write_bytes(b"part of a file")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(root / "images" / "0002.png"))
+
+    with pytest.raises(InsufficientStorage) as refused:
+        staging.store_scene(settings, "room", stage)
+    assert refused.value.status_code == 507
+    assert "disk filled up while the upload was stored (No space left on device)" in refused.value.detail
+    assert str(tmp_path) not in refused.value.detail
+    assert not list(settings.staging_dir.iterdir()) and not list(settings.scenes_dir.iterdir())
