@@ -127,7 +127,8 @@ async def _receive_scene(request: Request, settings: Settings) -> StoredScene | 
             )
         splits = _split_rule(form.get("splits"), isinstance(archive, UploadFile))
         if isinstance(archive, UploadFile):
-            stem = (archive.filename or "scene").rsplit("/", 1)[-1].removesuffix(".zip")
+            base = (archive.filename or "scene").rsplit("/", 1)[-1]
+            stem = base.rsplit(".", 1)[0] if "." in base[1:] else base  # room.zip, robot.bag -> room, robot
             name = _display_name(form.get("name"), stem)
             capture = await run_in_threadpool(staging.capture_kind, archive.file)
             if capture is not None:
