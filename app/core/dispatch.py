@@ -1,6 +1,6 @@
-"""Publishing work to the queues: training jobs, render requests, output jobs, and the sweep that recovers every
-kind of queued work (:data:`KINDS`) from dead workers and lost messages (API and workers; :func:`sweep_jobs` is
-one round).
+"""Publishing work to the queues: training jobs, render requests, output jobs, capture imports, and the sweep
+that recovers every kind of queued work (:data:`KINDS`) from dead workers and lost messages (API and workers;
+:func:`sweep_jobs` is one round).
 
 Only task names cross this boundary, so publishing never imports the engine.
 """
@@ -12,13 +12,14 @@ import logging
 from celery import Celery
 
 from app.core.celery_app import RENDER_TASK
+from app.core.imports import IMPORTS
 from app.core.jobstore import JOBS
 from app.core.lease import WorkKind
 from app.core.outputs import OUTPUTS
 from app.core.settings import Settings
 
 log = logging.getLogger(__name__)
-KINDS: tuple[WorkKind, ...] = (JOBS, OUTPUTS)  # every kind of queued work the sweep recovers
+KINDS: tuple[WorkKind, ...] = (JOBS, OUTPUTS, IMPORTS)  # every kind of queued work the sweep recovers
 
 
 def send(app: Celery, kind: WorkKind, row_id: str) -> None:

@@ -238,6 +238,11 @@ class Settings(BaseSettings):
         return self.data_dir / "runs"
 
     @property
+    def imports_dir(self) -> Path:
+        """Raw captures waiting for their import (a worker turns each into a scene, then removes it)."""
+        return self.data_dir / "imports"
+
+    @property
     def staging_dir(self) -> Path:
         """Uploads are unpacked and validated here, then renamed into ``scenes_dir`` (same filesystem)."""
         return self.data_dir / "staging"
@@ -253,7 +258,7 @@ class Settings(BaseSettings):
 
     def make_dirs(self) -> None:
         """Create every directory the service writes to (idempotent)."""
-        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.render_results_dir):
+        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.imports_dir, self.render_results_dir):
             path.mkdir(parents=True, exist_ok=True)
         if self.embedded_broker:
             (self.broker_dir / "queue").mkdir(parents=True, exist_ok=True)

@@ -12,11 +12,9 @@ from typing import Annotated
 from celery import Celery
 from fastapi import APIRouter, HTTPException, Path, Query
 from fastapi.responses import FileResponse
-from kombu.exceptions import KombuError
 
 from app.core import jobstore, storage
 from app.core import outputs as store
-from app.core.dispatch import send
 from app.core.jobstore import JOBS
 from app.core.models import OutputRow
 from app.core.outputs import OUTPUTS
@@ -44,12 +42,7 @@ def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: d
            partial: bool) -> OutputOut:
     """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503)."""
     row = store.create_output(settings, job_id, kind, params, total, partial)
-    try:
-        send(celery, OUTPUTS, row.id)
-    except (KombuError, OSError) as err:
-        OUTPUTS.fail(settings, row.id, public_error(f"the queue refused it: {err}", settings))
-        raise HTTPException(503, public_error(f"the outputs queue is unavailable ({err}); try again later",
-                                              settings)) from None
+    work.send_or_503(settings, celery, OUTPUTS, row.id)
     return OutputOut.from_row(row)
 
 

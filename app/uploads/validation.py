@@ -55,7 +55,7 @@ from app.uploads.rules import (
     safe_relpath,
 )
 from voxnerf.data.image_io import EXR_MAGIC, PNG_SIGNATURE, image_size
-from voxnerf.data.importers import PaperSplitRule, detect_layout, run_import
+from voxnerf.data.importers import QUEUED_LAYOUTS, PaperSplitRule, detect_layout, run_import
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
 
@@ -94,6 +94,9 @@ def validate_upload(upload: StagedUpload, settings: Settings) -> ValidatedScene:
     imported = None
     if upload.archive is not None:
         imported = _unpack(upload.archive, upload.root, settings, upload.splits)
+    if isinstance(imported, str):  # a layout imported as queued work: the worker checks the scene it writes
+        raw = upload.root.parent / RAW_DIR
+        return ValidatedScene(_tree_size(raw), {}, queued_layout=imported)
     summary = _validate_staged(upload.root, settings)
     if imported is not None:
         summary["imported"] = imported
@@ -320,17 +323,20 @@ def _import_layout(layout: str, root: Path, settings: Settings, rule: PaperSplit
     return imported
 
 
-def _unpack(archive: Path, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict | None:
+def _unpack(archive: Path, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict | str | None:
     """Extract the zip into ``root``, or import it there when it holds a COLMAP model or a ScanNet export
-    (then the importer's summary, else None)."""
+    (then the importer's summary, else None); a layout imported as queued work (``QUEUED_LAYOUTS``, a ROS 2 bag
+    folder) is only extracted beside ``root`` (RAW_DIR) and its name returned."""
     layout = _extract_zip(archive, root, settings)
     if layout is None:
         if rule is not None:
             raise UploadError(
-                422, "splits: only an imported upload (COLMAP, ScanNet, Record3D, Polycam) takes splits; a "
-                "transforms.json scene names its own"
+                422, "splits: only an upload to import takes splits; a transforms.json scene names its own"
             )
         return None
+    if layout in QUEUED_LAYOUTS:
+        check_declared_sizes(root.parent / RAW_DIR, settings)
+        return layout
     return _import_layout(layout, root, settings, rule)
 
 
