@@ -22,7 +22,7 @@ from pathlib import Path
 from app.core.imports import IMPORTS, elapsed_eta, raw_dir, remove_raw
 from app.core.models import ImportRow
 from app.core.redact import public_error
-from app.core.scene_store import PublishFailed, commit_scene
+from app.core.scene_store import PublishFailed, commit_scene, tree_size
 from app.core.settings import Settings, get_settings
 from voxnerf.data.importers import PaperSplitRule, run_import
 from voxnerf.data.scene import inspect_scene
@@ -45,10 +45,6 @@ def _capture(settings: Settings, row: ImportRow) -> Path:
     if len(entries) != 1:
         raise VoxNeRFError(f"import {row.id}: its raw capture is missing (found {len(entries)} entries)")
     return entries[0]
-
-
-def _tree_size(root: Path) -> int:
-    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
 
 
 class Stages:
@@ -81,7 +77,7 @@ def import_capture(settings: Settings, row: ImportRow, lease: Lease) -> dict:
         stages.enter("checking")
         checked = inspect_scene(scene)
         stages.enter("storing")
-        stored = commit_scene(settings, scene, row.name, {**checked, "imported": summary}, _tree_size(scene))
+        stored = commit_scene(settings, scene, row.name, {**checked, "imported": summary}, tree_size(scene))
     except Stopped:
         return {"state": "cancelled"}
     except (VoxNeRFError, PublishFailed) as err:

@@ -22,6 +22,7 @@ from app.core.db import session_scope
 from app.core.jobstore import QueueFull, new_id
 from app.core.lease import WorkKind
 from app.core.models import ImportRow
+from app.core.scene_store import tree_size
 from app.core.settings import Settings
 from voxnerf.data.importers import QUEUED_LAYOUTS
 
@@ -61,8 +62,8 @@ def create_import(settings: Settings, staged: Path, name: str, layout: str, para
     limit per client, counted per kind of work), ValueError for a layout that is not imported in a queue."""
     if layout not in QUEUED_LAYOUTS:
         raise ValueError(f"layout {layout!r} is imported on upload, not queued")
-    size = sum(p.stat().st_size for p in staged.rglob("*") if p.is_file()) if staged.is_dir() else staged.stat().st_size
-    row = IMPORTS.new_row(new_id(), name=name, layout=layout, params=params, size_bytes=size, stage="queued",
+    row = IMPORTS.new_row(new_id(), name=name, layout=layout, params=params, size_bytes=tree_size(staged),
+                          stage="queued",
                           progress=0.0)
     settings.imports_dir.mkdir(parents=True, exist_ok=True)
     with session_scope(settings) as session:

@@ -22,6 +22,13 @@ class StoredScene:
     summary: dict
 
 
+def tree_size(path: Path) -> int:
+    """Bytes of the file at ``path``, or of every file under the folder at ``path``."""
+    if not path.is_dir():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
 class PublishFailed(Exception):
     """The object store refused the scene's copy (the API answers 503; an import fails naming it)."""
 

@@ -40,6 +40,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from app.core.scene_store import tree_size
 from app.core.settings import Settings
 from app.uploads.rules import (
     IMPORT_SUFFIXES,
@@ -96,11 +97,11 @@ def validate_upload(upload: StagedUpload, settings: Settings) -> ValidatedScene:
         imported = _unpack(upload.archive, upload.root, settings, upload.splits)
     if isinstance(imported, str):  # a layout imported as queued work: the worker checks the scene it writes
         raw = upload.root.parent / RAW_DIR
-        return ValidatedScene(_tree_size(raw), {}, queued_layout=imported)
+        return ValidatedScene(tree_size(raw), {}, queued_layout=imported)
     summary = _validate_staged(upload.root, settings)
     if imported is not None:
         summary["imported"] = imported
-    return ValidatedScene(_tree_size(upload.root), summary)
+    return ValidatedScene(tree_size(upload.root), summary)
 
 
 # ------------------------------------------------------------------------------------------------ the archive
@@ -297,10 +298,6 @@ def _extract_zip(path: Path, root: Path, settings: Settings) -> str | None:
     ) as err:
         raise UploadError(422, f"corrupt or unreadable zip archive: {err}") from None
     return layout
-
-
-def _tree_size(root: Path) -> int:
-    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
 
 
 def _import_layout(layout: str, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict:
