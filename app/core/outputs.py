@@ -26,12 +26,13 @@ from pathlib import Path
 from app.core import storage
 from app.core.celery_app import OUTPUT_TASK
 from app.core.db import session_scope
-from app.core.jobstore import new_id
+from app.core.jobstore import get_scene, new_id
 from app.core.lease import WorkKind
 from app.core.models import JobRow, OutputRow
 from app.core.progress import json_safe
 from app.core.settings import Settings
 from voxnerf.cameras.paths import CameraPathError, check_frame_count, parse_nerfstudio
+from voxnerf.config import TrainConfig
 from voxnerf.files import CHECKPOINT
 
 OUTPUTS_DIR = "outputs"  # under a run directory, and the object store's prefix
@@ -96,7 +97,7 @@ def video_params(settings: Settings, request: dict) -> tuple[dict, int]:
             request["camera_path"],
             dataparser_transforms=request.get("dataparser_transforms"),
             max_frames=settings.max_video_frames,
-            max_pixels=settings.max_render_pixels,
+            max_pixels=settings.render_pixel_limit(),
         )
         width, height = path.size
         _even_size(width, height, "camera_path.render_width, render_height")
@@ -105,13 +106,41 @@ def video_params(settings: Settings, request: dict) -> tuple[dict, int]:
     check_frame_count(request.get("frames"), settings.max_video_frames, key="frames")
     width, height = request.get("width"), request.get("height")
     if width is not None and height is not None:
-        if width * height > settings.max_render_pixels:
+        if width * height > settings.render_pixel_limit():
             raise CameraPathError(
-                f"{width}x{height} exceeds the limit of {settings.max_render_pixels} pixels", "width, height"
+                f"{width}x{height} exceeds the limit of {settings.render_pixel_limit()} pixels", "width, height"
             )
         _even_size(width, height, "width, height")
     keys = ("path", "frames", "fps", "width", "height", "radius", "height_above")
     return {key: request.get(key) for key in keys}, request["frames"]
+
+
+def trained_size(settings: Settings, job: JobRow) -> tuple[int, int] | None:
+    """The size of job ``job``'s training images, a generated video's default frame size: the scene's image size
+    over the job's ``downscale`` (the engine's rule, :class:`voxnerf.data.scene.Scene`); None when the scene's
+    row is gone (the worker then fails the output: it needs the scene's cameras)."""
+    scene = get_scene(settings, job.scene_id)
+    if scene is None or not scene.summary.get("image_size"):
+        return None
+    downscale = int(job.options.get("downscale") or TrainConfig.model_fields["downscale"].default)
+    width, height = scene.summary["image_size"]
+    return width // downscale, height // downscale
+
+
+def check_video_cost(settings: Settings, job: JobRow, params: dict, frames: int) -> None:
+    """Refuse a video whose frames x pixels per frame exceed ``max_output_pixels`` (CameraPathError naming the
+    limit): the cost of rendering it, bounded before it is queued. A frame's size is the request's, else the
+    job's training size (:func:`trained_size`)."""
+    size = (params["width"], params["height"]) if params.get("width") is not None else trained_size(settings, job)
+    if size is None:
+        return
+    cost = frames * size[0] * size[1]
+    if cost > settings.max_output_pixels:
+        raise CameraPathError(
+            f"{frames} frames of {size[0]}x{size[1]} are {cost} pixels, beyond the limit of "
+            f"{settings.max_output_pixels} per video (VOXNERF_MAX_OUTPUT_PIXELS): fewer frames or smaller ones",
+            "frames, width, height",
+        )
 
 
 # ------------------------------------------------------------------------------------------------ files
@@ -174,9 +203,12 @@ OUTPUTS = WorkKind(
 
 def create_output(settings: Settings, job_id: str, kind: str, params: dict, total: int | None,
                   partial: bool) -> OutputRow:
-    """A new queued output job of trained job ``job_id``."""
+    """A new queued output job of trained job ``job_id``. Raises QueueFull when ``max_queued_outputs`` output jobs
+    are queued already (:meth:`app.core.lease.WorkKind.refuse_beyond`); nothing is written then."""
     row = OUTPUTS.new_row(new_id(), job_id=job_id, kind=kind, params=json_safe(params), partial=partial,
                           progress=0.0, done=0, total=total)
     with session_scope(settings) as session:
         session.add(row)
+        session.flush()
+        OUTPUTS.refuse_beyond(session, settings.max_queued_outputs, "max_queued_outputs")
     return row

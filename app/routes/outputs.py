@@ -18,6 +18,7 @@ from app.core import jobstore, storage
 from app.core import outputs as store
 from app.core.dispatch import send
 from app.core.jobstore import JOBS
+from app.core.lease import QueueFull
 from app.core.models import OutputRow
 from app.core.outputs import OUTPUTS
 from app.core.redact import public_error
@@ -43,7 +44,10 @@ def _source_or_error(settings: Settings, job_id: str) -> bool:
 def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: dict, total: int | None,
            partial: bool) -> OutputOut:
     """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503)."""
-    row = store.create_output(settings, job_id, kind, params, total, partial)
+    try:
+        row = store.create_output(settings, job_id, kind, params, total, partial)
+    except QueueFull as full:
+        raise HTTPException(429, str(full)) from None
     try:
         send(celery, OUTPUTS, row.id)
     except (KombuError, OSError) as err:
@@ -63,6 +67,7 @@ def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celer
     partial = _source_or_error(settings, job_id)
     try:
         params, frames = store.video_params(settings, body.model_dump())
+        store.check_video_cost(settings, JOBS.get(settings, job_id), params, frames)
     except CameraPathError as err:
         raise HTTPException(422, str(err)) from None
     return _queue(settings, celery, job_id, "video", params, frames, partial)

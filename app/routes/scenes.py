@@ -13,6 +13,7 @@ from starlette.datastructures import UploadFile
 from app.core import jobstore, storage
 from app.core.dispatch import send
 from app.core.jobstore import JOBS
+from app.core.lease import QueueFull
 from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import CeleryDep, SceneId, SettingsDep
@@ -182,7 +183,7 @@ def create_job(
     _scene_or_404(settings, scene_id)
     try:
         job = jobstore.create_job(settings, scene_id, values)
-    except jobstore.QueueFull as full:
+    except QueueFull as full:
         raise HTTPException(429, str(full)) from None
     if job is None:
         raise HTTPException(404, f"no scene {scene_id}")

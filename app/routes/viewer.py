@@ -103,9 +103,9 @@ def _camera_path(body: CameraPathRequest, settings: Settings) -> CameraPath:
     """The request's path; CameraPathError or CameraError naming the key at fault."""
     if body.camera_path is not None:
         return parse_nerfstudio(body.camera_path, dataparser_transforms=body.dataparser_transforms,
-                                max_frames=settings.max_video_frames, max_pixels=settings.max_render_pixels)
+                                max_frames=settings.max_video_frames, max_pixels=settings.render_pixel_limit())
     if body.frames > settings.max_video_frames:
         raise CameraPathError(f"{body.frames} exceeds the limit of {settings.max_video_frames} frames", "frames")
     camera = Intrinsics(body.fl_x, body.fl_y, body.cx, body.cy, body.width, body.height)
-    camera = resolve_intrinsics(camera, max_pixels=settings.max_render_pixels)
+    camera = resolve_intrinsics(camera, max_pixels=settings.render_pixel_limit())
     return interpolate_path(np.asarray(body.keyframes, dtype=np.float64), camera, n_frames=body.frames, fps=body.fps)
