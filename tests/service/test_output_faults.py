@@ -60,10 +60,15 @@ def client(service) -> httpx.Client:
 
 
 @pytest.fixture(scope="module")
-def trained(service, client, small_room) -> str:
-    """A succeeded job on an uploaded room whose run holds an untrained model (no training worker runs)."""
+def scene_id(client, small_room) -> str:
+    return upload_scene(client, small_room)["id"]
+
+
+@pytest.fixture
+def trained(service, scene_id) -> str:
+    """A succeeded job on the uploaded room whose run holds an untrained model (no training worker runs)."""
     store = Settings(_env_file=None, data_dir=service.data_dir)
-    job = jobstore.create_job(store, upload_scene(client, small_room)["id"], {"max_iters": 1})
+    job = jobstore.create_job(store, scene_id, {"max_iters": 1})
     write_tiny_run(service.data_dir / "runs" / job.id)
     with session_scope(store) as session:
         row = session.get(JobRow, job.id)
@@ -108,6 +113,8 @@ def test_a_lost_output_is_sent_again_once_a_waiting_one_keeps_one_message_and_th
     assert _waiting(service) == []
     response = client.get(f"/jobs/{trained}/outputs")
     assert sorted(o["id"] for o in response.json()) == sorted([lost, waiting])
+    assert client.delete(f"/jobs/{trained}").status_code == 204  # nothing of it is queued any more
+    assert client.get(f"/outputs/{lost}").status_code == 404
 
 
 def test_a_render_the_api_gave_up_on_stops_and_frees_the_worker(service, client, trained, small_room):
