@@ -90,7 +90,8 @@ def video_params(settings: Settings, request: dict) -> tuple[dict, int]:
     A ``camera_path`` (nerfstudio's camera-path JSON, with ``dataparser_transforms`` when its poses are in a
     nerfstudio run's frame) is parsed here and stored in scene units; a generator (``path``: interpolate or
     orbit) keeps its fields for the worker, which knows the scene's cameras. Limits: ``max_video_frames``
-    frames and ``max_render_pixels`` pixels per frame. Raises CameraPathError naming the key at fault.
+    frames and :meth:`~app.core.settings.Settings.render_pixel_limit` pixels per frame. Raises CameraPathError naming
+    the key at fault.
     """
     if request.get("camera_path") is not None:
         path = parse_nerfstudio(

@@ -157,8 +157,9 @@ class Settings(BaseSettings):
     )
     resend_queued_after_s: float = Field(
         default=300.0, gt=0,
-        description="a job queued this long since its message was sent has the message sent again (it may have "
-        "been lost); a duplicate is refused by the claim's fence",
+        description="a job or output job queued this long since its message was sent has the message sent again "
+        "(it may have been lost) unless the broker still holds it (the embedded queue and Redis are read); a "
+        "duplicate is refused by the claim's fence",
     )
     max_job_seconds: float = Field(
         default=86_400.0, gt=0,
