@@ -34,6 +34,7 @@ from app.core.settings import Settings
 from voxnerf.cameras.paths import CameraPathError, check_frame_count, parse_nerfstudio
 from voxnerf.config import TrainConfig
 from voxnerf.files import CHECKPOINT
+from voxnerf.inference.export_plan import view_count, view_size
 
 OUTPUTS_DIR = "outputs"  # under a run directory, and the object store's prefix
 FILE_NAMES = {"video": "video.mp4", "mesh": "mesh.ply", "pointcloud": "pointcloud.ply"}
@@ -116,6 +117,10 @@ def video_params(settings: Settings, request: dict) -> tuple[dict, int]:
     return {key: request.get(key) for key in keys}, request["frames"]
 
 
+class OutputTooCostly(Exception):
+    """An output would render more pixels than ``max_output_pixels`` (the API answers 422 with this message)."""
+
+
 def trained_size(settings: Settings, job: JobRow) -> tuple[int, int] | None:
     """The size of job ``job``'s training images, a generated video's default frame size: the scene's image size
     over the job's ``downscale`` (the engine's rule, :class:`voxnerf.data.scene.Scene`); None when the scene's
@@ -128,19 +133,34 @@ def trained_size(settings: Settings, job: JobRow) -> tuple[int, int] | None:
     return width // downscale, height // downscale
 
 
-def check_video_cost(settings: Settings, job: JobRow, params: dict, frames: int) -> None:
-    """Refuse a video whose frames x pixels per frame exceed ``max_output_pixels`` (CameraPathError naming the
-    limit): the cost of rendering it, bounded before it is queued. A frame's size is the request's, else the
-    job's training size (:func:`trained_size`)."""
-    size = (params["width"], params["height"]) if params.get("width") is not None else trained_size(settings, job)
-    if size is None:
+def _training_cameras(settings: Settings, job: JobRow) -> int | None:
+    scene = get_scene(settings, job.scene_id)
+    return None if scene is None else (scene.summary.get("splits") or {}).get("train")
+
+
+def check_output_cost(settings: Settings, job: JobRow, kind: str, params: dict, frames: int | None) -> None:
+    """Refuse an output that would render more than ``max_output_pixels`` pixels (OutputTooCostly naming the
+    limit): its cost, bounded before it is queued. A video renders ``frames`` frames of the request's size, else
+    of the job's training size (:func:`trained_size`); an export renders the views
+    :mod:`voxnerf.inference.export_plan` makes of the scene's training cameras (at most ``max_views``). What
+    cannot be known here (the scene's row is gone) is not checked: the worker then fails the output, which
+    needs the scene."""
+    size = trained_size(settings, job)
+    if kind == "video":
+        count, unit, hint = frames, "frames", "fewer frames or smaller ones"
+        size = (params["width"], params["height"]) if params.get("width") is not None else size
+    else:
+        cameras = _training_cameras(settings, job)
+        count, unit, hint = (None if cameras is None else view_count(cameras, params.get("max_views")), "views",
+                             "a lower max_views")
+        size = None if size is None else view_size(*size)
+    if count is None or size is None:
         return
-    cost = frames * size[0] * size[1]
+    cost = count * size[0] * size[1]
     if cost > settings.max_output_pixels:
-        raise CameraPathError(
-            f"{frames} frames of {size[0]}x{size[1]} are {cost} pixels, beyond the limit of "
-            f"{settings.max_output_pixels} per video (VOXNERF_MAX_OUTPUT_PIXELS): fewer frames or smaller ones",
-            "frames, width, height",
+        raise OutputTooCostly(
+            f"{count} {unit} of {size[0]}x{size[1]} are {cost} pixels, beyond the limit of "
+            f"{settings.max_output_pixels} per output (VOXNERF_MAX_OUTPUT_PIXELS): {hint}"
         )
 
 

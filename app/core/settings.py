@@ -100,8 +100,8 @@ class Settings(BaseSettings):
     )
     max_output_pixels: int = Field(
         default=2_000_000_000, gt=0,
-        description="frames x pixels per frame of one video job (the cost of rendering it); a request beyond "
-        "it is answered 422",
+        description="pixels one output job renders, frames (video) or views (export) x pixels each: its cost; "
+        "a request beyond it is answered 422",
     )
     max_queued_outputs: int = Field(
         default=100, ge=1,

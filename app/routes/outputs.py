@@ -1,7 +1,7 @@
 """Output jobs of a trained job: fly-through videos, meshes and point clouds (queue ``outputs``), and their files.
 
 ``POST /jobs/{id}/videos`` and ``POST /jobs/{id}/exports`` queue one (202; 429 beyond ``max_queued_outputs``, a
-video beyond ``max_output_pixels`` 422); ``GET /outputs/{id}`` follows it;
+video or export beyond ``max_output_pixels`` 422); ``GET /outputs/{id}`` follows it;
 ``GET /outputs/{id}/file`` downloads what a succeeded one made (409 before: a partial file is never served).
 The rules (which jobs can be rendered from, camera-path limits, where files live) are in :mod:`app.core.outputs`.
 """
@@ -69,8 +69,8 @@ def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celer
     job, partial = _source_or_error(settings, job_id)
     try:
         params, frames = store.video_params(settings, body.model_dump())
-        store.check_video_cost(settings, job, params, frames)
-    except CameraPathError as err:
+        store.check_output_cost(settings, job, "video", params, frames)
+    except (CameraPathError, store.OutputTooCostly) as err:
         raise HTTPException(422, str(err)) from None
     return _queue(settings, celery, job_id, "video", params, frames, partial)
 
@@ -78,8 +78,13 @@ def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celer
 @router.post("/jobs/{job_id}/exports", status_code=202, response_model=OutputOut,
              summary="Export a mesh or a point cloud (PLY) of a trained job")
 def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, celery: CeleryDep) -> OutputOut:
-    _job, partial = _source_or_error(settings, job_id)
-    return _queue(settings, celery, job_id, body.kind, body.model_dump(exclude={"kind"}), None, partial)
+    job, partial = _source_or_error(settings, job_id)
+    params = body.model_dump(exclude={"kind"})
+    try:
+        store.check_output_cost(settings, job, body.kind, params, None)
+    except store.OutputTooCostly as err:
+        raise HTTPException(422, str(err)) from None
+    return _queue(settings, celery, job_id, body.kind, params, None, partial)
 
 
 @router.get("/jobs/{job_id}/outputs", response_model=list[OutputOut], summary="Output jobs of a job, newest first")

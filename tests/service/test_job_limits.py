@@ -109,6 +109,28 @@ def test_the_cost_of_a_video_without_a_size_is_counted_at_the_jobs_training_size
     assert _video(client, full, frames=7).status_code == 422  # 21 504
 
 
+def _export(client: TestClient, job_id: str, **fields):
+    return client.post(f"/jobs/{job_id}/exports", json={"kind": "pointcloud", **fields})
+
+
+def test_an_export_beyond_the_cost_cap_is_refused_naming_the_limit(api):
+    """An export renders five views per training camera (voxnerf.inference.export_plan), each at most 320 pixels
+    a side: 64 x 48 here (3072 pixels), under the limit of 20 000 for one camera (5 views), over it for two."""
+    client, settings = api
+    with session_scope(settings) as session:
+        session.get(SceneRow, SCENE).summary = {"frames": 3, "image_size": [64, 48], "splits": {"train": 2}}
+    job_id = _trained_job(client, settings)
+    refused = _export(client, job_id)  # 10 views: 30 720 pixels
+    assert refused.status_code == 422
+    assert refused.json()["detail"] == ("10 views of 64x48 are 30720 pixels, beyond the limit of 20000 per output "
+                                        "(VOXNERF_MAX_OUTPUT_PIXELS): a lower max_views")
+    assert _export(client, job_id, max_views=6).status_code == 202  # 18 432
+    with session_scope(settings) as session:
+        session.get(SceneRow, SCENE).summary = {"frames": 3, "image_size": [1280, 960], "splits": {"train": 1}}
+    detail = _export(client, job_id, kind="mesh").json()["detail"]  # 5 views scaled to 320 x 240
+    assert detail.startswith("5 views of 320x240 are 384000 pixels")
+
+
 # ------------------------------------------------------------------------------------------------ DELETE
 
 
