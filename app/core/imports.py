@@ -15,11 +15,9 @@ import shutil
 import time
 from pathlib import Path
 
-from sqlalchemy import func, select
-
 from app.core.celery_app import IMPORT_TASK
 from app.core.db import session_scope
-from app.core.jobstore import QueueFull, new_id
+from app.core.jobstore import new_id
 from app.core.lease import WorkKind
 from app.core.models import ImportRow
 from app.core.scene_store import tree_size
@@ -69,11 +67,7 @@ def create_import(settings: Settings, staged: Path, name: str, layout: str, para
     with session_scope(settings) as session:
         session.add(row)
         session.flush()
-        queued = session.scalar(select(func.count()).select_from(ImportRow).where(ImportRow.state == "queued"))
-        if queued > settings.max_queued_jobs:
-            session.rollback()
-            raise QueueFull(f"{queued - 1} imports are queued already (the limit is {settings.max_queued_jobs}); "
-                            "wait for some to start, or cancel some")
+        IMPORTS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs")
         target = raw_dir(settings, row.id)
         target.mkdir()
         staged.replace(target / staged.name)

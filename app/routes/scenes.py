@@ -13,6 +13,7 @@ from starlette.datastructures import UploadFile
 from app.core import jobstore, storage
 from app.core.imports import IMPORTS
 from app.core.jobstore import JOBS
+from app.core.lease import QueueFull
 from app.core.models import ImportRow
 from app.core.scene_store import StoredScene
 from app.core.settings import Settings
@@ -198,7 +199,7 @@ def create_job(
     _scene_or_404(settings, scene_id)
     try:
         job = jobstore.create_job(settings, scene_id, values)
-    except jobstore.QueueFull as full:
+    except QueueFull as full:
         raise HTTPException(429, str(full)) from None
     if job is None:
         raise HTTPException(404, f"no scene {scene_id}")

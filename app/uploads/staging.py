@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from app.core.imports import create_import
-from app.core.jobstore import QueueFull
+from app.core.lease import QueueFull
 from app.core.models import ImportRow
 from app.core.scene_store import PublishFailed, StoredScene, commit_scene
 from app.core.settings import Settings
