@@ -40,6 +40,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from app.core.scene_store import tree_size
 from app.core.settings import Settings
 from app.uploads.rules import (
     IMPORT_SUFFIXES,
@@ -55,7 +56,7 @@ from app.uploads.rules import (
     safe_relpath,
 )
 from voxnerf.data.image_io import EXR_MAGIC, PNG_SIGNATURE, image_size
-from voxnerf.data.importers import PaperSplitRule, detect_layout, run_import
+from voxnerf.data.importers import QUEUED_LAYOUTS, PaperSplitRule, detect_layout, run_import
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
 
@@ -94,10 +95,13 @@ def validate_upload(upload: StagedUpload, settings: Settings) -> ValidatedScene:
     imported = None
     if upload.archive is not None:
         imported = _unpack(upload.archive, upload.root, settings, upload.splits)
+    if isinstance(imported, str):  # a layout imported as queued work: the worker checks the scene it writes
+        raw = upload.root.parent / RAW_DIR
+        return ValidatedScene(tree_size(raw), {}, queued_layout=imported)
     summary = _validate_staged(upload.root, settings)
     if imported is not None:
         summary["imported"] = imported
-    return ValidatedScene(_tree_size(upload.root), summary)
+    return ValidatedScene(tree_size(upload.root), summary)
 
 
 # ------------------------------------------------------------------------------------------------ the archive
@@ -296,10 +300,6 @@ def _extract_zip(path: Path, root: Path, settings: Settings) -> str | None:
     return layout
 
 
-def _tree_size(root: Path) -> int:
-    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
-
-
 def _import_layout(layout: str, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict:
     """Write the extracted ``layout`` (in RAW_DIR beside ``root``) into ``root`` with its importer.
 
@@ -320,17 +320,20 @@ def _import_layout(layout: str, root: Path, settings: Settings, rule: PaperSplit
     return imported
 
 
-def _unpack(archive: Path, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict | None:
+def _unpack(archive: Path, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict | str | None:
     """Extract the zip into ``root``, or import it there when it holds a COLMAP model or a ScanNet export
-    (then the importer's summary, else None)."""
+    (then the importer's summary, else None); a layout imported as queued work (``QUEUED_LAYOUTS``, a ROS 2 bag
+    folder) is only extracted beside ``root`` (RAW_DIR) and its name returned."""
     layout = _extract_zip(archive, root, settings)
     if layout is None:
         if rule is not None:
             raise UploadError(
-                422, "splits: only an imported upload (COLMAP, ScanNet, Record3D, Polycam) takes splits; a "
-                "transforms.json scene names its own"
+                422, "splits: only an upload to import takes splits; a transforms.json scene names its own"
             )
         return None
+    if layout in QUEUED_LAYOUTS:
+        check_declared_sizes(root.parent / RAW_DIR, settings)
+        return layout
     return _import_layout(layout, root, settings, rule)
 
 
