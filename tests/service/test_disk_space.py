@@ -27,6 +27,7 @@ from app.core.db import session_scope
 from app.core.disk_space import InsufficientStorage, directory_bytes, require_room
 from app.core.models import JobRow, OutputRow, SceneRow
 from app.core.settings import Settings
+from app.schemas import JobOptions
 from app.uploads import staging
 
 MiB = 1024 * 1024
@@ -115,7 +116,8 @@ def test_a_chunked_upload_is_refused_once_unpacked(service, scene_zip):
 def test_an_output_is_refused_when_the_quota_is_full(service):
     settings = _store(service)
     scene_id = next(p.name for p in (service.data_dir / "scenes").iterdir())
-    job = jobstore.create_job(settings, scene_id, {"max_iters": 1})
+    options = JobOptions(max_iters=1).model_dump(exclude_none=True)  # as the route stores them
+    job = jobstore.create_job(settings, scene_id, options)
     with session_scope(settings) as session:  # a trained job to render from (no worker runs here)
         row = session.get(JobRow, job.id)
         row.state, row.finished_at = "succeeded", time.time()
