@@ -130,6 +130,7 @@ def test_the_scenes_mix_sizes_in_training_and_held_out_frames(room_scene, colmap
                       for i in loaded.splits["test"]}
         assert len(train_sizes) == 2 and len(test_sizes) == 2, (scene, train_sizes, test_sizes)
     assert len({f.intrinsics for f in load_scene(colmap_scene, load_images=False).frames}) > 2  # per-image cameras
+    assert load_scene(room_scene, load_images=False).summary()["image_sizes"] == {"24x18": 10, "18x24": 9}
 
 
 def test_a_scene_of_mixed_sizes_trains_and_evaluates_every_view_at_its_own_size(trained):
