@@ -147,6 +147,8 @@ def test_a_scene_of_mixed_sizes_trains_and_evaluates_every_view_at_its_own_size(
     ran = {s["name"]: s["ran"] for s in report["stages"]}
     assert ran["octree"] and ran["pseudo_depth"] and ran["depth_target"] and ran["first_hit_cache"]
     assert ran["prior_rays"]
+    why = next(s["why"] for s in report["stages"] if s["name"] == "load_scene")
+    assert "training images of 2 sizes" in why and "padding" in why, why
 
 
 def test_render_frame_gives_each_frame_at_its_own_size(trained, tmp_path):

@@ -150,6 +150,8 @@ class TrainingPixels:
 
     def mean_colour(self) -> torch.Tensor:
         """float32 [3] the mean colour (in [0, 1]) of every training pixel."""
+        if self.sizes is None:
+            return self.images.float().mean((0, 1, 2)) / 255.0
         total = self.images.float().sum((0, 1, 2))  # the padding is black: it adds nothing
         return total / (255.0 * self.pixel_count)
 
