@@ -1,12 +1,14 @@
 """Scenes whose images differ in size: the synthetic room with portrait frames beside landscape ones, and a COLMAP
 model of per-image cameras (distorted, 24x16 beside 24x17, as COLMAP's undistorted crops of 1000x657 and 1000x659)
 imported with ``import_colmap``. Each trains, evaluates every view at its own size, renders ``--frame`` of each
-size, gives the viewer its cameras and exports geometry."""
+size, gives the viewer its cameras (``GET /jobs/{id}/cameras``) and exports geometry. The old code stopped each
+run with ``ValueError: training images differ in size``."""
 
 from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -14,9 +16,12 @@ import numpy as np
 import pycolmap
 import pytest
 import trimesh
+from fastapi.testclient import TestClient
 from synthetic_fixtures import MICRO, make_micro_scene, micro_config
 
-from app.viewer_scene import scene_view
+from app.core import jobstore
+from app.core.settings import Settings
+from app.main import create_app
 from voxnerf.cameras.rules import Lens
 from voxnerf.cli import main
 from voxnerf.data.importers import import_colmap
@@ -162,12 +167,26 @@ def test_render_frame_gives_each_frame_at_its_own_size(trained, tmp_path):
         assert iio.imread(out).shape[1::-1] == size
 
 
-def test_the_viewers_cameras_carry_each_frames_size(trained):
-    scene, _, _ = trained
-    view = scene_view(scene, None)
+@pytest.mark.parametrize("name", ["room", "colmap"])
+def test_the_viewers_cameras_carry_each_frames_size(request, tmp_path, name):
+    """``GET /jobs/{id}/cameras`` of an in-process app (a queued job: the endpoint needs no worker)."""
+    scene = request.getfixturevalue(f"{name}_scene")
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", device="cpu", api_token="sizes-token",
+                        sweep_interval_s=3600)
+    with TestClient(create_app(settings), headers={"Authorization": "Bearer sizes-token"}) as client:
+        scene_id = jobstore.new_id()
+        shutil.copytree(scene, settings.scenes_dir / scene_id)
+        jobstore.add_scene(settings, scene_id, name, {"frames": 19}, 1)
+        job = jobstore.create_job(settings, scene_id, {"max_iters": 1}).id
+        body = client.get(f"/jobs/{job}/cameras").json()
+    loaded = load_scene(scene, load_images=False)
     sizes = _sizes(scene)
-    assert {frame["name"]: (frame["width"], frame["height"]) for frame in view["frames"]} == sizes
+    assert {frame["name"]: (frame["width"], frame["height"]) for frame in body["frames"]} == sizes
     assert len(set(sizes.values())) == 2
+    for frame, source in zip(body["frames"], loaded.frames, strict=True):
+        undistorted = source.intrinsics.undistorted()
+        assert (frame["fl_x"], frame["cx"], frame["cy"]) == pytest.approx(
+            (undistorted.fl_x, undistorted.cx, undistorted.cy))
 
 
 def test_export_renders_the_training_cameras_of_both_sizes(trained, tmp_path):
