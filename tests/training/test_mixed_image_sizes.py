@@ -1,8 +1,8 @@
 """Scenes whose images differ in size: the synthetic room with portrait frames beside landscape ones, and a COLMAP
-model of per-image cameras (distorted, 24x16 beside 24x17, as COLMAP's undistorted crops of 1000x657 and 1000x659)
-imported with ``import_colmap``. Each trains, evaluates every view at its own size, renders ``--frame`` of each
-size, gives the viewer its cameras (``GET /jobs/{id}/cameras``) and exports geometry. The old code stopped each
-run with ``ValueError: training images differ in size``."""
+model of per-image OPENCV cameras of 24x16 beside 24x17 (the difference of COLMAP's undistorted crops to 1000x657
+and 1000x659, scaled down) imported with ``import_colmap``. Each trains, evaluates every view at its own size,
+renders ``--frame`` of each size, gives the viewer its cameras (``GET /jobs/{id}/cameras``) and exports geometry.
+The old code stopped each run with ``ValueError: training images differ in size``."""
 
 from __future__ import annotations
 
