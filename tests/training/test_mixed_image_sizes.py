@@ -156,6 +156,16 @@ def test_a_scene_of_mixed_sizes_trains_and_evaluates_every_view_at_its_own_size(
     assert "training images of 2 sizes" in why and "padding" in why, why
 
 
+def test_voxnerf_eval_scores_the_held_out_views_of_both_sizes(trained, tmp_path):
+    scene, run, _ = trained
+    assert main(["eval", str(run), "--device", "cpu", "--split", "test", "--json", str(tmp_path / "m.json")]) == 0
+    metrics = json.loads((tmp_path / "m.json").read_text())
+    loaded = load_scene(scene, load_images=False)
+    held_out = [loaded.frames[i].file_path for i in loaded.splits["test"]]
+    assert len(metrics["views"]) == len(held_out) and all(math.isfinite(v["psnr"]) for v in metrics["views"])
+    assert len({_sizes(scene)[path] for path in held_out}) == 2
+
+
 def test_render_frame_gives_each_frame_at_its_own_size(trained, tmp_path):
     scene, run, _ = trained
     one_per_size = {size: path for path, size in _sizes(scene).items()}
