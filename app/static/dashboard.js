@@ -360,8 +360,10 @@ $("upload-form").addEventListener("submit", async (event) => {
   try {
     showMessage(`Uploading ${file.name}…`, "info");
     const scene = await (await api("/scenes", { method: "POST", body: form })).json();
-    showMessage(`Scene ${scene.id} stored: ${scene.summary.frames} frames, ` +
-      `${scene.summary.image_size.join("x")} pixels.`, "info");
+    const sizes = Object.keys(scene.summary.image_sizes || {});
+    const pixels = sizes.length > 1 ? `images of ${sizes.length} sizes (${sizes.join(", ")})`
+      : `${scene.summary.image_size.join("x")} pixels`;
+    showMessage(`Scene ${scene.id} stored: ${scene.summary.frames} frames, ${pixels}.`, "info");
     refreshScenes();
   } catch (err) {
     showMessage(`Upload refused: ${err.message}`);
