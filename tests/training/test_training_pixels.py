@@ -192,3 +192,27 @@ def test_a_direction_table_past_its_memory_bound_is_not_built(monkeypatch):
     lens = LensBatch.of([Lens("OPENCV", k1=-0.1)] * 2)
     assert pixels.direction_table(intr, lens, 12, 16) is None
     assert pixels.direction_table(intr[:1], LensBatch.of([Lens("OPENCV", k1=-0.1)]), 12, 16) is not None
+
+
+def test_direction_tables_of_mixed_sizes_equal_the_inverse_model_inside_each_image():
+    """Two frames share intrinsics and lens but not their size: two tables, each filled up to its own size."""
+    from voxnerf.cameras.lens import LensBatch
+    from voxnerf.cameras.rules import Lens
+    from voxnerf.training.pixels import direction_table
+
+    intr = torch.tensor([[14.0, 15.0, 8.2, 5.9]] * 3)
+    lens = LensBatch.of([Lens("OPENCV", k1=-0.2, k2=0.03, p1=0.002)] * 3)
+    sizes = torch.tensor([[12, 16], [11, 16], [12, 16]])
+    table = direction_table(intr, lens, 12, 16, sizes)
+    assert table.dirs.shape == (2, 12, 16, 3) and table.camera.tolist() == [1, 0, 1]
+    assert bool((table.dirs[0, 11] == 0).all())  # the 11-row camera's padding row
+    poses = torch.eye(4).repeat(3, 1, 1)
+    images = torch.zeros(3, 12, 16, 3, dtype=torch.uint8)
+    g = torch.Generator().manual_seed(2)
+    img = torch.randint(0, 3, (400,), generator=g)
+    py = (torch.rand(400, generator=g) * sizes[img, 0]).long()
+    px = torch.randint(0, 16, (400,), generator=g)
+    looked_up = TrainingPixels(images, poses, intr, lens, directions=table, sizes=sizes).rays(img, py, px)
+    computed = TrainingPixels(images, poses, intr, lens, sizes=sizes).rays(img, py, px)
+    for a, b in zip(looked_up, computed, strict=True):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=0)
