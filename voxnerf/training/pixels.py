@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -86,25 +86,27 @@ class TrainingPixels:
     depth_beta_scale: torch.Tensor | None = None  # [N, H, W] each pixel's log-Huber beta over the run's
     directions: DirectionTable | None = None  # the lens rays of every pixel, when the frames have lenses
     sizes: torch.Tensor | None = None  # int64 [N, 2] each image's (height, width) when they differ, else None
+    # What the batches of images of different sizes need, computed once (no host sync per step): pixels of all
+    # images, the smallest height and width, and where each image's pixels end when counted image by image.
+    pixel_count: int = field(init=False)
+    smallest_side: tuple[int, int] = field(init=False)
+    _pixel_ends: torch.Tensor | None = field(init=False, default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        n, h, w = self.shape
+        if self.sizes is None:
+            self.pixel_count, self.smallest_side = n * h * w, (h, w)
+            return
+        per_image = self.sizes.prod(dim=1)
+        self._pixel_ends = torch.cumsum(per_image, 0)
+        self.pixel_count = int(per_image.sum())
+        self.smallest_side = int(self.sizes[:, 0].min()), int(self.sizes[:, 1].min())
 
     @property
     def shape(self) -> tuple[int, int, int]:
         """(N, H, W) of the grid every per-pixel tensor has (the largest height and width)."""
         n, h, w, _ = self.images.shape
         return n, h, w
-
-    @property
-    def pixel_count(self) -> int:
-        """Pixels of all training images (the padding left out)."""
-        n, h, w = self.shape
-        return n * h * w if self.sizes is None else int(self.sizes.prod(dim=1).sum())
-
-    @property
-    def smallest_side(self) -> tuple[int, int]:
-        """(height, width): the smallest height and the smallest width of the training images."""
-        if self.sizes is None:
-            return self.shape[1], self.shape[2]
-        return int(self.sizes[:, 0].min()), int(self.sizes[:, 1].min())
 
     def inside(self) -> torch.Tensor | None:
         """bool [N, H, W]: which grid pixels belong to their image; None when every one does."""
@@ -137,11 +139,9 @@ class TrainingPixels:
         """Flat grid indices of the pixels numbered ``ordinal`` when the images' pixels are counted image by
         image, row by row (the padding skipped)."""
         n, h, w = self.shape
-        per_image = self.sizes.prod(dim=1)
-        ends = torch.cumsum(per_image, 0)
-        img = torch.searchsorted(ends, ordinal, right=True)
-        rem = ordinal - (ends[img] - per_image[img])
+        img = torch.searchsorted(self._pixel_ends, ordinal, right=True)
         width = self.sizes[img, 1]
+        rem = ordinal - (self._pixel_ends[img] - self.sizes[img, 0] * width)
         return img * (h * w) + (rem // width) * w + rem % width
 
     def fraction(self, mask: torch.Tensor) -> float:
