@@ -17,6 +17,7 @@ import pycolmap
 import pytest
 import trimesh
 from fastapi.testclient import TestClient
+from service_fixtures import start_service, zip_scene
 from synthetic_fixtures import MICRO, make_micro_scene, micro_config
 
 from app.core import jobstore
@@ -175,6 +176,18 @@ def test_render_frame_gives_each_frame_at_its_own_size(trained, tmp_path):
         assert main(["render", str(run), "--device", "cpu", "--frame", path, "--scene", str(scene),
                      "--out", str(out)]) == 0
         assert iio.imread(out).shape[1::-1] == size
+
+
+def test_an_upload_of_mixed_sizes_is_stored_with_its_sizes(room_scene, tmp_path):
+    """``POST /scenes`` of the room as a zip, through a real API process (validated out of process as always)."""
+    service = start_service(tmp_path / "service", token="sizes-token", workers=False)
+    try:
+        with service.client() as client:
+            response = client.post("/scenes", files={"file": ("mixed.zip", zip_scene(room_scene), "application/zip")})
+    finally:
+        service.stop()
+    assert response.status_code == 201, response.text
+    assert response.json()["summary"]["image_sizes"] == {"24x18": 10, "18x24": 9}
 
 
 @pytest.mark.parametrize("name", ["room", "colmap"])
