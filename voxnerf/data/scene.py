@@ -125,8 +125,9 @@ class Scene:
         return counts
 
     def summary(self) -> dict:
-        """JSON-able description (frames, split sizes, image sizes, prior file and stated sigma, depth)."""
-        first = self.frames[0].intrinsics
+        """JSON-able description (frames, split sizes, image sizes, prior file and stated sigma, depth).
+        ``image_size`` is the first training frame's: the camera a run renders with when asked for no other."""
+        first = self.frames[self.train_indices[0]].intrinsics
         return {
             "frames": len(self.frames),
             "splits": {name: len(idx) for name, idx in self.splits.items()},
