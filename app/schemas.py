@@ -50,6 +50,8 @@ class SceneSummary(BaseModel):
     frames: int
     splits: dict[str, int] = Field(description="frames per split (train, test, named evaluation splits)")
     image_size: list[int] = Field(description="[width, height] of the first training image, pixels")
+    image_sizes: dict[str, int] | None = Field(
+        None, description="frames per image size, e.g. {\"1000x657\": 12, \"1000x659\": 11} (a scene may mix sizes)")
     prior: PriorSummary | None
     depth: bool = Field(description="whether frames carry sensor depth maps")
     depth_frames: dict[str, int] | None = Field(

@@ -133,6 +133,20 @@ def trained_size(settings: Settings, job: JobRow) -> tuple[int, int] | None:
     return width // downscale, height // downscale
 
 
+def largest_trained_size(settings: Settings, job: JobRow) -> tuple[tuple[int, int], bool] | None:
+    """The largest of job ``job``'s image sizes over its ``downscale`` (by pixel count, from the scene summary's
+    ``image_sizes``; a scene from before that key has :func:`trained_size`) and whether the scene's images differ
+    in size; None when the scene's row is gone."""
+    scene = get_scene(settings, job.scene_id)
+    sizes = None if scene is None else scene.summary.get("image_sizes")
+    if not sizes:
+        size = trained_size(settings, job)
+        return None if size is None else (size, False)
+    downscale = int(job.options.get("downscale") or TrainConfig.model_fields["downscale"].default)
+    width, height = max((tuple(int(v) for v in size.split("x")) for size in sizes), key=lambda wh: wh[0] * wh[1])
+    return (width // downscale, height // downscale), len(sizes) > 1
+
+
 def _training_cameras(settings: Settings, job: JobRow) -> int | None:
     scene = get_scene(settings, job.scene_id)
     return None if scene is None else (scene.summary.get("splits") or {}).get("train")
@@ -142,24 +156,27 @@ def check_output_cost(settings: Settings, job: JobRow, kind: str, params: dict, 
     """Refuse an output that would render more than ``max_output_pixels`` pixels (OutputTooCostly naming the
     limit): its cost, bounded before it is queued. A video renders ``frames`` frames of the request's size, else
     of the job's training size (:func:`trained_size`); an export renders the views
-    :mod:`voxnerf.inference.export_plan` makes of the scene's training cameras (at most ``max_views``). What
+    :mod:`voxnerf.inference.export_plan` makes of the scene's training cameras (at most ``max_views``), each
+    counted at the size of the scene's largest images when they differ in size (a bound from above). What
     cannot be known here (the scene's row is gone) is not checked: the worker then fails the output, which
     needs the scene."""
-    size = trained_size(settings, job)
+    up_to = ""
     if kind == "video":
         count, unit, hint = frames, "frames", "fewer frames or smaller ones"
-        size = (params["width"], params["height"]) if params.get("width") is not None else size
+        size = (params["width"], params["height"]) if params.get("width") is not None else trained_size(settings, job)
     else:
         cameras = _training_cameras(settings, job)
         count, unit, hint = (None if cameras is None else view_count(cameras, params.get("max_views")), "views",
                              "a lower max_views")
-        size = None if size is None else view_size(*size)
+        largest = largest_trained_size(settings, job)
+        size = None if largest is None else view_size(*largest[0])
+        up_to = "up to " if largest is not None and largest[1] else ""
     if count is None or size is None:
         return
     cost = count * size[0] * size[1]
     if cost > settings.max_output_pixels:
         raise OutputTooCostly(
-            f"{count} {unit} of {size[0]}x{size[1]} are {cost} pixels, beyond the limit of "
+            f"{count} {unit} of {up_to}{size[0]}x{size[1]} are {cost} pixels, beyond the limit of "
             f"{settings.max_output_pixels} per output (VOXNERF_MAX_OUTPUT_PIXELS): {hint}"
         )
 

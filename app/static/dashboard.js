@@ -411,8 +411,10 @@ $("upload-form").addEventListener("submit", async (event) => {
       refreshImports();
       return;
     }
-    showMessage(`Scene ${stored.id} stored: ${stored.summary.frames} frames, ` +
-      `${stored.summary.image_size.join("x")} pixels.`, "info");
+    const sizes = Object.keys(stored.summary.image_sizes || {});
+    const pixels = sizes.length > 1 ? `images of ${sizes.length} sizes (${sizes.join(", ")})`
+      : `${stored.summary.image_size.join("x")} pixels`;
+    showMessage(`Scene ${stored.id} stored: ${stored.summary.frames} frames, ${pixels}.`, "info");
     refreshScenes();
   } catch (err) {
     showMessage(`Upload refused: ${err.message}`);

@@ -131,6 +131,20 @@ def test_an_export_beyond_the_cost_cap_is_refused_naming_the_limit(api):
     assert detail.startswith("5 views of 320x240 are 384000 pixels")
 
 
+def test_the_cost_of_an_export_of_mixed_sizes_counts_every_view_at_the_largest_size(api):
+    """Two training cameras of 32x24 and 64x48: 10 views counted at 64x48 (30 720 pixels, over the limit), not at
+    the first training image's 32x24 (7 680)."""
+    client, settings = api
+    with session_scope(settings) as session:
+        session.get(SceneRow, SCENE).summary = {"frames": 3, "image_size": [32, 24], "splits": {"train": 2},
+                                                "image_sizes": {"32x24": 2, "64x48": 1}}
+    job_id = _trained_job(client, settings)
+    refused = _export(client, job_id)
+    assert refused.status_code == 422
+    assert refused.json()["detail"].startswith("10 views of up to 64x48 are 30720 pixels")
+    assert _export(client, job_id, max_views=6).status_code == 202  # 18 432
+
+
 # ------------------------------------------------------------------------------------------------ DELETE
 
 
