@@ -25,6 +25,7 @@ from app.body_limit import BodyLimitMiddleware
 from app.core import db, storage
 from app.core.celery_app import create_celery
 from app.core.cleanup import clean_leftovers
+from app.core.disk_space import InsufficientStorage
 from app.core.dispatch import sweep_jobs
 from app.core.progress import json_safe
 from app.core.redact import install_log_masking, public_error
@@ -87,6 +88,10 @@ async def _http_error(request: Request, err: StarletteHTTPException) -> Response
     return await http_exception_handler(request, err)
 
 
+async def _insufficient_storage(_request: Request, err: InsufficientStorage) -> JSONResponse:
+    return JSONResponse({"detail": err.detail}, status_code=err.status_code)
+
+
 async def _validation_error(_request: Request, err: RequestValidationError) -> JSONResponse:
     """FastAPI's 422, with NaN/inf in the echoed input made JSON-safe (a NaN pose must not become a 500)."""
     return JSONResponse({"detail": json_safe(jsonable_encoder(err.errors()))}, status_code=422)
@@ -114,6 +119,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.add_middleware(RequestGuardMiddleware, settings=settings)  # added last: runs first
     app.add_exception_handler(UploadError, _upload_error)
+    app.add_exception_handler(InsufficientStorage, _insufficient_storage)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
 

@@ -132,12 +132,15 @@ def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
         job = JOBS.get(settings, row.job_id)
         if job is None:
             raise RunError(f"job {row.job_id} no longer exists")
-        trained = model_cache().get(storage.ensure_run(settings, row.job_id, refresh=False), settings.device)
-        make = make_video if row.kind == "video" else make_export
-        summary = make(settings, row, job, trained, lease)
-        if summary is None:
-            return {"state": "cancelled"}
-        outputs.publish_output(settings, row, outputs.output_dir(settings, row.job_id, row.id))
+        with (storage.cache_entry_in_use(settings, storage.SCENES, job.scene_id),
+              storage.cache_entry_in_use(settings, storage.RUNS, row.job_id)):
+            storage.prune_cache(settings)  # room for what is fetched next (an object store's cache only)
+            trained = model_cache().get(storage.ensure_run(settings, row.job_id, refresh=False), settings.device)
+            make = make_video if row.kind == "video" else make_export
+            summary = make(settings, row, job, trained, lease)
+            if summary is None:
+                return {"state": "cancelled"}
+            outputs.publish_output(settings, row, outputs.output_dir(settings, row.job_id, row.id))
     except (VoxNeRFError, CameraError) as err:
         log.warning("output %s failed: %s", row.id, err)
         return {"state": "failed", "error": public_error(f"{type(err).__name__}: {err}", settings)}

@@ -17,6 +17,12 @@ With an object store (``VOXNERF_STORAGE_URL``, :mod:`app.core.storage`) the scen
 checkpoint are fetched into this machine's cache first, and the run is uploaded after every checkpoint and
 at the end; a render fetches the run's checkpoint when the cache lacks it.
 
+A disk that fills up while a job trains (``ENOSPC`` or ``EDQUOT`` from any write: a checkpoint, the report, an
+evaluation render) does not strand its work: every file the trainer writes is written atomically, so the last
+checkpoint it completed is intact, and the job ends ``cancelled`` with that checkpoint (renders, videos and
+exports take it, marked partial) and an ``error`` saying the disk filled up at which iteration
+(:func:`disk_full_outcome`). Only a job that had no complete checkpoint yet ends ``failed``, nothing being kept.
+
 The tasks are Celery *shared* tasks: no Celery app is built when this module is imported; they bind to the app
 :func:`worker.run.run_worker` builds (``app.core.celery_app.create_celery``). The engine's typed records are
 the contract with the trainer: ``on_progress`` receives :class:`ProgressEvent` objects and ``train()`` returns a
@@ -26,6 +32,7 @@ the contract with the trainer: ``on_progress`` receives :class:`ProgressEvent` o
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import os
 import signal
@@ -47,9 +54,11 @@ from app.core.settings import Settings, get_settings
 from voxnerf.cameras.rules import CameraError
 from voxnerf.config import TrainConfig
 from voxnerf.errors import RenderStopped, RunError, VoxNeRFError
+from voxnerf.files import CHECKPOINT
 from voxnerf.inference.encoding import encode_outputs
 from voxnerf.inference.render import render
 from voxnerf.trainer import train
+from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.records import ProgressEvent
 from voxnerf.training.run import LeaseLost
 from worker.lease import Lease, hold, leased_task
@@ -112,12 +121,64 @@ def _kill_if_poison_test(settings: Settings, scene_id: str) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+def disk_full_cause(err: BaseException) -> OSError | None:
+    """The ``ENOSPC``/``EDQUOT`` OSError behind ``err`` (itself, or its cause or context, however deep), or None."""
+    seen: set[int] = set()
+    current: BaseException | None = err
+    while current is not None and id(current) not in seen:
+        if isinstance(current, OSError) and current.errno in DISK_FULL_ERRNOS:
+            return current
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return None
+
+
+def disk_full_outcome(settings: Settings, job, cause: OSError, progress: float) -> dict:
+    """The final columns of a job whose disk filled up: ``cancelled`` keeping the run's last complete checkpoint
+    (it is read back here, so a job said to keep one can be rendered), or ``failed`` when it has none."""
+    checkpoint = settings.runs_dir / job.id / CHECKPOINT
+    why = f"the disk filled up while the job was writing ({cause.strerror})"
+    try:
+        iteration = int(load_checkpoint(checkpoint)["iteration"]) if checkpoint.is_file() else None
+    except (RunError, KeyError, TypeError, ValueError):
+        log.exception("job %s: the checkpoint left after the disk filled up is unreadable", job.id)
+        iteration = None
+    if iteration is None:
+        return _failed(settings, f"{why}, before its first checkpoint: nothing is kept; free space and train again")
+    log.warning("job %s: %s; stopped, its checkpoint of iteration %d kept", job.id, why, iteration)
+    return {"state": "cancelled", "stage": "cancelled", "iteration": iteration, "progress": progress, "eta_s": None,
+            "error": public_error(f"{why}; stopped with its last checkpoint (iteration {iteration}) kept, which "
+                                  "renders and outputs use; free space before training again", settings)}
+
+
 def _train_claimed(settings: Settings, job, lease: Lease) -> dict | None:
-    """Train a claimed job; its final columns (:func:`app.core.jobstore.report_outcome`, or failed with the
-    error), None when its lease was lost."""
+    """Train a claimed job; its final columns (:func:`app.core.jobstore.report_outcome`, failed with the error,
+    or :func:`disk_full_outcome`), None when its lease was lost."""
     writer = ProgressWriter(settings, job.id, job.attempt)
     try:
-        config = job_config(settings, job.options)
+        return _train_and_report(settings, job, lease, writer)
+    except LeaseLost as err:
+        log.warning("job %s: %s", job.id, err)
+        return None
+    except Exception as err:
+        if (cause := disk_full_cause(err)) is not None:
+            return disk_full_outcome(settings, job, cause, writer.progress)
+        if isinstance(err, VoxNeRFError):
+            log.warning("job %s failed: %s", job.id, err)
+            return _failed(settings, f"{type(err).__name__}: {err}")
+        log.exception("job %s crashed", job.id)
+        return _failed(settings, f"internal error: {type(err).__name__}: {err}")
+
+
+def _train_and_report(settings: Settings, job, lease: Lease, writer: ProgressWriter) -> dict:
+    """Fetch what the job needs, train it and return its final columns from the report."""
+    config = job_config(settings, job.options)
+    with (storage.cache_entry_in_use(settings, storage.SCENES, job.scene_id),
+          storage.cache_entry_in_use(settings, storage.RUNS, job.id)):
+        storage.prune_cache(settings)  # room for what is fetched next (an object store's cache only)
         scene_dir = storage.ensure_scene(settings, job.scene_id)
         _kill_if_poison_test(settings, job.scene_id)
         run_dir = storage.ensure_run(settings, job.id)
@@ -132,15 +193,7 @@ def _train_claimed(settings: Settings, job, lease: Lease) -> dict | None:
                 progress_bar=False,
                 may_write=lease.still_owned,
             )
-    except LeaseLost as err:
-        log.warning("job %s: %s", job.id, err)
-        return None
-    except VoxNeRFError as err:
-        log.warning("job %s failed: %s", job.id, err)
-        return _failed(settings, f"{type(err).__name__}: {err}")
-    except Exception as err:
-        log.exception("job %s crashed", job.id)
-        return _failed(settings, f"internal error: {type(err).__name__}: {err}")
+    storage.prune_cache(settings)  # the run grew
     state, values = jobstore.report_outcome(settings, job.id, report, writer.progress)
     return {"state": state, **values}
 
@@ -157,7 +210,10 @@ def render_outcome(job_id: str, request: RenderRequest,
     ``should_stop`` says so between two passes over the rays."""
     settings = get_settings()
     try:
-        trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
+        with storage.cache_entry_in_use(settings, storage.RUNS, job_id):
+            if storage.open_store(settings) is not None and not (settings.runs_dir / job_id / CHECKPOINT).is_file():
+                storage.prune_cache(settings)  # room for the checkpoint about to be fetched
+            trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
     except (RunError, storage.StorageError) as err:
         return RenderOutcome(409, detail=f"job {job_id} cannot be rendered: {err}")
     try:  # the scene's default size is only known here, so the pixel limit is checked here too

@@ -221,6 +221,22 @@ class Settings(BaseSettings):
         default=10.0, gt=0, description="how often a training worker uploads a newly saved checkpoint"
     )
 
+    data_dir_quota_bytes: int | None = Field(
+        default=None, gt=0,
+        description="most bytes data_dir may hold (scenes, runs and their outputs, staging, broker queue, SQLite "
+        "database); an upload or an output that would pass it is refused with 507. Unset: no quota",
+    )
+    min_free_bytes: int = Field(
+        default=1024 * MiB, ge=0,
+        description="free space the data_dir's filesystem keeps: an upload (with its declared size) or an output "
+        "that would leave less is refused with 507, so a running job's checkpoints still fit. 0: no floor",
+    )
+    worker_cache_bytes: int = Field(
+        default=20 * 1024 * MiB, gt=0,
+        description="with storage_url: the most bytes of scenes and runs a worker machine keeps in its local "
+        "cache; the least recently used ones no task is using are removed past it (the store keeps them)",
+    )
+
     @field_validator("allowed_hosts", "trusted_proxies", mode="before")
     @classmethod
     def _comma_separated(cls, value: Any) -> Any:

@@ -21,10 +21,20 @@ sees a whole upload or none (a directory without a marker is not in the store), 
 those without atomic renames such as S3. Downloads land in a temporary directory under ``staging_dir`` and
 are renamed into the cache, so a cache entry is complete too; it remembers its generation in
 ``.store-generation`` (never uploaded).
+
+A worker machine's cache is bounded (``worker_cache_bytes``): before a task fetches, and after a training task,
+the worker removes the least recently used scenes and runs from it until it fits (:func:`prune_cache`). A task
+marks what it uses (:func:`cache_entry_in_use`: a shared ``flock`` on ``data_dir/cache-locks/<kind>-<id>.lock``,
+whose modification time is the entry's last use), and the prune removes only an entry it can lock exclusively
+and that the store holds as it is here (same generation, same files and sizes; a run's outputs each published),
+so neither work in progress nor a run the store lacks is ever lost. The lock files stay (empty; removing one
+while a task waits on it would let two tasks lock different files).
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import logging
 import os
@@ -32,7 +42,7 @@ import shutil
 import tempfile
 import threading
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from types import TracebackType
@@ -40,6 +50,7 @@ from types import TracebackType
 import fsspec
 from fsspec.core import url_to_fs
 
+from app.core.disk_space import directory_bytes
 from app.core.redact import mask_url
 from app.core.settings import Settings
 from voxnerf.errors import VoxNeRFError
@@ -49,6 +60,8 @@ MARKER = "current.json"
 LOCAL_GENERATION = ".store-generation"
 SCENES = "scenes"
 RUNS = "runs"
+RUN_OUTPUTS = "outputs"  # a run's output files (app.core.outputs.OUTPUTS_DIR), each published under its own key
+CACHE_LOCKS = "cache-locks"
 FETCH_ATTEMPTS = 3  # a fetch restarts when a newer upload deletes the generation it was reading
 
 log = logging.getLogger(__name__)
@@ -332,6 +345,114 @@ def ensure_run(settings: Settings, job_id: str, refresh: bool = True) -> Path:
         log.info("run %s: fetching generation %s from %s", job_id, marker["generation"], store.where(key))
         fetch_dir(store, key, local, settings.staging_dir)
     return local
+
+
+# ------------------------------------------------------------------------------------------------ worker cache
+
+
+def _lock_path(settings: Settings, kind: str, entry_id: str) -> Path:
+    return settings.data_dir / CACHE_LOCKS / f"{kind}-{entry_id}.lock"
+
+
+@contextlib.contextmanager
+def cache_entry_in_use(settings: Settings, kind: str, entry_id: str) -> Iterator[None]:
+    """Hold cache entry ``<kind>/<id>`` (``scenes`` or ``runs``) for a task: :func:`prune_cache` leaves it alone
+    meanwhile, and its last use is when the block ends. Enter it before the entry is fetched (a prune in
+    progress on it is waited for). Does nothing without a store (then ``data_dir`` is not a cache)."""
+    if not settings.storage_url:
+        yield
+        return
+    path = _lock_path(settings, kind, entry_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "ab") as lock:
+        fcntl.flock(lock, fcntl.LOCK_SH)
+        os.utime(path)
+        try:
+            yield
+        finally:
+            os.utime(path)
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _last_use(settings: Settings, kind: str, local: Path) -> float:
+    """When a task last held the entry (its lock file's time), else when the directory last changed."""
+    for path in (_lock_path(settings, kind, local.name), local):
+        with contextlib.suppress(FileNotFoundError):
+            return path.stat().st_mtime
+    return 0.0
+
+
+def held_by_store(store: Store, kind: str, local: Path) -> bool:
+    """Whether the store holds cache entry ``local`` as it is here: the generation the entry records is the
+    store's current one, with every file (a run's outputs aside) there at its size, and each of a run's outputs
+    published (it records a generation). False when the store cannot say."""
+    generation = local_generation(local)
+    try:
+        marker = read_marker(store, f"{kind}/{local.name}")
+    except StorageError:
+        return False
+    if generation is None or marker is None or marker["generation"] != generation:
+        return False
+    for name, path in _local_files(local).items():
+        if name.split("/", 1)[0] == RUN_OUTPUTS and kind == RUNS:
+            continue
+        if marker["files"].get(name) != path.stat().st_size:
+            return False
+    outputs = local / RUN_OUTPUTS if kind == RUNS else None
+    return outputs is None or not outputs.is_dir() or all(
+        local_generation(output) is not None for output in outputs.iterdir() if output.is_dir())
+
+
+def prune_cache(settings: Settings) -> list[str]:
+    """Remove the least recently used scenes and runs from this machine's cache until it holds at most
+    ``worker_cache_bytes``; the keys (``runs/<id>``...) it removed. Entries a task holds
+    (:func:`cache_entry_in_use`) and entries the store does not hold as they are here (:func:`held_by_store`)
+    stay, even when the cache is then still over its size. No-op without a store."""
+    store = open_store(settings)
+    if store is None:
+        return []
+    entries = [(kind, path) for kind, parent in ((SCENES, settings.scenes_dir), (RUNS, settings.runs_dir))
+               if parent.is_dir() for path in parent.iterdir() if path.is_dir() and not path.name.startswith(".")]
+    sizes = {path: directory_bytes(path) for _, path in entries}
+    total = sum(sizes.values())
+    removed: list[str] = []
+    for kind, local in sorted(entries, key=lambda entry: _last_use(settings, *entry)):
+        if total <= settings.worker_cache_bytes:
+            break
+        if _remove_if_idle(settings, store, kind, local):
+            total -= sizes[local]
+            removed.append(f"{kind}/{local.name}")
+    if removed:
+        log.info("worker cache: removed %d least recently used entries (%s); %d bytes left", len(removed),
+                 ", ".join(removed), total)
+    return removed
+
+
+def _remove_if_idle(settings: Settings, store: Store, kind: str, local: Path) -> bool:
+    """Remove cache entry ``local`` if no task holds it and the store holds it as it is; whether it did."""
+    path = _lock_path(settings, kind, local.name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "ab") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False  # a task uses it
+        try:
+            if not local.is_dir():
+                return False
+            try:
+                held = held_by_store(store, kind, local)
+            except Exception:  # the store is unreachable: keep the entry, it may be the only copy
+                log.warning("worker cache: cannot ask the store about %s/%s; kept", kind, local.name, exc_info=True)
+                return False
+            if not held:
+                return False
+            doomed = Path(tempfile.mkdtemp(prefix="pruned-", dir=settings.staging_dir))
+            local.replace(doomed / local.name)
+            shutil.rmtree(doomed, ignore_errors=True)
+            return True
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 class RunPublisher:

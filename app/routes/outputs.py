@@ -16,6 +16,7 @@ from fastapi.responses import FileResponse
 
 from app.core import jobstore, storage
 from app.core import outputs as store
+from app.core.disk_space import require_room
 from app.core.jobstore import JOBS
 from app.core.lease import QueueFull
 from app.core.models import JobRow, OutputRow
@@ -43,7 +44,9 @@ def _source_or_error(settings: Settings, job_id: str) -> tuple[JobRow, bool]:
 
 def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: dict, total: int | None,
            partial: bool) -> OutputOut:
-    """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503)."""
+    """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503). No
+    row is added when the data directory has no room for the file (507, :func:`app.core.disk_space.require_room`)."""
+    require_room(settings, what=f"a {kind} output")
     try:
         row = store.create_output(settings, job_id, kind, params, total, partial)
     except QueueFull as full:

@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
 from app.core import jobstore, storage
+from app.core.disk_space import require_room
 from app.core.imports import IMPORTS
 from app.core.jobstore import JOBS
 from app.core.lease import QueueFull
@@ -99,6 +100,8 @@ async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDe
             headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)},
         )
     try:
+        declared = _declared_length(request)  # the body is not read yet: a refused upload writes nothing
+        await run_in_threadpool(require_room, settings, declared, what=f"an upload of {declared} bytes")
         stored = await _receive_scene(request, settings)
     finally:
         slots.release()
@@ -107,6 +110,13 @@ async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDe
         body = ImportOut.from_row(IMPORTS.get(settings, stored.id)).model_dump(mode="json")
         return JSONResponse(body, status_code=202, headers={"Location": f"/imports/{stored.id}"})
     return SceneOut.from_row(jobstore.get_scene(settings, stored.id))
+
+
+def _declared_length(request: Request) -> int:
+    """The request's ``Content-Length`` (0 when absent or not a number: a chunked body is checked once it is
+    unpacked, and cut off at ``max_upload_bytes`` meanwhile)."""
+    value = request.headers.get("content-length", "")
+    return int(value) if value.isdigit() else 0
 
 
 def _upload_slots(request: Request, settings: Settings) -> RenderSlots:

@@ -10,12 +10,15 @@ store it atomically.
 3. a validation process unpacks and checks it under a memory and a time limit (:mod:`app.uploads.sandbox`
    runs :mod:`app.uploads.validation`, whose docstring lists its checks): the API process parses nothing the
    client sent and never imports torch;
-4. only then one ``os.replace`` of the staging scene into ``data_dir/scenes/<id>``, and, when ``storage_url``
+4. the room on disk is checked again with the scene unpacked (:func:`app.core.disk_space.require_room`: the
+   data directory's quota and the free-space floor; the route checked the declared size before the body was
+   read), and a disk that fills up while the upload is written is answered the same way (507);
+5. only then one ``os.replace`` of the staging scene into ``data_dir/scenes/<id>``, and, when ``storage_url``
    is set, its upload to the object store (:func:`app.core.scene_store.commit_scene`).
 
 A capture whose import takes long (``QUEUED_LAYOUTS``: a ROS bag, sent as one file or as a zip of a ROS 2 bag
-folder) is not imported here: the zip is unpacked under the same limits (3.), the file is copied as it is
-(recognised by its first bytes alone), and the raw capture is queued as an import job
+folder) is not imported here: the zip is unpacked under the same limits (3.) and the room checked (4.), the file
+is copied as it is (recognised by its first bytes alone), and the raw capture is queued as an import job
 (:func:`app.core.imports.create_import`); a worker writes and checks its scene.
 
 Any failure removes the staging directory, so a refused upload leaves nothing behind.
@@ -23,6 +26,7 @@ Any failure removes the staging directory, so a refused upload leaves nothing be
 
 from __future__ import annotations
 
+import errno
 import logging
 import shutil
 import tempfile
@@ -30,6 +34,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
+from app.core.disk_space import InsufficientStorage, require_room
 from app.core.imports import create_import
 from app.core.lease import QueueFull
 from app.core.models import ImportRow
@@ -128,9 +133,16 @@ def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpl
     try:
         upload = stage(root)
         validated = validate_in_child(upload, settings)
+        archive_bytes = upload.archive.stat().st_size if upload.archive is not None else 0
+        require_room(settings, counted_apart=archive_bytes, what=f"the scene ({validated.size_bytes} bytes unpacked)")
         if validated.queued_layout is not None:
             return _queue_import(settings, staging / RAW_DIR, name, validated.queued_layout, upload.splits)
         return _commit(settings, upload.root, name, validated.summary, validated.size_bytes)
+    except OSError as err:
+        if err.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise InsufficientStorage(f"the server's disk filled up while the upload was stored ({err.strerror}); "
+                                      "nothing was kept: free space, then upload again") from None
+        raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 

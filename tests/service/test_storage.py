@@ -22,6 +22,7 @@ from pydantic import SecretStr
 from service_fixtures import Service, first_pose, free_port, start_redis, start_service, wait_for, zip_scene
 
 from app.core import storage
+from app.core.disk_space import directory_bytes
 from app.core.settings import Settings
 from voxnerf.inference.render import CHECKPOINT, load_model, render
 
@@ -335,6 +336,60 @@ def test_service_with_separate_data_dirs(tmp_path, moto_endpoint, store_url):
         redis.stop()
 
 
+def test_a_worker_cache_past_its_size_is_pruned_and_fetched_again(tmp_path, tmp_path_factory, moto_endpoint,
+                                                                  store_url):
+    """Real workers whose cache may hold 1 byte (``VOXNERF_WORKER_CACHE_BYTES``): after training, the train
+    worker removes the scene and the run (the store holds both); a render fetches the run again, and a second
+    job on the scene fetches the scene again."""
+    from synthetic_fixtures import make_micro_scene
+
+    redis = start_redis(tmp_path / "redis")
+    common = {
+        "VOXNERF_STORAGE_URL": store_url,
+        "VOXNERF_STORAGE_ENDPOINT_URL": moto_endpoint,
+        "VOXNERF_STORAGE_KEY": KEY,
+        "VOXNERF_STORAGE_SECRET": SECRET,
+        "VOXNERF_DATABASE_URL": f"sqlite:///{tmp_path / 'jobs.sqlite'}",
+        "OMP_NUM_THREADS": "1",
+    }
+    api = workers = None
+    try:
+        api = start_service(tmp_path / "api", broker_url=redis.url, settings=common, workers=False)
+        worker_data = tmp_path / "workers" / "data"
+        worker_data.mkdir(parents=True)
+        workers = Service(tmp_path / "workers", dict(api.env, VOXNERF_DATA_DIR=str(worker_data),
+                                                     VOXNERF_WORKER_CACHE_BYTES="1"), api.port, None, "redis")
+        workers.start_worker("train")
+        workers.start_worker("render")
+        api.wait_healthy()
+        with api.client() as client:
+            archive = zip_scene(make_micro_scene(tmp_path_factory, "cache-scene"))
+            scene_id = client.post("/scenes", files={"file": ("room.zip", archive, "application/zip")}).json()["id"]
+
+            def trained() -> dict:
+                response = client.post(f"/scenes/{scene_id}/jobs", json={"max_iters": 2, "compile": False})
+                assert response.status_code == 202, response.text
+                job_id = response.json()["id"]
+                job = wait_for(lambda: (j := client.get(f"/jobs/{job_id}").json())["state"] in (
+                    "succeeded", "failed", "cancelled") and j, 300, f"job {job_id} to finish", 0.5)
+                assert job["state"] == "succeeded", f"{job}\n{workers.logs()}"
+                return job
+
+            job = trained()
+            wait_for(lambda: not any(any((worker_data / kind).iterdir()) for kind in ("scenes", "runs")), 30,
+                     "the train worker to prune its cache")
+            assert "worker cache: removed" in (workers.root / "worker-train.log").read_text()
+            response = client.post("/render", json={"job_id": job["id"], "transform_matrix": np.eye(4).tolist(),
+                                                    "width": 16, "height": 12})
+            assert response.status_code == 200, f"{response.text}\n{workers.logs()}"
+            trained()  # the scene is fetched again
+    finally:
+        for service in (workers, api):
+            if service is not None:
+                service.stop()
+        redis.stop()
+
+
 def test_upload_refused_with_503_when_the_store_is_down(tmp_path):
     """The API keeps no scene the store did not take: no directory, no row, a 503 naming the cause."""
     from app.core import jobstore
@@ -379,3 +434,76 @@ def test_api_start_up_fails_clearly_when_the_store_is_unreachable(tmp_path):
 def test_the_store_names_the_engines_checkpoint():
     """app.core.storage cannot import voxnerf.inference.render (torch) for the name; the two must agree."""
     assert storage.CHECKPOINT == CHECKPOINT
+
+
+# ------------------------------------------------------------------------------------------------ worker cache
+
+
+def _publish_scene(a: Settings, scene_id: str, seed: int) -> None:
+    _fill(a.scenes_dir / scene_id, seed)
+    storage.publish_scene(a, scene_id)
+
+
+def _used_at(settings: Settings, kind: str, entry_id: str, when: float) -> None:
+    """Hold the entry as a task does, then date its last use ``when`` (older entries go first)."""
+    with storage.cache_entry_in_use(settings, kind, entry_id):
+        pass
+    lock = settings.data_dir / storage.CACHE_LOCKS / f"{kind}-{entry_id}.lock"
+    os.utime(lock, (when, when))
+
+
+def test_the_worker_cache_drops_least_recently_used_entries_the_store_holds(machines):
+    a, b = machines
+    for seed, scene_id in enumerate(("s-old", "s-mid", "s-new")):
+        _publish_scene(a, scene_id, seed)
+    one = directory_bytes(a.scenes_dir / "s-old") + 64  # each scene's files and its generation record
+    b = b.model_copy(update={"worker_cache_bytes": 2 * one})
+    for when, scene_id in enumerate(("s-old", "s-mid", "s-new")):
+        with storage.cache_entry_in_use(b, storage.SCENES, scene_id):
+            storage.ensure_scene(b, scene_id)
+        _used_at(b, storage.SCENES, scene_id, 1_000_000 + when)
+    assert storage.prune_cache(b) == ["scenes/s-old"]
+    assert sorted(p.name for p in b.scenes_dir.iterdir()) == ["s-mid", "s-new"]
+    assert storage.prune_cache(b) == []  # it fits now
+    with storage.cache_entry_in_use(b, storage.SCENES, "s-old"):  # the store still holds it: fetched again
+        assert _tree(storage.ensure_scene(b, "s-old")) == _tree(a.scenes_dir / "s-old")
+    assert not list(b.staging_dir.iterdir())
+
+
+def test_the_worker_cache_keeps_entries_in_use_and_runs_the_store_lacks(machines):
+    a, b = machines
+    b = b.model_copy(update={"worker_cache_bytes": 1})  # over it with anything: only the rules below keep entries
+    _publish_scene(a, "busy", 0)
+    with storage.cache_entry_in_use(b, storage.SCENES, "busy"):
+        storage.ensure_scene(b, "busy")
+        _fill(b.runs_dir / "never-uploaded", 1)  # a run whose upload failed: the cache holds the only copy
+        changed = b.runs_dir / "changed"
+        _fill(changed, 2)
+        storage.put_dir(storage.open_store(b), changed, "runs/changed")
+        (changed / "images/0001.png").write_bytes(b"a newer checkpoint, not uploaded yet")
+        unpublished = b.runs_dir / "unpublished-output"
+        _fill(unpublished, 3)
+        storage.put_dir(storage.open_store(b), unpublished, "runs/unpublished-output")
+        (unpublished / "outputs" / "o1").mkdir(parents=True)
+        (unpublished / "outputs" / "o1" / "video.mp4").write_bytes(b"being rendered")
+        uploaded = b.runs_dir / "uploaded"
+        _fill(uploaded, 4)
+        storage.put_dir(storage.open_store(b), uploaded, "runs/uploaded")
+        for when, (kind, entry_id) in enumerate([(storage.SCENES, "busy"), (storage.RUNS, "never-uploaded"),
+                                                 (storage.RUNS, "changed"), (storage.RUNS, "unpublished-output"),
+                                                 (storage.RUNS, "uploaded")]):
+            if entry_id != "busy":
+                _used_at(b, kind, entry_id, 1_000_000 + when)
+        assert storage.prune_cache(b) == ["runs/uploaded"]  # the held scene, oldest of all, stays
+    assert storage.prune_cache(b) == ["scenes/busy"]  # released: now it goes
+    assert sorted(p.name for p in b.runs_dir.iterdir()) == ["changed", "never-uploaded", "unpublished-output"]
+
+
+def test_without_a_store_the_cache_is_never_pruned(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", worker_cache_bytes=1)
+    settings.make_dirs()
+    _fill(settings.scenes_dir / "s1", 0)
+    with storage.cache_entry_in_use(settings, storage.SCENES, "s1"):
+        pass
+    assert storage.prune_cache(settings) == []
+    assert (settings.scenes_dir / "s1").is_dir() and not (settings.data_dir / storage.CACHE_LOCKS).exists()
