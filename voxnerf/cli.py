@@ -365,6 +365,14 @@ def _import(args: argparse.Namespace) -> int:
     splits = PaperSplitRule() if args.splits == "paper" else None
     if args.layout == "colmap":
         summary = import_colmap(args.dir, args.out, splits, images=args.images)
+    elif args.layout == "images":
+        from voxnerf.data.importers.sfm import import_images
+
+        summary = import_images(args.dir, args.out, splits, matching=args.matching)
+    elif args.layout == "video":
+        from voxnerf.data.importers.video import import_video
+
+        summary = import_video(args.file, args.out, args.frames, splits)
     else:
         summary = import_scannet(args.dir, args.out, splits)
     for line in describe(summary):
@@ -556,15 +564,30 @@ def _add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import_command(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("import", help="write a COLMAP model or a ScanNet export as a scene (docs/scene-format.md)",
-                       description="Write a COLMAP sparse model or a ScanNet export as a scene in the project's "
-                       "format; see docs/scene-format.md.")
+    from voxnerf.data.importers.sfm import EXHAUSTIVE_MAX_IMAGES, MATCHING_CHOICES
+    from voxnerf.data.importers.video import DEFAULT_FRAMES
+
+    p = sub.add_parser("import", help="write a COLMAP model, a ScanNet export, photos or a video as a scene "
+                       "(docs/scene-format.md)",
+                       description="Write a COLMAP sparse model, a ScanNet export, a folder of photos or a video "
+                       "(the last two posed by structure from motion) as a scene in the project's format; see "
+                       "docs/scene-format.md.")
     layouts = p.add_subparsers(dest="layout", required=True)
     colmap = layouts.add_parser("colmap", help="a COLMAP sparse model (sparse/0, sparse or DIR; text or binary)")
     colmap.add_argument("--images", help="the image folder (default DIR/images)")
     scannet = layouts.add_parser("scannet", help="ScanNet's exported color/ depth/ pose/ intrinsic/ folders")
-    for q in (colmap, scannet):
+    images = layouts.add_parser("images", help="a folder of photos without poses, posed by structure from motion")
+    images.add_argument("--matching", choices=MATCHING_CHOICES, default="auto",
+                        help=f"image pairs to match: auto (exhaustive up to {EXHAUSTIVE_MAX_IMAGES} photos, else "
+                        "sequential in name order), exhaustive or sequential")
+    video = layouts.add_parser("video", help="a video (MP4/MOV, H.264/HEVC): frames picked, then structure from "
+                               "motion")
+    video.add_argument("file", metavar="FILE")
+    video.add_argument("--frames", type=int, default=DEFAULT_FRAMES, metavar="N",
+                       help=f"frames to keep: the sharpest of each of N equal time windows (default {DEFAULT_FRAMES})")
+    for q in (colmap, scannet, images):
         q.add_argument("dir", metavar="DIR")
+    for q in (colmap, scannet, images, video):
         q.add_argument("--out", required=True, metavar="SCENE", help="scene directory to write (absent or empty)")
         q.add_argument("--splits", choices=["paper"],
                        help="write the paper's train / interpolation / extrapolation splits (default: none)")

@@ -2,12 +2,15 @@
 
 - :func:`import_colmap`: a COLMAP sparse model and its images (:mod:`voxnerf.data.importers.colmap`);
 - :func:`import_scannet`: ScanNet's exported frames (:mod:`voxnerf.data.importers.scannet`);
+- :func:`import_images`: photos without poses, posed by structure from motion (:mod:`voxnerf.data.importers.sfm`);
+- :func:`import_video`: a video's sharpest frames, then the same (:mod:`voxnerf.data.importers.video`);
 - ``splits=PaperSplitRule()``: the paper's train / interpolation / extrapolation splits
   (:mod:`voxnerf.data.importers.splits`), the same rule for every importer.
 
 Each returns a JSON-able summary: ``format``, ``frames``, ``skipped`` (count per reason), ``camera_models``,
 ``depth_frames``, ``prior`` (file, points, sigma and its rule; None without one), ``splits`` (the rule's
-parameters and the frame counts; None without ``splits``) and ``notes``. Torch-free: the API imports this
+parameters and the frame counts; None without ``splits``) and ``notes``; the SfM importers add ``sfm`` (and a
+video ``video``). Torch-free: the API imports this
 package on upload.
 """
 
@@ -18,10 +21,12 @@ from pathlib import Path, PurePosixPath
 
 from voxnerf.data.importers.colmap import import_colmap
 from voxnerf.data.importers.scannet import import_scannet
+from voxnerf.data.importers.sfm import import_images
 from voxnerf.data.importers.splits import PaperSplitRule, paper_splits
+from voxnerf.data.importers.video import import_video
 
-__all__ = ["LAYOUTS", "PaperSplitRule", "describe", "detect_layout", "import_colmap", "import_scannet",
-           "paper_splits", "run_import"]
+__all__ = ["LAYOUTS", "PaperSplitRule", "describe", "detect_layout", "import_colmap", "import_images",
+           "import_scannet", "import_video", "paper_splits", "run_import"]
 
 LAYOUTS = ("colmap", "scannet")
 COLMAP_MODEL_DIRS = ("sparse/0", "sparse", "")
