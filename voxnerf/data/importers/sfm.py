@@ -6,11 +6,13 @@ Structure from motion runs inside the product with pycolmap's bundled COLMAP (CP
   order). Each is decoded once; one that does not decode is skipped and named. A photo whose EXIF orientation
   is not "upright" is written upright first (JPEG quality JPEG_QUALITY), so that COLMAP and the engine see the
   same pixels; the others are used byte for byte.
-- Cameras: one shared camera (COLMAP's OPENCV model: two focals, principal point, k1 k2 p1 p2) when every photo
-  has the same size and the same EXIF make, model and focal length; else one camera per photo with COLMAP's
-  SIMPLE_RADIAL model (one focal, k1: fewer unknowns for a camera seen in one photo). Both are written as the
-  engine's ``OPENCV`` lens model (:mod:`voxnerf.data.importers.colmap`); rays are distorted in the engine, the
-  photos are never resampled. COLMAP takes the starting focal length from EXIF when it has one.
+- Cameras: one shared camera when every photo has the same size and the same EXIF make, model and focal length;
+  else one camera per photo. The model is COLMAP's SIMPLE_RADIAL (one focal length, principal point, radial k1),
+  written as the engine's ``OPENCV`` lens model with k1 (:mod:`voxnerf.data.importers.colmap`): rays are
+  distorted in the engine, the photos are never resampled. (COLMAP's OPENCV model, with separate x and y focal
+  lengths and tangential terms, let the synthetic room's path converge to a focal ratio of 18 in this project's
+  tests; square pixels hold for phone and robot cameras.) COLMAP takes the starting focal length from EXIF when
+  it has one, else 1.2 times the longer side.
 - Matching: exhaustive (every pair) up to EXHAUSTIVE_MAX_IMAGES photos, else sequential (each photo with its
   SEQUENTIAL_OVERLAP successors in name order and the quadratic ones beyond): ``matching`` overrides. A video's
   frames are always matched sequentially.
@@ -55,14 +57,14 @@ MAX_FEATURE_IMAGE_SIZE = 1600
 """Longest side (pixels) features are extracted at; larger photos are scaled for extraction only (COLMAP scales
 the keypoints back), the scene keeps them at full size."""
 JPEG_QUALITY = 95
-SHARED_CAMERA_MODEL = "OPENCV"
-PER_IMAGE_CAMERA_MODEL = "SIMPLE_RADIAL"
+CAMERA_MODEL = "SIMPLE_RADIAL"
 REASONS = {
     "undecodable": "cannot be decoded as a JPEG or PNG image",
     "no_features": "no features found (blank, blurred or very small)",
     "no_match": "no verified match with any other image (it does not overlap them)",
-    "other_model": "in a separate reconstruction (it overlaps a group of images the largest one does not reach)",
-    "not_registered": "matched other images but could not be registered (too few matches to the 3D points)",
+    "other_model": "overlaps only images outside the largest reconstruction (a separate group)",
+    "not_registered": "matched images of the reconstruction but could not be registered (too few matches to "
+    "its 3D points)",
 }
 """Why a photo is not in the scene, as the summary says it."""
 _EXIF_ORIENTATION, _EXIF_MAKE, _EXIF_MODEL, _EXIF_IFD, _EXIF_FOCAL = 0x0112, 0x010F, 0x0110, 0x8769, 0x920A
@@ -182,7 +184,7 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path) -> Sfm
                          f"{MIN_REGISTERED} that overlap")
     shared = len(staged.camera_keys) == 1
     mode = pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE
-    reader = pycolmap.ImageReaderOptions(camera_model=SHARED_CAMERA_MODEL if shared else PER_IMAGE_CAMERA_MODEL)
+    reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
     extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_FEATURE_IMAGE_SIZE)
     extraction.sift.max_num_features = MAX_FEATURES
     matching = resolve_matching(matching, len(staged.names))
@@ -210,8 +212,8 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path) -> Sfm
     return SfmResult(models[0], matching, camera_mode, sizes, unregistered)
 
 
-def _match_graph(database: Path, min_matches: int) -> tuple[dict[int, str], dict[int, int], set[int]]:
-    """Image id -> name, image id -> keypoint count, and the ids with a verified match to another image."""
+def _match_graph(database: Path, min_matches: int) -> tuple[dict[int, str], dict[int, int], dict[int, set[int]]]:
+    """Image id -> name, image id -> keypoint count, image id -> the ids it has a verified match with."""
     import pycolmap
 
     db = pycolmap.Database.open(database)
@@ -219,37 +221,42 @@ def _match_graph(database: Path, min_matches: int) -> tuple[dict[int, str], dict
         names = {image.image_id: image.name for image in db.read_all_images()}
         keypoints = {image_id: db.num_keypoints_for_image(image_id) for image_id in names}
         pair_ids, geometries = db.read_two_view_geometries()
-        matched = set()
+        partners: dict[int, set[int]] = {image_id: set() for image_id in names}
         for pair_id, geometry in zip(pair_ids, geometries, strict=True):
             if len(geometry.inlier_matches) >= min_matches:
-                matched.update(pycolmap.pair_id_to_image_pair(pair_id))
+                first, second = pycolmap.pair_id_to_image_pair(pair_id)
+                partners[first].add(second)
+                partners[second].add(first)
     finally:
         db.close()
-    return names, keypoints, matched
+    return names, keypoints, partners
 
 
 def _why_none(database: Path, n_photos: int) -> str:
-    names, keypoints, matched = _match_graph(database, 15)
+    names, keypoints, partners = _match_graph(database, 15)
     if not any(keypoints.values()):
         return "no features were found in any photo"
-    return (f"{len(matched)} of {n_photos} photos have a verified match with another; the photos must overlap "
-            "(each part of the scene seen from several places)")
+    matched = sum(1 for ids in partners.values() if ids)
+    if matched < n_photos:
+        return (f"{matched} of {n_photos} photos have a verified match with another; the photos must overlap "
+                "(each part of the scene seen from several places)")
+    return ("every photo matches another, but the viewpoints differ too little to triangulate from (move the "
+            "camera between photos, do not only turn it)")
 
 
 def _unregistered(database: Path, models: list, min_matches: int) -> dict[str, str]:
     """Name -> reason key for the photos the kept (first) reconstruction lacks."""
-    names, keypoints, matched = _match_graph(database, min_matches)
-    kept = {models[0].image(i).name for i in models[0].reg_image_ids()}
-    elsewhere = {model.image(i).name for model in models[1:] for i in model.reg_image_ids()}
+    names, keypoints, partners = _match_graph(database, min_matches)
+    kept = set(models[0].reg_image_ids())
     reasons = {}
     for image_id, name in sorted(names.items(), key=lambda item: item[1]):
-        if name in kept:
+        if image_id in kept:
             continue
         if keypoints.get(image_id, 0) == 0:
             reasons[name] = "no_features"
-        elif image_id not in matched:
+        elif not partners[image_id]:
             reasons[name] = "no_match"
-        elif name in elsewhere:
+        elif not partners[image_id] & kept:
             reasons[name] = "other_model"
         else:
             reasons[name] = "not_registered"
