@@ -35,9 +35,10 @@ KITCHEN_CENTRE_FRACTION = 0.08
 ROOM_ARC = range(31, 47)
 """16 consecutive frames of the synthetic room's 48-frame loop (the textured side: the loop as a whole breaks
 into several reconstructions at its plaster walls)."""
-# Reached on the arc: rotation 0.61 deg at most, centre 1.7 % of the trajectory at most.
-ROOM_ROTATION_DEG = 1.0
-ROOM_CENTRE_FRACTION = 0.03
+# Reached on the arc: rotation 0.6-1.0 deg at most (median 0.3-0.5), centre 1.7-1.8 % of the trajectory at most
+# (median 0.4 %); the renders are not anti-aliased (one ray per pixel), which limits SIFT's precision.
+ROOM_ROTATION_DEG = 2.0
+ROOM_CENTRE_FRACTION = 0.04
 
 
 def kitchen_pose(file_path: str) -> list:
@@ -259,5 +260,6 @@ def test_too_few_registered_for_the_paper_splits_is_a_one_line_error(kitchen_pho
     out = tmp_path / "scene"
     assert main(["import", "images", str(kitchen_photos), "--out", str(out), "--splits", "paper"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith(f"voxnerf: error: {kitchen_photos}: --splits paper: 25 frames are too few") and "\n" not in err
+    assert err.startswith(f"voxnerf: error: {kitchen_photos}: --splits paper: 25 frames are too few")
+    assert "\n" not in err
     assert list(tmp_path.iterdir()) == []

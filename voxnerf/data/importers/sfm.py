@@ -16,7 +16,9 @@ Structure from motion runs inside the product with pycolmap's bundled COLMAP (CP
 - Matching: exhaustive (every pair) up to EXHAUSTIVE_MAX_IMAGES photos, else sequential (each photo with its
   SEQUENTIAL_OVERLAP successors in name order and the quadratic ones beyond): ``matching`` overrides. A video's
   frames are always matched sequentially.
-- Mapping: COLMAP's incremental mapper; the largest reconstruction is kept (ties: the one with more points).
+- Mapping: COLMAP's incremental mapper (one thread, seed 0; its start and registration thresholds lowered:
+  :data:`INIT_MIN_TRIANGULATION_DEG`); the largest reconstruction is kept (ties: the one with more points).
+  Feature extraction and matching use every core, so the registered set can vary slightly run to run.
   Fewer than MIN_REGISTERED registered photos is an error; each photo left out is named with its reason
   (:data:`REASONS`).
 - The kept reconstruction is written as a scene by the COLMAP importer's own path
@@ -56,6 +58,14 @@ MAX_FEATURES = 4096
 MAX_FEATURE_IMAGE_SIZE = 1600
 """Longest side (pixels) features are extracted at; larger photos are scaled for extraction only (COLMAP scales
 the keypoints back), the scene keeps them at full size."""
+INIT_MIN_TRIANGULATION_DEG = 4.0
+INIT_MIN_INLIERS = 50
+REGISTER_MIN_INLIERS = 15
+"""The incremental mapper's thresholds for its first pair (triangulation angle, inlier matches) and for
+registering a further image (2D-3D inliers), below COLMAP's defaults (16 degrees, 100, 30), which suit
+thousands of features per image: on 25-50 frames of a slow indoor video at 320 x 240 (~500 features each) the
+defaults left a third to half of the frames in side reconstructions on some seeds, these registered all of them
+on every seed tried. Poses are bundle-adjusted all the same."""
 JPEG_QUALITY = 95
 CAMERA_MODEL = "SIMPLE_RADIAL"
 REASONS = {
@@ -189,7 +199,7 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path) -> Sfm
     extraction.sift.max_num_features = MAX_FEATURES
     matching = resolve_matching(matching, len(staged.names))
     database = work / "database.db"
-    options = pycolmap.IncrementalPipelineOptions(min_model_size=MIN_REGISTERED, random_seed=0)
+    options = _mapper_options()
     pycolmap.set_random_seed(0)
     with _quiet_colmap():
         pycolmap.extract_features(database, staged.dir, image_names=staged.names, camera_mode=mode,
@@ -210,6 +220,16 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path) -> Sfm
     unregistered = _unregistered(database, models, options.min_num_matches)
     camera_mode = "one shared camera" if shared else "one camera per image"
     return SfmResult(models[0], matching, camera_mode, sizes, unregistered)
+
+
+def _mapper_options():
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions(min_model_size=MIN_REGISTERED, random_seed=0, num_threads=1)
+    options.mapper.init_min_tri_angle = INIT_MIN_TRIANGULATION_DEG
+    options.mapper.init_min_num_inliers = INIT_MIN_INLIERS
+    options.mapper.abs_pose_min_num_inliers = REGISTER_MIN_INLIERS
+    return options
 
 
 def _match_graph(database: Path, min_matches: int) -> tuple[dict[int, str], dict[int, int], dict[int, set[int]]]:

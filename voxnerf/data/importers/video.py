@@ -67,10 +67,13 @@ def _open(path: Path):
     quiet.setLevel(logging.ERROR)
     try:
         meta = next(frames)
-    except (OSError, RuntimeError, IndexError, ValueError, AttributeError, StopIteration):
-        # imageio-ffmpeg raises OSError when ffmpeg cannot read the file, IndexError / AttributeError when its
-        # header lists no video stream
+    except (OSError, RuntimeError, IndexError, ValueError, AttributeError, StopIteration) as err:
+        # imageio-ffmpeg raises OSError (with ffmpeg's log) when ffmpeg writes no output stream, IndexError /
+        # AttributeError when the log lists no video stream
         frames.close()
+        if " Video: " in str(err):  # ffmpeg found a video stream but decoded nothing from it
+            raise SceneError(path, "no decodable frames: ffmpeg finds a video stream but cannot decode any frame "
+                             "of it (truncated or corrupt file)") from None
         raise SceneError(path, "not a video ffmpeg can decode: no video stream found") from None
     finally:
         quiet.setLevel(level)
