@@ -45,10 +45,19 @@ def source_frames(redkitchen: Path) -> list[dict]:
     return json.loads((redkitchen / "transforms.json").read_text())["frames"]
 
 
-def write_photos(redkitchen: Path, frames: list[dict], indices: list[int], dst: Path) -> None:
+def write_photos(redkitchen: Path, frames: list[dict], indices: list[int], dst: Path, scale: float) -> None:
+    """The frames ``indices`` as photos: copied, or scaled by ``scale`` (Lanczos, JPEG quality 95)."""
+    from PIL import Image
+
     dst.mkdir(parents=True)
     for i in indices:
-        shutil.copyfile(redkitchen / frames[i]["file_path"], dst / Path(frames[i]["file_path"]).name)
+        src, name = redkitchen / frames[i]["file_path"], Path(frames[i]["file_path"]).name
+        if scale == 1:
+            shutil.copyfile(src, dst / name)
+            continue
+        with Image.open(src) as im:
+            size = (round(im.width * scale), round(im.height * scale))
+            im.convert("RGB").resize(size, Image.LANCZOS).save(dst / name, quality=95)
 
 
 def write_video(redkitchen: Path, frames: list[dict], indices: list[int], path: Path, fps: float) -> None:
@@ -72,7 +81,9 @@ def measure(name: str, scene: Path, summary: dict, seconds: float, given_pose_of
     given = np.array([given_pose_of(f["file_path"]) for f in meta["frames"]])
     errors = pose_errors(estimated, given)
     sfm = summary["sfm"]
-    row = {"importer": name, "import_s": seconds, "images": sfm["images"], "registered": sfm["registered"],
+    width, height = (meta["w"], meta["h"]) if "w" in meta else (meta["frames"][0]["w"], meta["frames"][0]["h"])
+    row = {"importer": name, "size": [width, height], "import_s": seconds, "images": sfm["images"],
+           "registered": sfm["registered"],
            "matching": sfm["matching"], "cameras": sfm["cameras"], "reconstructions": sfm["reconstructions"],
            "reprojection_px": sfm["mean_reprojection_error_px"], "points": sfm["points"],
            "focal_px": meta.get("fl_x"), "pose_error": errors.as_dict()}
@@ -115,8 +126,8 @@ def train(scene: Path, run: Path, seconds: float, extra: list[str]) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    header = ["importer", "import s", "registered", "rotation deg (max / median)", "centre / trajectory (max / median)",
-              "reprojection px", "PSNR (imported / given)"]
+    header = ["importer", "size", "matching", "import s", "registered", "rotation deg (max / median)",
+              "centre / trajectory (max / median)", "reprojection px", "PSNR (imported / given)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in rows:
         e = r["pose_error"]
@@ -125,7 +136,8 @@ def table(rows: list[dict]) -> str:
             psnr = "; ".join(f"{split} {m['psnr']:.2f} / {r['given_train']['metrics'][split]['psnr']:.2f}"
                              for split, m in r["train"]["metrics"].items())
         centre = f"{100 * e['centre_error_max_fraction']:.1f} % / {100 * e['centre_error_median_fraction']:.1f} %"
-        lines.append(f"| {r['importer']} | {r['import_s']:.0f} | {r['registered']} / {r['images']} | "
+        lines.append(f"| {r['importer']} | {r['size'][0]}x{r['size'][1]} | {r['matching']} | {r['import_s']:.0f} | "
+                     f"{r['registered']} / {r['images']} | "
                      f"{e['rotation_deg_max']:.2f} / {e['rotation_deg_median']:.2f} | {centre} | "
                      f"{r['reprojection_px']:.2f} | {psnr} |")
     return "\n".join(lines)
@@ -138,6 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stride", type=int, default=5, help="source frames between photos (the video has all)")
     parser.add_argument("--fps", type=float, default=30.0, help="the video's frame rate (Kinect v1: 30)")
     parser.add_argument("--importers", default="photos,video")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="photos scaled by this (2: 1280 x 960, about the 1 MP of a phone photo set)")
+    parser.add_argument("--matching", default="auto", choices=["auto", "exhaustive", "sequential"],
+                        help="the photos' matching (the video's is sequential)")
     parser.add_argument("--out", type=Path, required=True, help="results folder (results.json, table.md)")
     parser.add_argument("--train", type=float, default=0.0, metavar="SECONDS",
                         help="also train each imported scene and the given one this long (0: no training)")
@@ -156,9 +172,9 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(tmp)
         for importer in args.importers.split(","):
             if importer == "photos":
-                write_photos(args.redkitchen, frames, photo_indices, tmp / "photos")
+                write_photos(args.redkitchen, frames, photo_indices, tmp / "photos", args.scale)
                 started = time.perf_counter()
-                summary = import_images(tmp / "photos", tmp / "photos_scene", splits)
+                summary = import_images(tmp / "photos", tmp / "photos_scene", splits, matching=args.matching)
                 seconds = time.perf_counter() - started
 
                 def source_of(file_path: str) -> str:
