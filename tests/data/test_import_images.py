@@ -26,8 +26,8 @@ from voxnerf.errors import SceneError
 
 KITCHEN_INDICES = range(0, 250, 10)
 """25 redkitchen frames 10 apart: 1.5 m of camera path."""
-# Reached on these 25 photos (pycolmap 4.2, SIMPLE_RADIAL shared camera): rotation 2.1 deg at most (median
-# 0.9), centre 5.6 % of the trajectory at most (median 3.2 %). The given poses are KinectFusion's for the depth
+# Reached on these 25 photos (pycolmap 4.2.1, one shared SIMPLE_RADIAL camera): rotation 2.2 deg at most (median
+# 0.8-0.9), centre 5.6-5.8 % of the trajectory at most (median 3.2 %). The given poses are KinectFusion's for the depth
 # camera; the colour camera sits a few cm beside it with other intrinsics (7-Scenes does not register them), so
 # part of this is the data's, not SfM's.
 KITCHEN_ROTATION_DEG = 3.0
