@@ -12,12 +12,14 @@ import logging
 from collections.abc import AsyncIterator
 from pathlib import Path
 
-from fastapi import Depends, FastAPI, Request
+from fastapi import Depends, FastAPI, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.body_limit import BodyLimitMiddleware
 from app.core import db, storage
@@ -25,12 +27,12 @@ from app.core.celery_app import create_celery
 from app.core.cleanup import clean_leftovers
 from app.core.dispatch import sweep_jobs
 from app.core.progress import json_safe
-from app.core.redact import install_log_masking
+from app.core.redact import install_log_masking, public_error
 from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import health, jobs, outputs, render, scenes, viewer
+from app.routes import health, imports, jobs, outputs, render, scenes, viewer
 from app.uploads.rules import UploadError
 
 log = logging.getLogger(__name__)
@@ -71,8 +73,18 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             await sweeper
 
 
-async def _upload_error(_request: Request, err: UploadError) -> JSONResponse:
-    return JSONResponse({"detail": err.detail}, status_code=err.status_code)
+async def _upload_error(request: Request, err: UploadError) -> JSONResponse:
+    return JSONResponse({"detail": public_error(err.detail, request.app.state.settings)}, status_code=err.status_code)
+
+
+async def _http_error(request: Request, err: StarletteHTTPException) -> Response:
+    """FastAPI's answer to an HTTPException, its ``detail`` (when text) through :func:`public_error`: every
+    detail a client reads, a token holder's included, names paths relative to the data directory, no
+    credentials (a route that quotes an exception cannot forget it)."""
+    if isinstance(err.detail, str):
+        err = StarletteHTTPException(err.status_code, public_error(err.detail, request.app.state.settings),
+                                     headers=err.headers)
+    return await http_exception_handler(request, err)
 
 
 async def _validation_error(_request: Request, err: RequestValidationError) -> JSONResponse:
@@ -102,10 +114,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.add_middleware(RequestGuardMiddleware, settings=settings)  # added last: runs first
     app.add_exception_handler(UploadError, _upload_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, jobs, outputs, render, viewer):
+    for module in (scenes, imports, jobs, outputs, render, viewer):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
 

@@ -1,20 +1,27 @@
-"""Who may talk to the service: loopback only without a token, no cross-site state changes, safe headers.
+"""Who may talk to the service: loopback only without a token, its own host names only, no cross-site state
+changes, safe headers.
 
-:class:`RequestGuardMiddleware` (pure ASGI, outermost) applies three rules to every HTTP request:
+:class:`RequestGuardMiddleware` (pure ASGI, outermost) applies these rules to every HTTP request:
 
 1. **Closed by default**: with no ``VOXNERF_API_TOKEN`` (and no ``VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE``),
-   a client whose address is not loopback gets 403, whatever way the app is served (``voxnerf serve``,
-   ``uvicorn --factory``, a container's published port).
-2. **No cross-site writes**: a POST, PUT, PATCH or DELETE whose ``Sec-Fetch-Site`` is ``cross-site``, or whose
+   a client that is not on this machine gets 403, whatever way the app is served (``voxnerf serve``,
+   ``uvicorn --factory``, a container's published port). A request that carries ``Forwarded``, ``Via`` or any
+   ``X-Forwarded-*`` header came through a proxy and counts as remote, unless it comes from an address of
+   ``VOXNERF_TRUSTED_PROXIES``: then the client is the address that proxy names (:func:`request_is_local`).
+2. **Its own host names only**: a ``Host`` header other than ``localhost``, a loopback address or a name of
+   ``VOXNERF_ALLOWED_HOSTS`` gets 400, token or not. A web page on ``evil.example`` that re-resolves its name
+   to 127.0.0.1 (DNS rebinding) is same-origin to the browser, so only the ``Host`` it sends tells it apart.
+3. **No cross-site writes**: a POST, PUT, PATCH or DELETE whose ``Sec-Fetch-Site`` is ``cross-site``, or whose
    ``Origin`` is not the origin named by its ``Host``, gets 403, with or without a token. A web page can send a
    multipart form to 127.0.0.1 ("simple" requests need no pre-flight); browsers mark it with these headers.
    Requests without ``Origin`` (curl, scripts) and the dashboard's own same-origin fetches pass.
-3. **Headers**: every response carries ``X-Content-Type-Options: nosniff``, ``X-Frame-Options: DENY`` and a
+4. **Headers**: every response carries ``X-Content-Type-Options: nosniff``, ``X-Frame-Options: DENY`` and a
    Content-Security-Policy that allows only the service's own scripts, styles and connections (images and
    videos also from ``blob:``, which the dashboard makes from fetched files) and no framing.
 
 :func:`check_bind` is the same rule at start-up, for the address a server binds; :func:`log_exposure` says
-at start-up which clients will be served.
+at start-up which clients will be served. :data:`SERVER_OPTIONS` is how every entry point runs uvicorn: with
+its own reading of ``X-Forwarded-For`` off, so that rule 1 alone decides what a proxy's headers mean.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
+from collections.abc import Iterable, Sequence
 from urllib.parse import urlsplit
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -48,6 +56,17 @@ REMOTE_REFUSED = (
     "(or VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE=1 to serve everyone without one)"
 )
 CROSS_SITE_REFUSED = "cross-site request refused: {why} (state-changing requests must come from this origin)"
+PROXIED_REFUSED = (
+    "this request came through a proxy ({headers}) from {peer}, which VOXNERF_TRUSTED_PROXIES does not name, so "
+    "it counts as a remote client; no VOXNERF_API_TOKEN is set, so only loopback clients are answered"
+)
+HOST_REFUSED = (
+    "Host {host!r} is not a name this service answers to (a web page that re-resolves its own name to this "
+    "machine sends it): use localhost, 127.0.0.1 or [::1], or add the name to VOXNERF_ALLOWED_HOSTS"
+)
+# uvicorn's options for every entry point: it must not rewrite the client address from X-Forwarded-For (it
+# trusts 127.0.0.1 by default); RequestGuardMiddleware reads the proxy headers itself.
+SERVER_OPTIONS = {"proxy_headers": False}
 
 
 class UnsafeBindError(VoxNeRFError):
@@ -73,6 +92,89 @@ def is_local_client(client: tuple[str, int] | None) -> bool:
     """Whether an ASGI ``scope["client"]`` is on this machine: a loopback address, no address (a Unix
     socket), or Starlette's in-process TestClient (no network involved)."""
     return client is None or client[0] in IN_PROCESS_CLIENTS or is_loopback(client[0])
+
+
+def _proxy_header_names(headers: Iterable[tuple[bytes, bytes]]) -> list[str]:
+    """The proxy headers among ``headers`` (lower-case names): ``Forwarded``, ``Via``, ``X-Forwarded-*``."""
+    names = {name.lower() for name, _ in headers}
+    found = [n for n in names if n in (b"forwarded", b"via") or n.startswith(b"x-forwarded-")]
+    return sorted(n.decode("latin-1") for n in found)
+
+
+def _joined(headers: Iterable[tuple[bytes, bytes]], name: bytes) -> str:
+    """Every ``name`` header's value, in order, joined by commas (a header may be sent more than once)."""
+    return ",".join(value.decode("latin-1") for key, value in headers if key.lower() == name)
+
+
+def _forwarded_for(headers: Sequence[tuple[bytes, bytes]]) -> list[str]:
+    """The client addresses the proxies named, nearest proxy last: each ``for=`` of ``Forwarded`` (RFC 7239)
+    when it has any, else ``X-Forwarded-For``; ports and brackets removed (``"[::1]:80"`` -> ``::1``)."""
+    forwarded = _joined(headers, b"forwarded")
+    found = []
+    for element in forwarded.split(","):
+        for pair in element.split(";"):
+            key, _, value = pair.strip().partition("=")
+            if key.strip().lower() == "for":
+                found.append(value.strip().strip('"'))
+    if not found:
+        found = [entry.strip() for entry in _joined(headers, b"x-forwarded-for").split(",") if entry.strip()]
+    return [_address_of(entry) for entry in found]
+
+
+def _address_of(node: str) -> str:
+    """The address of a proxy header's node: ``1.2.3.4:5`` -> ``1.2.3.4``, ``[::1]:5`` -> ``::1``; anything
+    else (``unknown``, an obfuscated ``_name``, a bare IPv6 address) as it is."""
+    if node.startswith("["):
+        return node[1:].partition("]")[0]
+    host, colon, port = node.rpartition(":")
+    return host if colon and port.isdigit() and ":" not in host else node
+
+
+def _in_networks(address: str, networks: Sequence[ipaddress.IPv4Network | ipaddress.IPv6Network]) -> bool:
+    try:
+        parsed = ipaddress.ip_address(address)
+    except ValueError:
+        return False
+    parsed = getattr(parsed, "ipv4_mapped", None) or parsed
+    return any(parsed in network for network in networks)
+
+
+def request_is_local(
+    client: tuple[str, int] | None,
+    headers: Sequence[tuple[bytes, bytes]],
+    trusted_proxies: Sequence[ipaddress.IPv4Network | ipaddress.IPv6Network],
+) -> bool:
+    """Whether a request comes from this machine (the one rule: no token needed when it does).
+
+    A peer that is not one of ``trusted_proxies``: local when it is (:func:`is_local_client`) and the request
+    carries no ``Forwarded``, ``Via`` or ``X-Forwarded-*`` header (with one it came through a proxy, and every
+    client of a proxy on this machine would look local). A trusted proxy: local only when the client it names
+    (the nearest address in ``Forwarded``'s ``for=`` or in ``X-Forwarded-For`` that is not itself a trusted
+    proxy; the farthest when all are) is loopback; a request from it that names no client is remote."""
+    if client is None or not _in_networks(client[0], trusted_proxies):
+        return is_local_client(client) and not _proxy_header_names(headers)
+    named = _forwarded_for(headers)
+    untrusted = [address for address in named if not _in_networks(address, trusted_proxies)]
+    return is_loopback(untrusted[-1]) if untrusted else bool(named) and is_loopback(named[0])
+
+
+def host_allowed(host: str | None, allowed_hosts: Sequence[str]) -> bool:
+    """Whether a ``Host`` header names this service: ``localhost`` or a loopback address (any port), or an
+    entry of ``allowed_hosts`` (a name, ``*.example.org`` for its subdomains, ``*`` for any). No header,
+    or one that is no host name, is refused."""
+    try:
+        name = urlsplit(f"//{host}").hostname if host else None
+    except ValueError:
+        return False
+    if not name or "/" in host or "@" in host:
+        return False
+    name = name.rstrip(".")
+    if is_loopback(name):
+        return True
+    for entry in (e.lower().strip("[]").rstrip(".") for e in allowed_hosts):
+        if entry == "*" or name == entry or (entry.startswith("*.") and name.endswith(entry[1:])):
+            return True
+    return False
 
 
 def remote_allowed(settings: Settings) -> bool:
@@ -103,6 +205,9 @@ def log_exposure(settings: Settings) -> None:
         )
     else:
         log.info("no API token set: answering loopback clients only")
+    if settings.api_token is None and "*" in settings.allowed_hosts:
+        log.warning("VOXNERF_ALLOWED_HOSTS holds '*' and no VOXNERF_API_TOKEN is set: any web page whose name "
+                    "resolves to this machine (DNS rebinding) can use the service")
 
 
 def _origin_key(scheme: str, netloc: str) -> tuple[str, int | None] | None:
@@ -136,28 +241,35 @@ def cross_site_reason(method: str, headers: dict[bytes, bytes]) -> str | None:
     return None
 
 
-async def _refuse(send: Send, detail: str) -> None:
+async def _refuse(send: Send, detail: str, status: int = 403) -> None:
     body = json.dumps({"detail": detail}).encode()
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-    await send({"type": "http.response.start", "status": 403, "headers": headers + SECURITY_HEADERS})
+    await send({"type": "http.response.start", "status": status, "headers": headers + SECURITY_HEADERS})
     await send({"type": "http.response.body", "body": body})
 
 
 class RequestGuardMiddleware:
-    """The three rules of this module for ``settings`` (see the module docstring)."""
+    """The four rules of this module for ``settings`` (see the module docstring)."""
 
     def __init__(self, app: ASGIApp, settings: Settings) -> None:
         self.app = app
         self.settings = settings
+        self.trusted_proxies = [ipaddress.ip_network(e, strict=False) for e in settings.trusted_proxies]
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        if not remote_allowed(self.settings) and not is_local_client(scope.get("client")):
-            await _refuse(send, REMOTE_REFUSED)
+        client = scope.get("client")
+        if not remote_allowed(self.settings) and not request_is_local(client, scope["headers"], self.trusted_proxies):
+            await _refuse(send, self._remote_refusal(client, scope["headers"]))
             return
         headers = {name.lower(): value for name, value in scope["headers"]}
+        host = headers[b"host"].decode("latin-1") if b"host" in headers else None
+        in_process = client is not None and client[0] in IN_PROCESS_CLIENTS  # no network, so no browser
+        if not in_process and not host_allowed(host, self.settings.allowed_hosts):
+            await _refuse(send, HOST_REFUSED.format(host=host or ""), status=400)
+            return
         if why := cross_site_reason(scope["method"], headers):
             await _refuse(send, CROSS_SITE_REFUSED.format(why=why))
             return
@@ -170,3 +282,12 @@ class RequestGuardMiddleware:
             await send(message)
 
         await self.app(scope, receive, send_with_headers)
+
+    def _remote_refusal(self, client: tuple[str, int] | None, headers: Sequence[tuple[bytes, bytes]]) -> str:
+        """Why a request is refused as remote: it came through a proxy that is not trusted, or its client
+        (the peer, or the one a trusted proxy named) is not on this machine."""
+        proxied = _proxy_header_names(headers)
+        if proxied and (client is None or not _in_networks(client[0], self.trusted_proxies)):
+            peer = client[0] if client else "a Unix socket"
+            return PROXIED_REFUSED.format(headers=", ".join(proxied), peer=peer)
+        return REMOTE_REFUSED

@@ -50,6 +50,8 @@ class SceneSummary(BaseModel):
     frames: int
     splits: dict[str, int] = Field(description="frames per split (train, test, named evaluation splits)")
     image_size: list[int] = Field(description="[width, height] of the first training image, pixels")
+    image_sizes: dict[str, int] | None = Field(
+        None, description="frames per image size, e.g. {\"1000x657\": 12, \"1000x659\": 11} (a scene may mix sizes)")
     prior: PriorSummary | None
     depth: bool = Field(description="whether frames carry sensor depth maps")
     depth_frames: dict[str, int] | None = Field(
@@ -61,11 +63,12 @@ class SceneSummary(BaseModel):
 
 
 class ImportSummary(BaseModel):
-    """What an importer (:mod:`voxnerf.data.importers`) made of a COLMAP or ScanNet upload."""
+    """What an importer (:mod:`voxnerf.data.importers`) made of an upload to import (a COLMAP model, a ScanNet
+    export, a phone app's export, a ROS bag)."""
 
     model_config = ConfigDict(extra="allow")
 
-    format: Literal["colmap", "scannet"]
+    format: str = Field(description="the importer: colmap, scannet, record3d, polycam, stray or rosbag")
     frames: int = Field(description="frames written")
     skipped: dict[str, int] = Field(description="frames left out, counted by reason (missing image, invalid pose)")
     camera_models: list[str] = Field(description="camera models, e.g. 'SIMPLE_RADIAL -> OPENCV' (COLMAP -> ours)")
@@ -87,7 +90,8 @@ class SceneOut(BaseModel):
     size_bytes: int
     summary: SceneSummary
     imported: ImportSummary | None = Field(
-        None, description="for a COLMAP or ScanNet upload, what its importer wrote; null for a scene directory"
+        None, description="for an imported upload (COLMAP, ScanNet, Record3D, Polycam), what its importer wrote; "
+        "null for a scene directory"
     )
 
     @classmethod
@@ -336,6 +340,45 @@ class OutputOut(BaseModel):
             progress=row.progress, done=row.done, total=row.total, unit=outputs.UNITS[row.kind], eta_s=row.eta_s,
             params=params, summary=row.summary, file_name=row.file_name if succeeded else None,
             file_url=f"/outputs/{row.id}/file" if succeeded else None, error=row.error,
+            cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,
+            created_at=_utc(row.created_at), started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
+        )
+
+
+# ------------------------------------------------------------------------------------------------ imports
+
+
+class ImportOut(BaseModel):
+    """A capture import: a raw capture (a ROS bag) a worker turns into a scene. ``scene_id`` names the scene once
+    the import has succeeded; ``summary`` is then what the importer wrote."""
+
+    id: str
+    name: str
+    layout: str = Field(description="the importer that runs: rosbag or stray")
+    state: JobState
+    stage: str | None = Field(description="queued, starting, importing, checking, storing, then done, failed or "
+                              "cancelled")
+    progress: float
+    eta_s: float | None
+    size_bytes: int = Field(description="of the raw capture as uploaded")
+    params: dict = Field(description="the upload's choices: splits")
+    scene_id: str | None
+    scene_url: str | None
+    summary: ImportSummary | None
+    error: str | None
+    cancel_requested: bool
+    attempt: int
+    requeues: int
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+    @classmethod
+    def from_row(cls, row) -> ImportOut:
+        return cls(
+            id=row.id, name=row.name, layout=row.layout, state=row.state, stage=row.stage, progress=row.progress,
+            eta_s=row.eta_s, size_bytes=row.size_bytes, params=row.params, scene_id=row.scene_id,
+            scene_url=f"/scenes/{row.scene_id}" if row.scene_id else None, summary=row.summary, error=row.error,
             cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,
             created_at=_utc(row.created_at), started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
         )

@@ -4,7 +4,8 @@ command; ``python -m app.serve --api-only`` serves the API alone (the API contai
 Both refuse to listen beyond loopback without an API token (:func:`app.origin_guard.check_bind`).
 SIGTERM and SIGINT both stop the server and then the workers: uvicorn catches either signal while it serves
 and raises it again once it has shut down, so :func:`serve` installs handlers that only note the signal for
-that moment; the workers are then stopped in the ``finally`` whichever signal it was.
+that moment; the workers are then stopped in the ``finally`` whichever signal it was. SIGKILL cannot be caught:
+each worker watches this process and stops itself the same way when it dies (``worker.parent_watch``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from app.core.celery_app import OUTPUTS_QUEUE, RENDER_QUEUE, TRAIN_QUEUE
 from app.core.redact import install_log_masking
 from app.core.settings import get_settings
 from app.main import create_app
-from app.origin_guard import UnsafeBindError, check_bind
+from app.origin_guard import SERVER_OPTIONS, UnsafeBindError, check_bind
 
 STOP_GRACE_S = 15.0
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
@@ -33,9 +34,12 @@ log = logging.getLogger(__name__)
 
 
 def _spawn_worker(queue: str) -> subprocess.Popen:
-    """A worker process for ``queue`` in its own process group (so stopping it also stops its pool)."""
+    """A worker process for ``queue`` in its own process group (so stopping it also stops its pool), which
+    stops itself as :func:`_stop_all` would when this process dies without stopping it (SIGKILL)."""
     return subprocess.Popen(
-        [sys.executable, "-m", "worker", "--queues", queue, "--concurrency", "1"], start_new_session=True
+        [sys.executable, "-m", "worker", "--queues", queue, "--concurrency", "1",
+         "--exit-with-parent", str(os.getpid()), "--stop-grace-s", str(STOP_GRACE_S)],
+        start_new_session=True,
     )
 
 
@@ -91,7 +95,7 @@ def serve(host: str, port: int, workers: bool = True) -> None:
         log.info("data in %s; broker %s", settings.data_dir, settings.broker_url or "embedded filesystem queue")
         try:
             if not received:  # a signal during start-up: stop at once
-                uvicorn.run(create_app(settings), host=host, port=port)
+                uvicorn.run(create_app(settings), host=host, port=port, **SERVER_OPTIONS)
         finally:
             if received:
                 log.info("received %s: stopping the workers", signal.Signals(received[0]).name)

@@ -2,10 +2,13 @@
 rules (:func:`voxnerf.data.scene.load_scene`) in a child process, since that module imports torch and the API process
 must not.
 
-:func:`read_scene_view` runs :func:`scene_view` in a child of the multiprocessing *forkserver* that
-:mod:`app.uploads.sandbox` set up (its preload holds ``voxnerf.data.scene``, so a child starts in milliseconds) and
-waits at most ``timeout_s`` for its answer. A stored scene was validated at upload and never changes, so the
-answer can be cached by scene id (:class:`SceneViewCache`).
+:func:`read_in_child` runs :func:`scene_view` (or :func:`prior_sample` of a run's fused prior) in a child of the
+multiprocessing *forkserver* that :mod:`app.uploads.sandbox` set up (its preload holds ``voxnerf.data.scene``, so a
+child starts in milliseconds) and waits at most ``timeout_s`` for its answer. The child has the limits of an
+upload's validation (:func:`app.uploads.sandbox.limit_child`). A stored scene was validated at upload and never
+changes, so its view is cached by scene id, and :class:`SceneReads` bounds the reads: at most
+``max_concurrent_scene_reads`` children at once (more: 429), one read per scene shared by the requests that come
+while it runs.
 """
 
 from __future__ import annotations
@@ -13,10 +16,15 @@ from __future__ import annotations
 import multiprocessing
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 
 import numpy as np
+
+from app.core.settings import Settings
+from app.uploads.sandbox import limit_child
 
 PREVIEW_POINTS = 4000  # prior points sent to the viewer: enough to show the room, small as JSON
 PREVIEW_SEED = 0  # the same scene gives the same sample
@@ -28,14 +36,13 @@ class SceneViewError(Exception):
     """The scene could not be read (the API answers 503 with this message; a stored scene was valid)."""
 
 
-def scene_view(scene_root: Path, fallback_prior: Path | None, max_points: int = PREVIEW_POINTS) -> dict:
+def scene_view(scene_root: Path, max_points: int = PREVIEW_POINTS) -> dict:
     """The cameras and prior sample of the scene at ``scene_root`` (runs where torch may be imported).
 
     Returns ``{"frames": [...], "depth_unit_scale", "metric", "prior": {...} | None}``; each frame is
     ``{"index", "name", "splits", "transform_matrix" (4x4 camera-to-world, OpenGL axes, scene units),
-    "fl_x", "fl_y", "cx", "cy", "width", "height" (pixels, the undistorted view)}``. The prior is the scene's
-    prior file, else ``fallback_prior`` (a run's fused prior) when it exists: ``{"points": [N*3] scene units,
-    "colors": [N*3] in [0, 1] or None, "total": points in the file}``. ``metric``: the scene carries sensor
+    "fl_x", "fl_y", "cx", "cy", "width", "height" (pixels, the undistorted view)}``. The prior is a sample of
+    the scene's prior file (:func:`prior_sample`), None when it has none. ``metric``: the scene carries sensor
     depth maps, which are metres (``depth_unit_scale_factor`` metres per unit), so its poses are in metres.
     """
     from voxnerf.data.scene import load_scene  # preloaded by the forkserver: no import happens here
@@ -46,14 +53,11 @@ def scene_view(scene_root: Path, fallback_prior: Path | None, max_points: int = 
         for index in indices:
             splits_of.setdefault(index, []).append(name)
     frames = [_frame_json(i, frame, splits_of.get(i, [])) for i, frame in enumerate(scene.frames)]
-    prior_path = scene.prior_path
-    if prior_path is None and fallback_prior is not None and fallback_prior.is_file():
-        prior_path = fallback_prior
     return {
         "frames": frames,
         "depth_unit_scale": scene.depth_unit_scale,
         "metric": any(frame.depth_path is not None for frame in scene.frames),
-        "prior": None if prior_path is None else prior_sample(prior_path, max_points),
+        "prior": None if scene.prior_path is None else prior_sample(scene.prior_path, max_points),
     }
 
 
@@ -70,7 +74,7 @@ def _frame_json(index: int, frame, splits: list[str]) -> dict:
     }
 
 
-def prior_sample(path: Path, max_points: int) -> dict:
+def prior_sample(path: Path, max_points: int = PREVIEW_POINTS) -> dict:
     """At most ``max_points`` vertices of the geometry file ``path`` (a point cloud or a mesh), picked at random
     with a fixed seed, as flat lists: ``points`` [N*3] float (scene units), ``colors`` [N*3] in [0, 1] or None."""
     import trimesh
@@ -111,20 +115,31 @@ def _vertex_colors(geometry, count: int) -> np.ndarray | None:
 # ------------------------------------------------------------------------------------------------ the child
 
 
-def _child_main(scene_root: Path, fallback_prior: Path | None, sender: Connection) -> None:
+def _child_main(read: Callable[..., dict], args: tuple, memory_bytes: int, timeout_s: float,
+                sender: Connection) -> None:
+    limit_child(memory_bytes, timeout_s)  # an upload's validation's limits: a stored scene passed them once
     try:
-        outcome: tuple = ("ok", scene_view(scene_root, fallback_prior))
+        outcome: tuple = ("ok", read(*args))
+    except MemoryError:
+        outcome = ("error", f"reading it needs more than {memory_bytes // 2**20} MiB of memory "
+                            "(VOXNERF_UPLOAD_VALIDATION_MEMORY_BYTES)")
     except Exception as err:  # a scene that was valid at upload: the store or the disk changed under it
         outcome = ("error", f"{type(err).__name__}: {err}")
-    sender.send(outcome)
+    try:
+        sender.send(outcome)
+    except MemoryError:  # the answer itself did not fit
+        sender.send(("error", f"its answer needs more than {memory_bytes // 2**20} MiB of memory "
+                              "(VOXNERF_UPLOAD_VALIDATION_MEMORY_BYTES)"))
     sender.close()
 
 
-def read_scene_view(scene_root: Path, fallback_prior: Path | None, timeout_s: float) -> dict:
-    """:func:`scene_view` computed in a forkserver child; SceneViewError when it fails, dies or times out."""
+def read_in_child(read: Callable[..., dict], args: tuple, settings: Settings, timeout_s: float) -> dict:
+    """``read(*args)`` (:func:`scene_view` or :func:`prior_sample`) computed in a forkserver child under the
+    limits of an upload's validation (:func:`app.uploads.sandbox.limit_child`: ``upload_validation_memory_bytes``
+    of address space, CPU time); SceneViewError when it fails, dies or gives no answer within ``timeout_s``."""
     receiver, sender = _CONTEXT.Pipe(duplex=False)
-    child = _CONTEXT.Process(target=_child_main, args=(scene_root, fallback_prior, sender),
-                             name="voxnerf-scene-view", daemon=True)
+    child = _CONTEXT.Process(target=_child_main, name="voxnerf-scene-view", daemon=True,
+                             args=(read, args, settings.upload_validation_memory_bytes, timeout_s, sender))
     child.start()
     sender.close()  # the child holds the only sending end: its death reads as EOF here
     try:
@@ -140,30 +155,74 @@ def read_scene_view(scene_root: Path, fallback_prior: Path | None, timeout_s: fl
             child.kill()
         child.join(REAP_TIMEOUT_S)
     if outcome is None:
-        raise SceneViewError(f"reading the scene's cameras gave no answer within {timeout_s:g} s")
+        raise SceneViewError(f"reading the scene gave no answer within {timeout_s:g} s")
     if outcome[0] != "ok":
-        raise SceneViewError(f"the scene's cameras cannot be read: {outcome[1]}")
+        raise SceneViewError(f"the scene cannot be read: {outcome[1]}")
     return outcome[1]
 
 
-class SceneViewCache:
-    """The last ``size`` scenes' views by scene id (a stored scene never changes); safe across threads."""
+# ------------------------------------------------------------------------------------------------ sharing
 
-    def __init__(self, size: int = 16) -> None:
+
+class SceneReadsBusy(Exception):
+    """Every slot for scene reads is taken (the API answers 429 with Retry-After)."""
+
+
+@dataclass
+class _Read:
+    """One read in progress: the requests for its key wait on ``done``, then share ``view`` or ``error``."""
+
+    done: threading.Event = field(default_factory=threading.Event)
+    view: dict | None = None
+    error: Exception | None = None
+
+
+class SceneReads:
+    """The viewer's reads of stored scenes, bounded and shared; safe across threads.
+
+    A view is cached by its key (a scene id, or a run's fused prior: a stored scene never changes), the last
+    ``size`` of them. A key that is neither cached nor being read starts one read (:func:`read_in_child`) if one
+    of ``slots`` is free, else :class:`SceneReadsBusy`; every request for a key being read waits for that read
+    and shares its answer or its error (an error is not cached). So at most ``slots`` children run at once,
+    whatever the number of requests, and one scene is read once.
+    """
+
+    def __init__(self, slots: int, size: int = 16) -> None:
+        self.slots = slots
         self.size = size
         self._views: OrderedDict[str, dict] = OrderedDict()
+        self._reads: dict[str, _Read] = {}
         self._lock = threading.Lock()
 
-    def get(self, scene_id: str) -> dict | None:
+    def get(self, key: str, read: Callable[[], dict]) -> dict:
+        """The view of ``key``: cached, shared with the read in progress, or ``read()`` now (in a free slot)."""
         with self._lock:
-            view = self._views.get(scene_id)
+            view = self._views.get(key)
             if view is not None:
-                self._views.move_to_end(scene_id)
-            return view
-
-    def put(self, scene_id: str, view: dict) -> None:
-        with self._lock:
-            self._views[scene_id] = view
-            self._views.move_to_end(scene_id)
-            while len(self._views) > self.size:
-                self._views.popitem(last=False)
+                self._views.move_to_end(key)
+                return view
+            current = self._reads.get(key)
+            leader = current is None
+            if leader:
+                if len(self._reads) >= self.slots:
+                    raise SceneReadsBusy(f"{self.slots} scene reads are already in progress on this API process")
+                current = self._reads[key] = _Read()
+        if not leader:
+            current.done.wait()
+            if current.error is not None:
+                raise current.error
+            return current.view
+        try:
+            current.view = read()
+        except Exception as err:
+            current.error = err
+            raise
+        finally:
+            with self._lock:
+                del self._reads[key]
+                if current.view is not None:
+                    self._views[key] = current.view
+                    while len(self._views) > self.size:
+                        self._views.popitem(last=False)
+            current.done.set()
+        return current.view

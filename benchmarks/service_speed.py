@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/service_speed.py [--seconds 60] [--redkitchen ../shared/data/redkitchen
         --redkitchen-seconds 90 --downscale 2] [--rounds 2] [--renders 5] [--video-frames 12] [--out DIR]
-        [--write-docs]
+        [--device cpu|cuda] [--room DIR] [--write-docs]
 
 For each scene the same training options go, one after the other on the same idle machine, through ``voxnerf
 train`` (a subprocess with the environment the service's processes get), through a job of the real service (uvicorn
@@ -20,6 +20,10 @@ Scenes: the 160x120 path-traced room of ``voxnerf synth`` with its transforms.js
 as a user would write it (so pose refinement and per-image appearance train too); with ``--redkitchen``, the
 7-Scenes kitchen at ``--downscale``. Results go to ``--out`` (results.json, table.md); ``--write-docs``
 replaces the ``service-speed`` section of docs/performance.md.
+
+``--device cuda`` runs every path on the GPU (``voxnerf train --device cuda``, the workers' ``VOXNERF_DEVICE``,
+the in-process renders); ``--room DIR`` takes a room made beforehand (``user_room``'s layout) instead of
+generating one (a machine without open3d); ``--video-frames 0`` leaves the videos out (a machine without ffmpeg).
 """
 
 from __future__ import annotations
@@ -79,9 +83,9 @@ def summary(report: dict, wall_s: float) -> dict:
     }
 
 
-def train_cli(scene: Path, run: Path, options: dict) -> dict:
-    """``voxnerf train`` with ``options`` (job option names) in a subprocess; its summary."""
-    flags = ["--max-seconds", str(options["max_seconds"]), "--device", "cpu"]
+def train_cli(scene: Path, run: Path, options: dict, device: str) -> dict:
+    """``voxnerf train`` with ``options`` (job option names) on ``device`` in a subprocess; its summary."""
+    flags = ["--max-seconds", str(options["max_seconds"]), "--device", device]
     if "downscale" in options:
         flags += ["--downscale", str(options["downscale"])]
     cmd = [sys.executable, "-m", "voxnerf", "train", str(scene), "--out", str(run), *flags]
@@ -92,20 +96,22 @@ def train_cli(scene: Path, run: Path, options: dict) -> dict:
     return summary(json.loads((run / "report.json").read_text()), time.perf_counter() - started)
 
 
-def warm_caches(scene: Path, run: Path, options: dict) -> None:
+def warm_caches(scene: Path, run: Path, options: dict, device: str) -> None:
     """A two-step ``voxnerf train`` with ``options``' downscale and no final evaluation: torch.compile's cache and
     the set-up cache (ray casts) then hold this scene's entries for every path that follows."""
-    flags = ["--max-iters", "2", "--device", "cpu", "--set", "final_eval=false"]
+    flags = ["--max-iters", "2", "--device", device, "--set", "final_eval=false"]
     if "downscale" in options:
         flags += ["--downscale", str(options["downscale"])]
     cmd = [sys.executable, "-m", "voxnerf", "train", str(scene), "--out", str(run), *flags]
-    subprocess.run(cmd, env=service_env(), cwd=REPO, check=True, capture_output=True, timeout=TRAIN_TIMEOUT_S)
+    done = subprocess.run(cmd, env=service_env(), cwd=REPO, capture_output=True, text=True, timeout=TRAIN_TIMEOUT_S)
+    if done.returncode != 0:
+        raise RuntimeError(f"the warm-up voxnerf train failed ({done.returncode}): {done.stderr[-2000:]}")
 
 
-def render_in_process(run_dir: Path, pose: list, count: int) -> list[float]:
-    """Seconds of ``count`` ``render()`` calls of the run's model at ``RENDER_SIZE`` (as POST /render resolves
-    the camera), after one untimed warm-up."""
-    trained = load_model(run_dir, "cpu")
+def render_in_process(run_dir: Path, pose: list, count: int, device: str) -> list[float]:
+    """Seconds of ``count`` ``render()`` calls of the run's model on ``device`` at ``RENDER_SIZE`` (as POST /render
+    resolves the camera), after one untimed warm-up (``render`` returns host arrays: each call ends synchronised)."""
+    trained = load_model(run_dir, device)
     intrinsics = resolve_intrinsics(trained.default_intrinsics, width=RENDER_SIZE[0], height=RENDER_SIZE[1])
     c2w = np.asarray(pose)
     render(trained, c2w, intrinsics, ("rgb",))
@@ -117,10 +123,10 @@ def render_in_process(run_dir: Path, pose: list, count: int) -> list[float]:
     return times
 
 
-def video_in_process(run_dir: Path, scene_dir: Path, frames: int, out: Path) -> float:
-    """Seconds :func:`render_path` takes for the ``interpolate`` video the outputs worker makes (same path rule),
-    after one untimed video."""
-    trained = load_model(run_dir, "cpu")
+def video_in_process(run_dir: Path, scene_dir: Path, frames: int, out: Path, device: str) -> float:
+    """Seconds :func:`render_path` takes on ``device`` for the ``interpolate`` video the outputs worker makes (same
+    path rule), after one untimed video."""
+    trained = load_model(run_dir, device)
     scene = scene_as_trained(load_scene(scene_dir, downscale=int(trained.model.config.run.downscale),
                                         load_images=False), trained.model)
     intrinsics = resolve_intrinsics(trained.default_intrinsics, width=VIDEO_SIZE[0],
@@ -147,8 +153,10 @@ def through_service(mode: str, root: Path, scene_dir: Path, options: dict, args)
     """Train a job with ``options`` through a service on ``mode``'s broker, then time its renders and a video,
     and the same in this process."""
     redis = start_redis(root / f"redis-{mode}") if mode == "redis" else None
-    service = start_service(root / mode, broker_url=redis.url if redis else None)
-    service.start_worker("outputs")  # start_service starts the train and render workers
+    service = start_service(root / mode, broker_url=redis.url if redis else None,
+                            settings={"VOXNERF_DEVICE": args.device})
+    if args.video_frames:
+        service.start_worker("outputs")  # start_service starts the train and render workers
     try:
         with service.client(timeout_s=300) as client:
             scene = client.post("/scenes", files={"file": ("scene.zip", zip_scene(scene_dir), "application/zip")})
@@ -164,11 +172,12 @@ def through_service(mode: str, root: Path, scene_dir: Path, options: dict, args)
             pose = first_pose(scene_dir)
             result["render_s"] = render_times(client, job["id"], pose, args.renders, RENDER_SIZE)
             result["overhead_s"] = render_times(client, job["id"], pose, args.renders, (8, 6))
-            result["in_process_render_s"] = render_in_process(run_dir, pose, args.renders)
-            result["video_service_first_s"] = video_through_service(client, job["id"], args.video_frames)
-            result["video_service_s"] = video_through_service(client, job["id"], args.video_frames)
-            result["video_in_process_s"] = video_in_process(run_dir, scene_dir, args.video_frames,
-                                                            root / f"{mode}-video.mp4")
+            result["in_process_render_s"] = render_in_process(run_dir, pose, args.renders, args.device)
+            if args.video_frames:
+                result["video_service_first_s"] = video_through_service(client, job["id"], args.video_frames)
+                result["video_service_s"] = video_through_service(client, job["id"], args.video_frames)
+                result["video_in_process_s"] = video_in_process(run_dir, scene_dir, args.video_frames,
+                                                                root / f"{mode}-video.mp4", args.device)
         return result
     finally:
         service.stop()
@@ -185,6 +194,13 @@ def user_room(root: Path) -> Path:
     return scene
 
 
+def device_name(device: str) -> str:
+    """``cpu``, or the CUDA device's name as torch gives it."""
+    import torch
+
+    return torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else "cpu"
+
+
 def ms(values: list[float]) -> float:
     return 1000 * statistics.median(values)
 
@@ -195,7 +211,8 @@ PATHS = (("cli", "`voxnerf train`"), ("embedded", "service, embedded"), ("redis"
 def markdown(results: dict, command: str) -> str:
     env = results["environment"]
     lines = [
-        f"Measured {env['date']} on {env['machine']} ({env['cpus']} CPUs, load average {env['load']} at start), "
+        f"Measured {env['date']} on {env['machine']} ({env['cpus']} CPUs, load average {env['load']} at start; "
+        f"device {env['device']}), "
         f"each path alone on the machine, {results['rounds']} round(s) in rotated order after a run that fills the "
         "compile and set-up caches. Command:",
         "",
@@ -236,10 +253,14 @@ def markdown(results: dict, command: str) -> str:
             runs = scene["paths"][name]
             post, over, local = (ms([t for r in runs for t in r[key]])
                                  for key in ("render_s", "overhead_s", "in_process_render_s"))
-            first, second, here = (statistics.median(r[key] for r in runs)
-                                   for key in ("video_service_first_s", "video_service_s", "video_in_process_s"))
+            if results["video_frames"]:
+                first, second, here = (statistics.median(r[key] for r in runs)
+                                       for key in ("video_service_first_s", "video_service_s", "video_in_process_s"))
+                videos = f"{first:.2f} / {second:.2f} s | {here:.2f} s"
+            else:
+                videos = "not measured | not measured"
             lines.append(f"| {scene['label']} | {name} | {post:.0f} ms | {over:.0f} ms | {post - over:.0f} ms | "
-                         f"{local:.0f} ms | {first:.2f} / {second:.2f} s | {here:.2f} s |")
+                         f"{local:.0f} ms | {videos} |")
     return "\n".join(lines)
 
 
@@ -253,6 +274,8 @@ def main() -> None:
     parser.add_argument("--renders", type=int, default=5, help="timed renders per measurement")
     parser.add_argument("--video-frames", type=int, default=12)
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "service_speed")
+    parser.add_argument("--device", default="cpu", help="where every path computes: cpu or cuda[:N]")
+    parser.add_argument("--room", type=Path, help="a room made beforehand (user_room's layout) instead of a new one")
     parser.add_argument("--write-docs", action="store_true", help=f"replace the {SECTION} section of {DOC}")
     args = parser.parse_args()
     results: dict = {
@@ -261,6 +284,7 @@ def main() -> None:
             "machine": f"{platform.system()} {platform.machine()}",
             "cpus": os.cpu_count(),
             "load": " ".join(f"{x:.2f}" for x in os.getloadavg()),
+            "device": device_name(args.device),
         },
         "rounds": args.rounds,
         "renders": args.renders,
@@ -269,13 +293,14 @@ def main() -> None:
     }
     with tempfile.TemporaryDirectory(prefix="voxnerf-service-speed-") as tmp:
         root = Path(tmp)
-        scenes = [(f"path-traced room 160x120, {args.seconds:.0f} s", user_room(root), {"max_seconds": args.seconds})]
+        room = args.room if args.room is not None else user_room(root)
+        scenes = [(f"path-traced room 160x120, {args.seconds:.0f} s", room, {"max_seconds": args.seconds})]
         if args.redkitchen is not None:
             scenes.append((f"redkitchen 640x480, downscale {args.downscale}, {args.redkitchen_seconds:.0f} s",
                            args.redkitchen, {"max_seconds": args.redkitchen_seconds, "downscale": args.downscale}))
         for index, (label, scene_dir, options) in enumerate(scenes):
             work = root / f"scene{index}"
-            warm_caches(scene_dir, work / "warm-up", options)
+            warm_caches(scene_dir, work / "warm-up", options, args.device)
             paths: dict[str, list[dict]] = {name: [] for name, _ in PATHS}
             for round_index in range(args.rounds):
                 names = [name for name, _ in PATHS]
@@ -283,7 +308,7 @@ def main() -> None:
                     where = work / f"round{round_index}"
                     where.mkdir(parents=True, exist_ok=True)
                     if name == "cli":
-                        result = train_cli(scene_dir, where / "cli-run", options)
+                        result = train_cli(scene_dir, where / "cli-run", options, args.device)
                     else:
                         result = through_service(name, where, scene_dir, options, args)
                     paths[name].append(result)

@@ -32,6 +32,7 @@ sample_placement = importlib.import_module("sample_placement")
 suite_geometry = importlib.import_module("suite_geometry")
 pose_views = importlib.import_module("pose_views")
 step_profile = importlib.import_module("step_profile")
+service_speed = importlib.import_module("service_speed")
 suite_rooms = importlib.import_module("voxnerf.synthetic.suite")
 
 pytestmark = pytest.mark.timeout(300)
@@ -340,6 +341,21 @@ def test_render_speed_table_states_both_paths_their_ratio_and_the_psnr_gap():
     assert "| room 60 s | 320x240 in process | 100 / 120 ms | 250 / 300 ms | 2.50x |" in text
     assert "200 / 220 ms then 300 / 330 ms | 500 / 600 ms | 2.00x |" in text  # against the mean of the fast rounds
     assert "| room 60 s | test | 25.100 dB | 25.200 dB | -0.100 dB |" in text and "cmd" in text
+
+
+def test_service_speed_table_names_the_device_and_says_when_videos_were_left_out():
+    def run(rate: float) -> dict:
+        return {"steps": 10, "rays_per_s": rate, "psnr": {"interpolation": 20.0, "extrapolation": 15.0},
+                "runtime": {"omp_wait_policy": None}, "render_s": [0.2], "overhead_s": [0.05],
+                "in_process_render_s": [0.14]}
+    results = {
+        "environment": {"date": "2026-11-28", "machine": "Linux", "cpus": 16, "load": "0.1", "device": "NVIDIA H200"},
+        "rounds": 1, "renders": 1, "video_frames": 0,
+        "scenes": [{"label": "room", "paths": {"cli": [run(100.0)], "embedded": [run(95.0)], "redis": [run(90.0)]}}],
+    }
+    text = service_speed.markdown(results, "cmd")
+    assert "device NVIDIA H200" in text and "| room | service, Redis | 10 | 90 | 0.90x |" in text
+    assert "| room | embedded | 200 ms | 50 ms | 150 ms | 140 ms | not measured | not measured |" in text
 
 
 def test_publish_writes_results_and_table_and_the_docs_section_only_when_asked(tmp_path):

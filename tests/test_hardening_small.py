@@ -267,7 +267,8 @@ def test_evaluation_renders_of_two_frames_with_the_same_stem_both_survive(tmp_pa
 # ------------------------------------------------------------------------------------------------ floors
 
 # The first release past the fixes of the known advisories (torch: of its weights_only unpickler).
-FLOORS = {"torch": "2.10", "Pillow": "12.3", "fastapi": "0.133.1", "starlette": "1.3.1", "python-multipart": "0.0.27"}
+FLOORS = {"torch": "2.10", "Pillow": "12.3", "fastapi": "0.133.1", "starlette": "1.3.1", "python-multipart": "0.0.27",
+          "trimesh": "5.0"}  # trimesh: its file resolver confined to the loaded file's directory
 
 
 def _requirements() -> dict[str, Requirement]:

@@ -365,6 +365,8 @@ def _import(args: argparse.Namespace) -> int:
     splits = PaperSplitRule() if args.splits == "paper" else None
     if args.layout == "colmap":
         summary = import_colmap(args.dir, args.out, splits, images=args.images)
+    elif args.layout in PHONE_APP_LAYOUTS:
+        summary = _import_phone_app(args, splits)
     elif args.layout == "images":
         from voxnerf.data.importers.sfm import import_images
 
@@ -372,13 +374,52 @@ def _import(args: argparse.Namespace) -> int:
     elif args.layout == "video":
         from voxnerf.data.importers.video import import_video
 
-        summary = import_video(args.file, args.out, args.frames, splits)
+        summary = import_video(args.file, args.out, splits=splits,
+                               **({"n_frames": args.frames} if hasattr(args, "frames") else {}))
     else:
         summary = import_scannet(args.dir, args.out, splits)
     for line in describe(summary):
         print(line)
     print(f"wrote {args.out}")
     return 0
+
+
+def _import_rosbag(args: argparse.Namespace) -> int:
+    from voxnerf.data.importers import PaperSplitRule, RosbagOptions, describe, import_rosbag
+
+    given = {name: getattr(args, name) for name in ("min_translation", "min_rotation", "sync_tolerance")
+             if hasattr(args, name)}
+    options = RosbagOptions(rgb=args.rgb, depth=args.depth, camera_info=args.camera_info,
+                            fixed_frame=args.fixed_frame, pose_topic=args.pose_topic, pose_frame=args.pose_frame,
+                            all_frames=args.all_frames, **given)
+    summary = import_rosbag(args.bag, args.out, PaperSplitRule() if args.splits == "paper" else None, options)
+    for line in describe(summary):
+        print(line)
+    print(f"wrote {args.out}")
+    return 0
+PHONE_APP_LAYOUTS = ("record3d", "polycam", "stray")
+
+
+def _import_phone_app(args: argparse.Namespace, splits) -> dict:
+    """``voxnerf import record3d|polycam|stray``: a LiDAR phone app's export, its depth kept."""
+    if args.layout == "record3d":
+        from voxnerf.data.importers.record3d import import_record3d
+
+        return import_record3d(args.dir, args.out, splits, every=args.every)
+    if args.layout == "polycam":
+        from voxnerf.data.importers.polycam import import_polycam
+
+        return import_polycam(args.dir, args.out, splits, min_confidence=args.min_confidence)
+    from voxnerf.data.importers.stray import import_stray
+
+    return import_stray(args.dir, args.out, splits, min_confidence=args.min_confidence, every=args.every)
+
+
+def _at_least_one(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -401,6 +442,16 @@ def _seconds_list(text: str) -> list[float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated seconds, got {text!r}") from None
     return values
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (np.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return value
 
 
 def _sample_counts(text: str) -> tuple[int, int]:
@@ -564,34 +615,78 @@ def _add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import_command(sub: argparse._SubParsersAction) -> None:
-    from voxnerf.data.importers.sfm import EXHAUSTIVE_MAX_IMAGES, MATCHING_CHOICES
-    from voxnerf.data.importers.video import DEFAULT_FRAMES
-
-    p = sub.add_parser("import", help="write a COLMAP model, a ScanNet export, photos or a video as a scene "
-                       "(docs/scene-format.md)",
-                       description="Write a COLMAP sparse model, a ScanNet export, a folder of photos or a video "
-                       "(the last two posed by structure from motion) as a scene in the project's format; see "
+    p = sub.add_parser("import", help="write a COLMAP model, a ScanNet export, a LiDAR phone app's export, a "
+                       "ROS bag, photos or a video as a scene (docs/scene-format.md)",
+                       description="Write a COLMAP sparse model, a ScanNet export, a Record3D / Polycam / Stray "
+                       "Scanner export, a robot's ROS bag, or photos or a video without poses (posed by structure "
+                       "from motion) as a scene in the project's format; see "
                        "docs/scene-format.md.")
     layouts = p.add_subparsers(dest="layout", required=True)
     colmap = layouts.add_parser("colmap", help="a COLMAP sparse model (sparse/0, sparse or DIR; text or binary)")
     colmap.add_argument("--images", help="the image folder (default DIR/images)")
     scannet = layouts.add_parser("scannet", help="ScanNet's exported color/ depth/ pose/ intrinsic/ folders")
+    record3d = layouts.add_parser("record3d", help="Record3D's EXR + JPG export (EXR_RGBD: metadata.json, rgb/, "
+                                  "depth/), LiDAR depth kept")
+    polycam = layouts.add_parser("polycam", help="Polycam's raw-data export (keyframes/ with images, cameras, depth, "
+                                 "confidence), LiDAR depth kept")
+    stray = layouts.add_parser("stray", help="a Stray Scanner recording (rgb.mp4, odometry.csv, camera_matrix.csv, "
+                               "depth/, confidence/), LiDAR depth kept")
+    for q in (polycam, stray):
+        q.add_argument("--min-confidence", choices=["low", "medium", "high"], default="medium",
+                       help="drop depth ARKit graded below this (default medium; low keeps all)")
+    for q in (record3d, stray):
+        q.add_argument("--every", type=_at_least_one, default=1, metavar="N",
+                       help="keep every N-th frame (the apps record up to 60 per second; default 1: all)")
+    # The SfM flags' defaults live in voxnerf.data.importers.sfm / .video (absent here, so that building the parser
+    # does not load the importers); tests/data/test_import_images.py checks that the help states them.
     images = layouts.add_parser("images", help="a folder of photos without poses, posed by structure from motion")
-    images.add_argument("--matching", choices=MATCHING_CHOICES, default="auto",
-                        help=f"image pairs to match: auto (exhaustive up to {EXHAUSTIVE_MAX_IMAGES} photos, else "
-                        "sequential in name order), exhaustive or sequential")
-    video = layouts.add_parser("video", help="a video (MP4/MOV, H.264/HEVC): frames picked, then structure from "
-                               "motion")
+    images.add_argument("--matching", choices=["auto", "exhaustive", "sequential"], default="auto",
+                        help="image pairs to match: auto (exhaustive up to 60 photos, else sequential in name "
+                        "order), exhaustive or sequential")
+    video = layouts.add_parser("video", help="a video (MP4/MOV, H.264/HEVC) without poses: the sharpest frames, "
+                               "posed by structure from motion")
     video.add_argument("file", metavar="FILE")
-    video.add_argument("--frames", type=int, default=DEFAULT_FRAMES, metavar="N",
-                       help=f"frames to keep: the sharpest of each of N equal time windows (default {DEFAULT_FRAMES})")
-    for q in (colmap, scannet, images):
+    video.add_argument("--frames", type=int, default=argparse.SUPPRESS, metavar="N",
+                       help="frames to keep: the sharpest of each of N equal time windows (default 100)")
+    for q in (colmap, scannet, record3d, polycam, stray, images):
         q.add_argument("dir", metavar="DIR")
-    for q in (colmap, scannet, images, video):
+    for q in (colmap, scannet, record3d, polycam, stray, images, video):
         q.add_argument("--out", required=True, metavar="SCENE", help="scene directory to write (absent or empty)")
         q.add_argument("--splits", choices=["paper"],
                        help="write the paper's train / interpolation / extrapolation splits (default: none)")
         q.set_defaults(func=_import)
+    _add_import_rosbag(layouts)
+
+
+def _add_import_rosbag(layouts: argparse._SubParsersAction) -> None:
+    # The numeric flags default to RosbagOptions' values (absent here, so that building the parser does not load
+    # the importers); tests/data/test_import_rosbag.py checks that the help states those values.
+    q = layouts.add_parser("rosbag", help="a robot's ROS 1 .bag or ROS 2 bag (sqlite3 or MCAP): colour, depth, "
+                           "CameraInfo and poses from /tf or a pose topic")
+    q.add_argument("bag", metavar="BAG", help="a ROS 1 .bag file, a ROS 2 bag folder, or its .db3 / .mcap file")
+    q.add_argument("--out", required=True, metavar="SCENE", help="scene directory to write (absent or empty)")
+    q.add_argument("--rgb", metavar="TOPIC", help="the colour Image or CompressedImage topic (default: the only one)")
+    q.add_argument("--depth", metavar="TOPIC", help="the depth Image topic, 16UC1 mm or 32FC1 m (default: the only "
+                   "one); 'none' imports colour only")
+    q.add_argument("--camera-info", metavar="TOPIC", help="the colour camera's CameraInfo topic (default: the one "
+                   "beside the colour topic, or the only one)")
+    q.add_argument("--fixed-frame", metavar="FRAME", help="the world frame of the scene (default: the root of the "
+                   "camera frame's transform tree)")
+    q.add_argument("--pose-topic", metavar="TOPIC", help="poses from this PoseStamped / PoseWithCovarianceStamped / "
+                   "Odometry / TransformStamped topic instead of /tf")
+    q.add_argument("--pose-frame", metavar="FRAME", help="the frame a PoseStamped's pose is of (default: the "
+                   "camera's frame); linked to the camera by the transforms")
+    q.add_argument("--all-frames", action="store_true", help="keep every posed frame (default: keep a frame when "
+                   "the camera moved --min-translation or turned --min-rotation since the last kept one)")
+    q.add_argument("--min-translation", type=_non_negative, default=argparse.SUPPRESS, metavar="M",
+                   help="metres (default 0.05)")
+    q.add_argument("--min-rotation", type=_non_negative, default=argparse.SUPPRESS, metavar="DEG",
+                   help="degrees (default 5)")
+    q.add_argument("--sync-tolerance", type=_non_negative, default=argparse.SUPPRESS, metavar="S",
+                   help="seconds between a colour image and the depth image it takes (default 0.02)")
+    q.add_argument("--splits", choices=["paper"],
+                   help="write the paper's train / interpolation / extrapolation splits (default: none)")
+    q.set_defaults(func=_import_rosbag)
 
 
 def _add_serve_command(sub: argparse._SubParsersAction) -> None:

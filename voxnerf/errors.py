@@ -27,5 +27,10 @@ class TrainingDiverged(VoxNeRFError, RuntimeError):
     """The loss or the parameters became NaN/inf; the last good checkpoint was kept."""
 
 
+class RenderStopped(VoxNeRFError):
+    """A render was stopped between two passes over its rays because its caller's ``should_stop`` said so (nobody
+    waits for it any more); it returns nothing."""
+
+
 class RunError(VoxNeRFError, ValueError):
     """A run directory or a render request is unusable (missing checkpoint, bad pose file...)."""

@@ -4,7 +4,8 @@
 A worker holds the tasks (:mod:`worker.tasks`: training with its progress writer, and rendering;
 :mod:`worker.outputs`: videos, meshes, point clouds), what each task holds its work with (:mod:`worker.lease`), the
 models a process keeps loaded (:mod:`worker.model_cache`) and how a worker process starts (:mod:`worker.run`, which
-also chooses how the process's OpenMP threads wait before torch loads). Everything it
+also chooses how the process's OpenMP threads wait before torch loads) and ends with the ``voxnerf serve`` that
+started it (:mod:`worker.parent_watch`). Everything it
 shares with the API (settings, job store, storage, queues, broker, render results, the render request) is in
 :mod:`app.core`.
 """

@@ -77,7 +77,7 @@ def generated_path(settings: Settings, params: dict, trained: TrainedModel, scen
     capture order (:func:`voxnerf.cameras.paths.generated_path`, the rule of ``voxnerf render --path`` too)."""
     intrinsics = resolve_intrinsics(
         trained.default_intrinsics, width=params["width"], height=params["height"],
-        max_pixels=settings.max_render_pixels,
+        max_pixels=settings.render_pixel_limit(trained.model.device.type),
     ).undistorted()
     poses = np.stack([scene.frames[i].c2w for i in sorted(scene.train_indices)])
     return camera_paths.generated_path(params["path"], poses, intrinsics, n_frames=params["frames"],
@@ -89,7 +89,8 @@ def video_path(settings: Settings, params: dict, trained: TrainedModel, job) -> 
     """The camera path of a video output: the stored nerfstudio path (scene units), or a generated one."""
     if params.get("camera_path") is not None:
         return parse_nerfstudio(
-            params["camera_path"], max_frames=settings.max_video_frames, max_pixels=settings.max_render_pixels
+            params["camera_path"], max_frames=settings.max_video_frames,
+            max_pixels=settings.render_pixel_limit(trained.model.device.type),
         )
     return generated_path(settings, params, trained, scene_of(settings, job, trained))
 

@@ -13,7 +13,8 @@ from app.core.celery_app import QUEUES, TRAIN_QUEUE, create_celery
 from app.core.redact import install_log_masking
 from app.core.settings import get_settings
 
-TASK_MODULES = ("worker.tasks", "worker.outputs")  # imported by the worker (and its pool processes) for their tasks
+# imported by the worker (and its pool processes) for their tasks
+TASK_MODULES = ("worker.tasks", "worker.outputs", "worker.imports")
 log = logging.getLogger(__name__)
 
 

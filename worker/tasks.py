@@ -30,6 +30,7 @@ import logging
 import os
 import signal
 import time
+from collections.abc import Callable
 
 import numpy as np
 from celery import shared_task
@@ -45,7 +46,7 @@ from app.core.render_results import RenderOutcome, deliver_outcome
 from app.core.settings import Settings, get_settings
 from voxnerf.cameras.rules import CameraError
 from voxnerf.config import TrainConfig
-from voxnerf.errors import RunError, VoxNeRFError
+from voxnerf.errors import RenderStopped, RunError, VoxNeRFError
 from voxnerf.inference.encoding import encode_outputs
 from voxnerf.inference.render import render
 from voxnerf.trainer import train
@@ -150,28 +151,42 @@ def train_job(job_id: str) -> None:
     hold(get_settings(), JOBS, job_id, _train_claimed)
 
 
-def render_outcome(job_id: str, request: RenderRequest) -> RenderOutcome:
-    """Render ``request`` with job ``job_id``'s model (loaded through the cache)."""
+def render_outcome(job_id: str, request: RenderRequest,
+                   should_stop: Callable[[], bool] | None = None) -> RenderOutcome:
+    """Render ``request`` with job ``job_id``'s model (loaded through the cache); RenderStopped when
+    ``should_stop`` says so between two passes over the rays."""
     settings = get_settings()
     try:
         trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
     except (RunError, storage.StorageError) as err:
         return RenderOutcome(409, detail=f"job {job_id} cannot be rendered: {err}")
     try:  # the scene's default size is only known here, so the pixel limit is checked here too
-        intrinsics = request.intrinsics(trained.default_intrinsics, max_pixels=settings.max_render_pixels)
+        intrinsics = request.intrinsics(trained.default_intrinsics,
+                                        max_pixels=settings.render_pixel_limit(trained.model.device.type))
     except CameraError as err:
         return RenderOutcome(422, detail=str(err))
     images = render(trained, np.asarray(request.transform_matrix), intrinsics, tuple(request.outputs),
-                    path=settings.render_path)
+                    path=settings.render_path, should_stop=should_stop)
     data = encode_outputs(images, request.format, request.outputs, trained.depth_unit_scale)
     return RenderOutcome(200, request.media_type, data)
 
 
+def past(deadline: float | None) -> Callable[[], bool] | None:
+    """``should_stop`` of a render whose API gives up at ``deadline`` (a Unix time; None: never)."""
+    return None if deadline is None else lambda: time.time() > deadline
+
+
 @shared_task(name=RENDER_TASK)
-def render_pose(request_id: str, job_id: str, request: dict) -> None:
-    """Render one request and hand its outcome to the waiting API (:mod:`app.core.render_results`)."""
+def render_pose(request_id: str, job_id: str, request: dict, deadline: float | None = None) -> None:
+    """Render one request and hand its outcome to the waiting API (:mod:`app.core.render_results`). Past the
+    ``deadline`` the API answered 504 and waits no more: the render stops at its next pass over the rays and
+    nothing is delivered, so the worker is free for the next render."""
     try:
-        outcome = render_outcome(job_id, RenderRequest.model_validate(request))
+        outcome = render_outcome(job_id, RenderRequest.model_validate(request), past(deadline))
+    except RenderStopped as stopped:
+        log.warning("render %s of job %s %s (its deadline passed); nothing is delivered", request_id, job_id,
+                    stopped)
+        return
     except Exception as err:
         log.exception("render %s of job %s failed", request_id, job_id)
         outcome = RenderOutcome(500, detail=f"render failed: {type(err).__name__}: {err}")

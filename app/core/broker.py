@@ -105,6 +105,23 @@ class Channel(filesystem.Channel):
             raise filesystem.ChannelError(f"Cannot open {path}") from exc
 
 
+def waiting_payloads(queue_folder: Path, queue: str) -> list[dict]:
+    """The messages (kombu payloads) waiting in ``queue`` of the filesystem broker whose queue folder is
+    ``queue_folder``: those no consumer has taken yet, oldest first. One a consumer takes while they are read is
+    left out; one a killed consumer took (left in the ``claimed`` folder) is not waiting: nothing delivers it."""
+    wanted = f"{queue}.msg"
+    found = []
+    for filename in sorted(os.listdir(queue_folder)):
+        if filename.partition(".")[2] != wanted:
+            continue
+        try:
+            data = (Path(queue_folder) / filename).read_bytes()
+        except FileNotFoundError:  # a consumer took it meanwhile
+            continue
+        found.append(loads(bytes_to_str(data)))
+    return found
+
+
 def _binding(routing_key, pattern, queue) -> Binding:
     """A binding as kombu stores it (None as "")."""
     return Binding(routing_key or "", pattern or "", queue or "")

@@ -22,6 +22,7 @@ from app.core.settings import Settings, get_settings
 TRAIN_TASK = "voxnerf.train"
 RENDER_TASK = "voxnerf.inference.render"
 OUTPUT_TASK = "voxnerf.output"
+IMPORT_TASK = "voxnerf.import"  # capture imports (worker/imports.py): heavy CPU work, taken by the train workers
 TRAIN_QUEUE = "train"
 RENDER_QUEUE = "render"
 OUTPUTS_QUEUE = "outputs"  # output jobs: videos, meshes, point clouds (worker/outputs.py)
@@ -43,6 +44,7 @@ def create_celery(settings: Settings, include: Sequence[str] = (), queues: Seque
             TRAIN_TASK: {"queue": TRAIN_QUEUE},
             RENDER_TASK: {"queue": RENDER_QUEUE},
             OUTPUT_TASK: {"queue": OUTPUTS_QUEUE},
+            IMPORT_TASK: {"queue": TRAIN_QUEUE},
         },
         task_default_queue=TRAIN_QUEUE,
         worker_prefetch_multiplier=1,

@@ -1,24 +1,35 @@
-"""Publishing work to the queues: training jobs, render requests, output jobs, and the sweep that recovers every
-kind of queued work (:data:`KINDS`) from dead workers and lost messages (API and workers; :func:`sweep_jobs` is
-one round).
+"""Publishing work to the queues: training jobs, render requests, output jobs, capture imports, and the sweep
+that recovers every kind of queued work (:data:`KINDS`) from dead workers and lost messages (API and workers;
+:func:`sweep_jobs` is one round).
+
+A queued row has at most one message waiting in the broker: the sweep sends a row's message again only when
+the broker no longer holds it (:func:`waiting_row_ids` reads the queue of the embedded filesystem broker or of
+Redis), so a row queued behind a long job keeps the one message it was sent instead of gathering a copy every
+``resend_queued_after_s``. Only a broker whose queue cannot be read (neither of those) gets a copy per period.
 
 Only task names cross this boundary, so publishing never imports the engine.
 """
 
 from __future__ import annotations
 
+import base64
+import json
 import logging
+import time
+from urllib.parse import urlparse
 
 from celery import Celery
 
+from app.core.broker import waiting_payloads
 from app.core.celery_app import RENDER_TASK
+from app.core.imports import IMPORTS
 from app.core.jobstore import JOBS
 from app.core.lease import WorkKind
 from app.core.outputs import OUTPUTS
 from app.core.settings import Settings
 
 log = logging.getLogger(__name__)
-KINDS: tuple[WorkKind, ...] = (JOBS, OUTPUTS)  # every kind of queued work the sweep recovers
+KINDS: tuple[WorkKind, ...] = (JOBS, OUTPUTS, IMPORTS)  # every kind of queued work the sweep recovers
 
 
 def send(app: Celery, kind: WorkKind, row_id: str) -> None:
@@ -28,8 +39,10 @@ def send(app: Celery, kind: WorkKind, row_id: str) -> None:
 
 
 def send_render(app: Celery, request_id: str, job_id: str, request: dict, expires_s: float) -> None:
-    """Queue one render; a worker that gets it after ``expires_s`` drops it (the caller has given up)."""
-    app.send_task(RENDER_TASK, args=[request_id, job_id, request], expires=expires_s)
+    """Queue one render; a worker that gets it after ``expires_s`` drops it, and one that is still rendering it
+    then stops (its ``deadline``, a Unix time: the caller has given up)."""
+    app.send_task(RENDER_TASK, args=[request_id, job_id, request], kwargs={"deadline": time.time() + expires_s},
+                  expires=expires_s)
 
 
 def requeue_stale(settings: Settings, app: Celery, kind: WorkKind) -> list[str]:
@@ -54,12 +67,61 @@ def requeue_stale(settings: Settings, app: Celery, kind: WorkKind) -> list[str]:
     return requeued
 
 
+def _first_arg(payload: dict) -> str | None:
+    """The first argument of a Celery message (protocol 2: the body is ``[args, kwargs, embed]``, base64 when the
+    message says so): the row id of a job's or an output's message; None for a message of another shape."""
+    try:
+        body = payload["body"]
+        if payload.get("properties", {}).get("body_encoding") == "base64":
+            body = base64.b64decode(body)
+        args = json.loads(body)[0]
+        return args[0] if args and isinstance(args[0], str) else None
+    except (KeyError, IndexError, TypeError, ValueError):
+        return None
+
+
+def _redis_payloads(app: Celery, queue: str) -> list[dict]:
+    """The messages waiting in Redis list ``queue`` (and its priority lists, kombu's names for them)."""
+    with app.connection_for_read() as connection:
+        channel = connection.default_channel
+        keys = dict.fromkeys(channel._q_for_pri(queue, priority) for priority in channel.priority_steps)
+        raw = [message for key in keys for message in channel.client.lrange(key, 0, -1)]
+    payloads = []
+    for message in raw:
+        try:
+            payloads.append(json.loads(message))
+        except ValueError:
+            continue
+    return payloads
+
+
+def waiting_row_ids(settings: Settings, app: Celery, queue: str) -> set[str] | None:
+    """The row ids whose message waits in ``queue``, not yet taken by a consumer; None when the broker's queue
+    cannot be read (a broker other than the embedded one and Redis)."""
+    if settings.embedded_broker:
+        payloads = waiting_payloads(settings.broker_dir / "queue", queue)
+    elif urlparse(settings.broker_url).scheme in ("redis", "rediss"):
+        payloads = _redis_payloads(app, queue)
+    else:
+        return None
+    return {row_id for row_id in map(_first_arg, payloads) if row_id is not None}
+
+
 def resend_lost(settings: Settings, app: Celery, kind: WorkKind) -> list[str]:
     """Send again the message of every row of ``kind`` queued ``resend_queued_after_s`` or longer since its last
     send (:meth:`app.core.lease.WorkKind.lost`: the API died between the row and the send, the broker lost it,
-    or a consumer died holding it). A copy of a message that was not lost is refused by the claim's fence."""
+    or a consumer died holding it), unless the broker still holds it (:func:`waiting_row_ids`: the row waits its
+    turn, and is looked at again ``resend_queued_after_s`` later). A copy of a message that was not lost is
+    refused by the claim's fence."""
+    lost = kind.lost(settings)
+    if not lost:
+        return []
+    waiting = waiting_row_ids(settings, app, app.amqp.router.route({}, kind.task)["queue"].name)
     resent = []
-    for row in kind.lost(settings):
+    for row in lost:
+        if waiting is not None and row.id in waiting:
+            kind.mark_resent(settings, row)  # its one message waits: looked at again a period later
+            continue
         send(app, kind, row.id)
         if kind.mark_resent(settings, row):
             resent.append(row.id)

@@ -17,7 +17,7 @@ import time
 import uuid
 from typing import Any
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, select
 
 from app.core.celery_app import TRAIN_TASK
 from app.core.db import session_scope
@@ -97,10 +97,6 @@ def delete_scene(settings: Settings, scene_id: str) -> bool:
 # ------------------------------------------------------------------------------------------------ jobs
 
 
-class QueueFull(Exception):
-    """The client already has ``max_queued_jobs`` jobs waiting (the API answers 429)."""
-
-
 def joined_series(stored: list | None, incoming: list) -> list:
     """The loss series of a job (``[seconds, loss]`` pairs): ``incoming`` (this attempt's, from the engine)
     after the ``stored`` points that come before its first, thinned to at most LOSS_SERIES_MAX_POINTS. A
@@ -142,10 +138,9 @@ JOBS = WorkKind(
 
 
 def create_job(settings: Settings, scene_id: str, options: dict) -> JobRow | None:
-    """A new queued job on ``scene_id``; None when the scene does not exist. Raises QueueFull when
-    ``settings.max_queued_jobs`` jobs are queued already: the limit per client, and the API has one client
-    (whoever holds its token, or everyone without one). The row is inserted first and the queue counted in
-    the same transaction, so concurrent requests cannot both slip under the limit."""
+    """A new queued job on ``scene_id``; None when the scene does not exist. Raises
+    :class:`app.core.lease.QueueFull` when ``settings.max_queued_jobs`` jobs are queued already
+    (:meth:`app.core.lease.WorkKind.refuse_beyond`: the limit per client; nothing is written then)."""
     row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, **initial_values())
     with session_scope(settings) as session:
         session.add(row)
@@ -153,11 +148,7 @@ def create_job(settings: Settings, scene_id: str, options: dict) -> JobRow | Non
         if session.get(SceneRow, scene_id) is None:
             session.rollback()
             return None
-        queued = session.scalar(select(func.count()).select_from(JobRow).where(JobRow.state == "queued"))
-        if queued > settings.max_queued_jobs:
-            session.rollback()
-            raise QueueFull(f"{queued - 1} jobs are queued already (the limit is {settings.max_queued_jobs}); "
-                            "wait for some to start, or cancel some")
+        JOBS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs")
     return row
 
 

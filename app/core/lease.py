@@ -11,9 +11,10 @@ running row whose lease is older than ``stale_after_s``, or whose worker process
 an output starts again from its first frame). One whose worker died ``max_worker_deaths`` times is failed instead
 (:meth:`WorkKind.fail_worn_out`): it may be what kills its workers.
 
-A queued row's ``heartbeat_at`` is when its message was last sent (created, requeued or re-sent): one queued for
-``resend_queued_after_s`` or longer may have lost its message (:meth:`WorkKind.lost`) and is sent again; a
-duplicate is harmless because claims are fenced.
+A queued row's ``heartbeat_at`` is when its message was last sent (created, requeued or re-sent) or last seen
+waiting in the broker: one queued for ``resend_queued_after_s`` or longer may have lost its message
+(:meth:`WorkKind.lost`) and is sent again unless the broker still holds it (:func:`app.core.dispatch.resend_lost`);
+a duplicate is harmless because claims are fenced.
 
 What differs between kinds are a :class:`WorkKind`'s parameters: its table, the Celery task that runs it, the
 columns a claim sets, how its progress is written, and whether its rows have a ``stage`` column.
@@ -63,6 +64,10 @@ def is_stale(row: Any, settings: Settings, now: float) -> bool:
     return host == socket.gethostname() and pid.isdigit() and not _pid_alive(int(pid))
 
 
+class QueueFull(Exception):
+    """The client already has as many rows of a kind queued as its limit allows (the API answers 429)."""
+
+
 @dataclass(frozen=True)
 class LeaseStatus:
     owned: bool
@@ -99,6 +104,16 @@ class WorkKind:
         now = time.time()
         return self.table(id=row_id, state="queued", created_at=now, heartbeat_at=now, cancel_requested=False,
                           attempt=0, requeues=0, **columns)
+
+    def refuse_beyond(self, session: Any, limit: int, setting: str) -> None:
+        """Raise QueueFull (naming ``setting``) when more than ``limit`` rows of this kind are queued, counting the
+        one ``session`` has just added: the API has one client (whoever holds its token, or everyone without
+        one), so this is the limit per client. The caller adds its row first and counts in the same
+        transaction, which the exception rolls back, so concurrent requests cannot both slip under the limit."""
+        queued = session.scalar(select(func.count()).select_from(self.table).where(self.table.state == "queued"))
+        if queued > limit:
+            raise QueueFull(f"{queued - 1} {self.name}s are queued already (the limit is {limit}, "
+                            f"VOXNERF_{setting.upper()}); wait for some to start, or cancel some")
 
     def get(self, settings: Settings, row_id: str) -> Any | None:
         with session_scope(settings) as session:
@@ -281,7 +296,8 @@ class WorkKind:
             ))
 
     def mark_resent(self, settings: Settings, row: Any) -> bool:
-        """Note that a queued row's message was sent again now (only if untouched since read)."""
+        """Note that a queued row's message was sent again, or seen waiting in the broker, now (only if untouched
+        since read)."""
         table = self.table
         with session_scope(settings) as session:
             return bool(session.execute(

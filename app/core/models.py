@@ -1,5 +1,5 @@
-"""Job-store tables (SQLAlchemy ORM): scenes, training jobs, output jobs. Times are UNIX seconds (float, UTC);
-JSON columns hold dicts/lists.
+"""Job-store tables (SQLAlchemy ORM): scenes, training jobs, output jobs, capture imports. Times are UNIX seconds
+(float, UTC); JSON columns hold dicts/lists.
 
 The job's progress columns (stage, iteration, progress, ETA, history, stages...) are not listed here: they are
 built from the engine's ``ProgressEvent`` by :func:`app.core.progress.progress_columns`.
@@ -88,6 +88,40 @@ class OutputRow(Base):
     eta_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     summary: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     file_name: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[float] = mapped_column(Float)
+    started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    attempt: Mapped[int] = mapped_column(Integer, default=0)
+    requeues: Mapped[int] = mapped_column(Integer, default=0)
+    worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+
+class ImportRow(Base):
+    """A capture import: a raw capture (a ROS bag...) that a worker turns into a scene, which exists only once the
+    import has succeeded (``scene_id``).
+
+    The raw capture lives in ``<data_dir>/imports/<id>`` until the import ends. ``layout``: the importer
+    (:data:`voxnerf.data.importers.QUEUED_LAYOUTS`); ``params``: the upload's choices (``splits``); ``stage``
+    and ``progress``: where the importer is; ``summary``: the importer's summary once succeeded. ``attempt``
+    fences the claiming worker's writes as for training jobs (:class:`JobRow`).
+    """
+
+    __tablename__ = "imports"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    name: Mapped[str] = mapped_column(String(255))
+    layout: Mapped[str] = mapped_column(String(32))
+    state: Mapped[str] = mapped_column(String(16), index=True)
+    stage: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    params: Mapped[dict] = mapped_column(JSON)
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    eta_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    scene_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    summary: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[float] = mapped_column(Float)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)

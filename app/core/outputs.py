@@ -26,13 +26,15 @@ from pathlib import Path
 from app.core import storage
 from app.core.celery_app import OUTPUT_TASK
 from app.core.db import session_scope
-from app.core.jobstore import new_id
+from app.core.jobstore import get_scene, new_id
 from app.core.lease import WorkKind
 from app.core.models import JobRow, OutputRow
 from app.core.progress import json_safe
 from app.core.settings import Settings
 from voxnerf.cameras.paths import CameraPathError, check_frame_count, parse_nerfstudio
+from voxnerf.config import TrainConfig
 from voxnerf.files import CHECKPOINT
+from voxnerf.inference.export_plan import view_count, view_size
 
 OUTPUTS_DIR = "outputs"  # under a run directory, and the object store's prefix
 FILE_NAMES = {"video": "video.mp4", "mesh": "mesh.ply", "pointcloud": "pointcloud.ply"}
@@ -89,14 +91,15 @@ def video_params(settings: Settings, request: dict) -> tuple[dict, int]:
     A ``camera_path`` (nerfstudio's camera-path JSON, with ``dataparser_transforms`` when its poses are in a
     nerfstudio run's frame) is parsed here and stored in scene units; a generator (``path``: interpolate or
     orbit) keeps its fields for the worker, which knows the scene's cameras. Limits: ``max_video_frames``
-    frames and ``max_render_pixels`` pixels per frame. Raises CameraPathError naming the key at fault.
+    frames and :meth:`~app.core.settings.Settings.render_pixel_limit` pixels per frame. Raises CameraPathError naming
+    the key at fault.
     """
     if request.get("camera_path") is not None:
         path = parse_nerfstudio(
             request["camera_path"],
             dataparser_transforms=request.get("dataparser_transforms"),
             max_frames=settings.max_video_frames,
-            max_pixels=settings.max_render_pixels,
+            max_pixels=settings.render_pixel_limit(),
         )
         width, height = path.size
         _even_size(width, height, "camera_path.render_width, render_height")
@@ -105,13 +108,77 @@ def video_params(settings: Settings, request: dict) -> tuple[dict, int]:
     check_frame_count(request.get("frames"), settings.max_video_frames, key="frames")
     width, height = request.get("width"), request.get("height")
     if width is not None and height is not None:
-        if width * height > settings.max_render_pixels:
+        if width * height > settings.render_pixel_limit():
             raise CameraPathError(
-                f"{width}x{height} exceeds the limit of {settings.max_render_pixels} pixels", "width, height"
+                f"{width}x{height} exceeds the limit of {settings.render_pixel_limit()} pixels", "width, height"
             )
         _even_size(width, height, "width, height")
     keys = ("path", "frames", "fps", "width", "height", "radius", "height_above")
     return {key: request.get(key) for key in keys}, request["frames"]
+
+
+class OutputTooCostly(Exception):
+    """An output would render more pixels than ``max_output_pixels`` (the API answers 422 with this message)."""
+
+
+def trained_size(settings: Settings, job: JobRow) -> tuple[int, int] | None:
+    """The size of job ``job``'s training images, a generated video's default frame size: the scene's image size
+    over the job's ``downscale`` (the engine's rule, :class:`voxnerf.data.scene.Scene`); None when the scene's
+    row is gone (the worker then fails the output: it needs the scene's cameras)."""
+    scene = get_scene(settings, job.scene_id)
+    if scene is None or not scene.summary.get("image_size"):
+        return None
+    downscale = int(job.options.get("downscale") or TrainConfig.model_fields["downscale"].default)
+    width, height = scene.summary["image_size"]
+    return width // downscale, height // downscale
+
+
+def largest_trained_size(settings: Settings, job: JobRow) -> tuple[tuple[int, int], bool] | None:
+    """The largest of job ``job``'s image sizes over its ``downscale`` (by pixel count, from the scene summary's
+    ``image_sizes``; a scene from before that key has :func:`trained_size`) and whether the scene's images differ
+    in size; None when the scene's row is gone."""
+    scene = get_scene(settings, job.scene_id)
+    sizes = None if scene is None else scene.summary.get("image_sizes")
+    if not sizes:
+        size = trained_size(settings, job)
+        return None if size is None else (size, False)
+    downscale = int(job.options.get("downscale") or TrainConfig.model_fields["downscale"].default)
+    width, height = max((tuple(int(v) for v in size.split("x")) for size in sizes), key=lambda wh: wh[0] * wh[1])
+    return (width // downscale, height // downscale), len(sizes) > 1
+
+
+def _training_cameras(settings: Settings, job: JobRow) -> int | None:
+    scene = get_scene(settings, job.scene_id)
+    return None if scene is None else (scene.summary.get("splits") or {}).get("train")
+
+
+def check_output_cost(settings: Settings, job: JobRow, kind: str, params: dict, frames: int | None) -> None:
+    """Refuse an output that would render more than ``max_output_pixels`` pixels (OutputTooCostly naming the
+    limit): its cost, bounded before it is queued. A video renders ``frames`` frames of the request's size, else
+    of the job's training size (:func:`trained_size`); an export renders the views
+    :mod:`voxnerf.inference.export_plan` makes of the scene's training cameras (at most ``max_views``), each
+    counted at the size of the scene's largest images when they differ in size (a bound from above). What
+    cannot be known here (the scene's row is gone) is not checked: the worker then fails the output, which
+    needs the scene."""
+    up_to = ""
+    if kind == "video":
+        count, unit, hint = frames, "frames", "fewer frames or smaller ones"
+        size = (params["width"], params["height"]) if params.get("width") is not None else trained_size(settings, job)
+    else:
+        cameras = _training_cameras(settings, job)
+        count, unit, hint = (None if cameras is None else view_count(cameras, params.get("max_views")), "views",
+                             "a lower max_views")
+        largest = largest_trained_size(settings, job)
+        size = None if largest is None else view_size(*largest[0])
+        up_to = "up to " if largest is not None and largest[1] else ""
+    if count is None or size is None:
+        return
+    cost = count * size[0] * size[1]
+    if cost > settings.max_output_pixels:
+        raise OutputTooCostly(
+            f"{count} {unit} of {up_to}{size[0]}x{size[1]} are {cost} pixels, beyond the limit of "
+            f"{settings.max_output_pixels} per output (VOXNERF_MAX_OUTPUT_PIXELS): {hint}"
+        )
 
 
 # ------------------------------------------------------------------------------------------------ files
@@ -174,9 +241,12 @@ OUTPUTS = WorkKind(
 
 def create_output(settings: Settings, job_id: str, kind: str, params: dict, total: int | None,
                   partial: bool) -> OutputRow:
-    """A new queued output job of trained job ``job_id``."""
+    """A new queued output job of trained job ``job_id``. Raises QueueFull when ``max_queued_outputs`` output jobs
+    are queued already (:meth:`app.core.lease.WorkKind.refuse_beyond`); nothing is written then."""
     row = OUTPUTS.new_row(new_id(), job_id=job_id, kind=kind, params=json_safe(params), partial=partial,
                           progress=0.0, done=0, total=total)
     with session_scope(settings) as session:
         session.add(row)
+        session.flush()
+        OUTPUTS.refuse_beyond(session, settings.max_queued_outputs, "max_queued_outputs")
     return row

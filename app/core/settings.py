@@ -12,14 +12,19 @@ results then travel through Redis, so no directory needs to be shared at all.
 
 from __future__ import annotations
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, SecretStr, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MiB = 1024 * 1024
+# A list read from one variable as comma-separated entries ("a.example, b.example"), not as JSON.
+CommaList = Annotated[list[str], NoDecode]
+GPU_RENDER_PIXELS = 4096 * 4096  # default pixel limit of one render on a GPU: about a second there
+CPU_RENDER_PIXELS = 1920 * 1080  # and on the CPU, where one costs tens of seconds (render_pixel_limit)
 
 
 class Settings(BaseSettings):
@@ -51,6 +56,18 @@ class Settings(BaseSettings):
         default=False,
         description="without api_token the service answers only loopback clients and refuses to bind another "
         "address; true lifts both (logged as a WARNING): anyone who reaches the port then controls the service",
+    )
+    allowed_hosts: CommaList = Field(
+        default_factory=list,
+        description="Host names the service answers besides localhost, 127.0.0.1 and [::1] (always answered), "
+        "comma-separated: a name, *.example.org (its subdomains) or * (any). A request whose Host header names "
+        "another is refused with 400: a web page re-resolving its own name to this machine (DNS rebinding)",
+    )
+    trusted_proxies: CommaList = Field(
+        default_factory=list,
+        description="addresses or networks (comma-separated) of reverse proxies whose Forwarded or "
+        "X-Forwarded-For header names the client; a request carrying Forwarded, Via or X-Forwarded-* from any "
+        "other address counts as remote (it needs the token)",
     )
 
     max_upload_bytes: int = Field(default=2048 * MiB, gt=0, description="request body of POST /scenes")
@@ -87,9 +104,29 @@ class Settings(BaseSettings):
     upload_validation_timeout_s: float = Field(
         default=900.0, gt=0, description="wall-clock seconds an upload's validation may take; then it is killed"
     )
-    max_render_pixels: int = Field(default=4096 * 4096, gt=0, description="width x height of one render")
+    max_render_pixels: int | None = Field(
+        default=None, gt=0,
+        description="width x height of one render and of each video frame; unset: what fits the device the "
+        f"workers render on, {GPU_RENDER_PIXELS} on a GPU and {CPU_RENDER_PIXELS} on the CPU "
+        "(:meth:`Settings.render_pixel_limit`)",
+    )
     max_video_frames: int = Field(
         default=3600, ge=1, le=10_000, description="frames of one video job (POST /jobs/{id}/videos)"
+    )
+    max_output_pixels: int = Field(
+        default=2_000_000_000, gt=0,
+        description="pixels one output job renders, frames (video) or views (export) x pixels each: its cost; "
+        "a request beyond it is answered 422",
+    )
+    max_queued_outputs: int = Field(
+        default=100, ge=1,
+        description="queued output jobs (videos, meshes, point clouds) per client, counted apart from training "
+        "jobs; POST /jobs/{id}/videos or /exports beyond it is answered 429",
+    )
+    max_concurrent_scene_reads: int = Field(
+        default=2, ge=1, le=32,
+        description="scene reads for the viewer (GET /jobs/{id}/cameras, /prior-preview) one API process runs at "
+        "once, each a child process under the upload validation's limits; more are answered 429 with Retry-After",
     )
 
     render_timeout_s: float = Field(
@@ -135,8 +172,9 @@ class Settings(BaseSettings):
     )
     resend_queued_after_s: float = Field(
         default=300.0, gt=0,
-        description="a job queued this long since its message was sent has the message sent again (it may have "
-        "been lost); a duplicate is refused by the claim's fence",
+        description="a job or output job queued this long since its message was sent has the message sent again "
+        "(it may have been lost) unless the broker still holds it (the embedded queue and Redis are read); a "
+        "duplicate is refused by the claim's fence",
     )
     max_job_seconds: float = Field(
         default=86_400.0, gt=0,
@@ -183,10 +221,38 @@ class Settings(BaseSettings):
         default=10.0, gt=0, description="how often a training worker uploads a newly saved checkpoint"
     )
 
+    @field_validator("allowed_hosts", "trusted_proxies", mode="before")
+    @classmethod
+    def _comma_separated(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            return [entry.strip() for entry in value.split(",") if entry.strip()]
+        return value
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _networks(cls, value: list[str]) -> list[str]:
+        for entry in value:
+            try:
+                ipaddress.ip_network(entry, strict=False)
+            except ValueError:
+                raise ValueError(f"{entry!r} is not an IP address or network (e.g. 10.0.0.5, 10.0.0.0/24)") from None
+        return value
+
     @field_validator("data_dir")
     @classmethod
     def _absolute(cls, value: Path) -> Path:
         return value.expanduser().resolve()
+
+    def render_pixel_limit(self, device_type: str | None = None) -> int:
+        """The most pixels of one render (and of each video frame): ``max_render_pixels`` when it is set, else
+        what fits the device: :data:`GPU_RENDER_PIXELS` on a GPU, :data:`CPU_RENDER_PIXELS` on the CPU.
+        ``device_type`` is the torch device type a worker renders on (``cpu``, ``cuda``...); None is the API's
+        view, which knows only the ``device`` setting: ``cpu`` there means the CPU's limit, anything else the
+        GPU's, and each worker refuses what is beyond its own."""
+        if self.max_render_pixels is not None:
+            return self.max_render_pixels
+        device = device_type or self.device.split(":")[0]
+        return CPU_RENDER_PIXELS if device == "cpu" else GPU_RENDER_PIXELS
 
     @property
     def embedded_broker(self) -> bool:
@@ -206,6 +272,11 @@ class Settings(BaseSettings):
         return self.data_dir / "runs"
 
     @property
+    def imports_dir(self) -> Path:
+        """Raw captures waiting for their import (a worker turns each into a scene, then removes it)."""
+        return self.data_dir / "imports"
+
+    @property
     def staging_dir(self) -> Path:
         """Uploads are unpacked and validated here, then renamed into ``scenes_dir`` (same filesystem)."""
         return self.data_dir / "staging"
@@ -221,7 +292,7 @@ class Settings(BaseSettings):
 
     def make_dirs(self) -> None:
         """Create every directory the service writes to (idempotent)."""
-        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.render_results_dir):
+        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.imports_dir, self.render_results_dir):
             path.mkdir(parents=True, exist_ok=True)
         if self.embedded_broker:
             (self.broker_dir / "queue").mkdir(parents=True, exist_ok=True)

@@ -21,6 +21,7 @@ from fastapi.responses import JSONResponse
 
 from app.core import db
 from app.core.celery_app import RENDER_QUEUE, TRAIN_QUEUE
+from app.core.redact import public_error
 from app.core.settings import Settings
 from app.deps import has_valid_token
 from app.schemas import Check, HealthOut
@@ -28,8 +29,9 @@ from app.schemas import Check, HealthOut
 router = APIRouter(tags=["health"])
 
 
-def _error(err: Exception) -> str:
-    return f"{type(err).__name__}: {err}"
+def _error(err: Exception, settings: Settings) -> str:
+    """An exception as a check's detail: no credentials, paths relative to the data directory."""
+    return public_error(f"{type(err).__name__}: {err}", settings)
 
 
 class HealthProbe:
@@ -78,7 +80,7 @@ def check_health(settings: Settings, celery: Celery) -> HealthOut:
         db.ping(settings)
         database = Check(ok=True, detail="ok")
     except Exception as err:  # any driver error means "not reachable"
-        database = Check(ok=False, detail=_error(err))
+        database = Check(ok=False, detail=_error(err, settings))
 
     workers: dict[str, list[str]] = {TRAIN_QUEUE: [], RENDER_QUEUE: []}
     try:
@@ -90,9 +92,9 @@ def check_health(settings: Settings, celery: Celery) -> HealthOut:
         for name, queues in sorted(replies.items()):
             for queue in queues:
                 workers.setdefault(queue["name"], []).append(name)
-        broker = Check(ok=True, detail=where)
+        broker = Check(ok=True, detail=public_error(where, settings))
     except Exception as err:  # connection refused, timeout, auth...: the broker is not usable
-        broker = Check(ok=False, detail=_error(err))
+        broker = Check(ok=False, detail=_error(err, settings))
 
     healthy = database.ok and broker.ok and bool(workers[TRAIN_QUEUE]) and bool(workers[RENDER_QUEUE])
     return HealthOut(

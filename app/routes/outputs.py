@@ -1,6 +1,7 @@
 """Output jobs of a trained job: fly-through videos, meshes and point clouds (queue ``outputs``), and their files.
 
-``POST /jobs/{id}/videos`` and ``POST /jobs/{id}/exports`` queue one (202); ``GET /outputs/{id}`` follows it;
+``POST /jobs/{id}/videos`` and ``POST /jobs/{id}/exports`` queue one (202; 429 beyond ``max_queued_outputs``, a
+video or export beyond ``max_output_pixels`` 422); ``GET /outputs/{id}`` follows it;
 ``GET /outputs/{id}/file`` downloads what a succeeded one made (409 before: a partial file is never served).
 The rules (which jobs can be rendered from, camera-path limits, where files live) are in :mod:`app.core.outputs`.
 """
@@ -12,13 +13,12 @@ from typing import Annotated
 from celery import Celery
 from fastapi import APIRouter, HTTPException, Path, Query
 from fastapi.responses import FileResponse
-from kombu.exceptions import KombuError
 
 from app.core import jobstore, storage
 from app.core import outputs as store
-from app.core.dispatch import send
 from app.core.jobstore import JOBS
-from app.core.models import OutputRow
+from app.core.lease import QueueFull
+from app.core.models import JobRow, OutputRow
 from app.core.outputs import OUTPUTS
 from app.core.redact import public_error
 from app.core.settings import Settings
@@ -31,11 +31,12 @@ router = APIRouter(tags=["outputs"])
 OutputId = Annotated[str, Path(pattern=jobstore.ID_RE.pattern, description=f"output id, {ID_DOC}")]
 
 
-def _source_or_error(settings: Settings, job_id: str) -> bool:
-    """Whether outputs of job ``job_id`` are partial; 404 for an unknown job, 409 for one not to render from."""
+def _source_or_error(settings: Settings, job_id: str) -> tuple[JobRow, bool]:
+    """Job ``job_id`` and whether its outputs are partial; 404 for an unknown job, 409 for one not to render
+    from."""
     job = work.found(settings, JOBS, job_id)
     try:
-        return store.trained_source(settings, job)
+        return job, store.trained_source(settings, job)
     except store.NotRenderable as err:
         raise HTTPException(409, str(err)) from None
 
@@ -43,13 +44,11 @@ def _source_or_error(settings: Settings, job_id: str) -> bool:
 def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: dict, total: int | None,
            partial: bool) -> OutputOut:
     """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503)."""
-    row = store.create_output(settings, job_id, kind, params, total, partial)
     try:
-        send(celery, OUTPUTS, row.id)
-    except (KombuError, OSError) as err:
-        OUTPUTS.fail(settings, row.id, public_error(f"the queue refused it: {err}", settings))
-        raise HTTPException(503, public_error(f"the outputs queue is unavailable ({err}); try again later",
-                                              settings)) from None
+        row = store.create_output(settings, job_id, kind, params, total, partial)
+    except QueueFull as full:
+        raise HTTPException(429, str(full)) from None
+    work.send_or_503(settings, celery, OUTPUTS, row.id)
     return OutputOut.from_row(row)
 
 
@@ -60,10 +59,11 @@ def _output_or_404(settings: Settings, output_id: str) -> OutputRow:
 @router.post("/jobs/{job_id}/videos", status_code=202, response_model=OutputOut,
              summary="Render a fly-through video (MP4) of a trained job")
 def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celery: CeleryDep) -> OutputOut:
-    partial = _source_or_error(settings, job_id)
+    job, partial = _source_or_error(settings, job_id)
     try:
         params, frames = store.video_params(settings, body.model_dump())
-    except CameraPathError as err:
+        store.check_output_cost(settings, job, "video", params, frames)
+    except (CameraPathError, store.OutputTooCostly) as err:
         raise HTTPException(422, str(err)) from None
     return _queue(settings, celery, job_id, "video", params, frames, partial)
 
@@ -71,8 +71,13 @@ def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celer
 @router.post("/jobs/{job_id}/exports", status_code=202, response_model=OutputOut,
              summary="Export a mesh or a point cloud (PLY) of a trained job")
 def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, celery: CeleryDep) -> OutputOut:
-    partial = _source_or_error(settings, job_id)
-    return _queue(settings, celery, job_id, body.kind, body.model_dump(exclude={"kind"}), None, partial)
+    job, partial = _source_or_error(settings, job_id)
+    params = body.model_dump(exclude={"kind"})
+    try:
+        store.check_output_cost(settings, job, body.kind, params, None)
+    except store.OutputTooCostly as err:
+        raise HTTPException(422, str(err)) from None
+    return _queue(settings, celery, job_id, body.kind, params, None, partial)
 
 
 @router.get("/jobs/{job_id}/outputs", response_model=list[OutputOut], summary="Output jobs of a job, newest first")

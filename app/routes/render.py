@@ -74,11 +74,9 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
         partial = trained_source(settings, job)
     except NotRenderable as err:
         raise HTTPException(409, str(err)) from None
-    pixels = body.pixels()
-    if pixels is not None and pixels > settings.max_render_pixels:
-        raise HTTPException(
-            422, f"{body.width}x{body.height} exceeds the limit of {settings.max_render_pixels} pixels"
-        )
+    pixels, limit = body.pixels(), settings.render_pixel_limit()
+    if pixels is not None and pixels > limit:
+        raise HTTPException(422, f"{body.width}x{body.height} exceeds the limit of {limit} pixels")
     request_id = jobstore.new_id()
     try:
         send_render(celery, request_id, body.job_id, body.model_dump(), settings.render_timeout_s)

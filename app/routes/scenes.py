@@ -6,18 +6,21 @@ import logging
 
 from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from kombu.exceptions import KombuError
+from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
 from app.core import jobstore, storage
-from app.core.dispatch import send
+from app.core.imports import IMPORTS
 from app.core.jobstore import JOBS
-from app.core.redact import public_error
+from app.core.lease import QueueFull
+from app.core.models import ImportRow
+from app.core.scene_store import StoredScene
 from app.core.settings import Settings
 from app.deps import CeleryDep, SceneId, SettingsDep
+from app.routes import work
 from app.routes.render import RenderSlots
-from app.schemas import JobOptions, JobOut, SceneOut
+from app.schemas import ImportOut, JobOptions, JobOut, SceneOut
 from app.uploads import staging
 from app.uploads.form import read_form
 from voxnerf.config import TrainConfig
@@ -38,7 +41,10 @@ UPLOAD_BODY = {
                         "format": "binary",
                         "description": "a .zip of the scene directory (transforms.json), or of a COLMAP "
                         "project (sparse/0 or sparse with cameras.bin|txt, and images/) or a ScanNet export "
-                        "(color/, depth/, pose/, intrinsic/), imported into a scene; see docs/scene-format.md",
+                        "(color/, depth/, pose/, intrinsic/), imported into a scene; or a capture whose import "
+                        "is queued (answered 202 with the import): a ROS 1 .bag, a ROS 2 bag's .mcap or .db3, "
+                        "or a .zip of a ROS 2 bag folder or of a Stray Scanner recording; see "
+                        "docs/scene-format.md",
                     },
                     "files": {
                         "type": "array",
@@ -50,7 +56,7 @@ UPLOAD_BODY = {
                     "splits": {
                         "type": "string",
                         "enum": ["paper"],
-                        "description": "for a COLMAP or ScanNet zip: write the paper's train / interpolation / "
+                        "description": "for an upload to import: write the paper's train / interpolation / "
                         "extrapolation splits (default: none, the loader's default split applies)",
                     },
                 },
@@ -69,7 +75,7 @@ def _split_rule(value: object, is_zip: bool):
     """The form field ``splits`` as an importer's split rule; 422 for a bad value or a files upload."""
     rule = staging.split_rule(value)  # UploadError: answered as 422 by app.main's handler
     if rule is not None and not is_zip:
-        raise HTTPException(422, "splits: only a zip of a COLMAP project or a ScanNet export takes splits")
+        raise HTTPException(422, "splits: only an upload to import (in field 'file') takes splits")
     return rule
 
 
@@ -77,11 +83,13 @@ def _split_rule(value: object, is_zip: bool):
     "/scenes",
     status_code=201,
     response_model=SceneOut,
+    responses={202: {"model": ImportOut, "description": "a capture whose import is queued: follow it at "
+                     "/imports/{id}; its scene exists once it has succeeded"}},
     openapi_extra={"requestBody": UPLOAD_BODY},
     summary="Upload a scene (zip in field 'file', or its files in fields 'files'); COLMAP and ScanNet zips are "
-    "imported",
+    "imported, ROS bags queued for import",
 )
-async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
+async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDep) -> SceneOut | JSONResponse:
     slots = _upload_slots(request, settings)
     if not slots.try_acquire():  # before the body is read: a refused upload costs no disk and no thread
         raise HTTPException(
@@ -91,9 +99,14 @@ async def create_scene(request: Request, settings: SettingsDep) -> SceneOut:
             headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)},
         )
     try:
-        return await _receive_scene(request, settings)
+        stored = await _receive_scene(request, settings)
     finally:
         slots.release()
+    if isinstance(stored, ImportRow):
+        work.send_or_503(settings, celery, IMPORTS, stored.id)
+        body = ImportOut.from_row(IMPORTS.get(settings, stored.id)).model_dump(mode="json")
+        return JSONResponse(body, status_code=202, headers={"Location": f"/imports/{stored.id}"})
+    return SceneOut.from_row(jobstore.get_scene(settings, stored.id))
 
 
 def _upload_slots(request: Request, settings: Settings) -> RenderSlots:
@@ -104,8 +117,9 @@ def _upload_slots(request: Request, settings: Settings) -> RenderSlots:
     return state.upload_slots
 
 
-async def _receive_scene(request: Request, settings: Settings) -> SceneOut:
-    """Read the form (file parts spooled to disk), then stage, validate and store the scene in a thread."""
+async def _receive_scene(request: Request, settings: Settings) -> StoredScene | ImportRow:
+    """Read the form (file parts spooled to disk), then stage, validate and store the scene in a thread (or queue
+    the import of a capture)."""
     async with read_form(request, settings) as form:
         archive = form.get("file")
         parts = [p for p in form.getlist("files") if isinstance(p, UploadFile)]
@@ -115,10 +129,13 @@ async def _receive_scene(request: Request, settings: Settings) -> SceneOut:
             )
         splits = _split_rule(form.get("splits"), isinstance(archive, UploadFile))
         if isinstance(archive, UploadFile):
-            stem = (archive.filename or "scene").rsplit("/", 1)[-1].removesuffix(".zip")
-            stored = await run_in_threadpool(
-                staging.store_zip, settings, _display_name(form.get("name"), stem), archive.file, splits
-            )
+            base = (archive.filename or "scene").rsplit("/", 1)[-1]
+            stem = base.rsplit(".", 1)[0] if "." in base[1:] else base  # room.zip, robot.bag -> room, robot
+            name = _display_name(form.get("name"), stem)
+            capture = await run_in_threadpool(staging.capture_kind, archive.file)
+            if capture is not None:
+                return await run_in_threadpool(staging.store_capture, settings, name, archive.file, capture, splits)
+            stored = await run_in_threadpool(staging.store_zip, settings, name, archive.file, splits)
         elif parts:
             named = [(p.filename or "", p.file) for p in parts]
             stored = await run_in_threadpool(
@@ -129,7 +146,7 @@ async def _receive_scene(request: Request, settings: Settings) -> SceneOut:
                 422,
                 "no scene: send a multipart form with a .zip in field 'file', or the files in field 'files'",
             )
-    return SceneOut.from_row(jobstore.get_scene(settings, stored.id))
+    return stored
 
 
 @router.get("/scenes", response_model=list[SceneOut], summary="List scenes, newest first")
@@ -182,16 +199,10 @@ def create_job(
     _scene_or_404(settings, scene_id)
     try:
         job = jobstore.create_job(settings, scene_id, values)
-    except jobstore.QueueFull as full:
+    except QueueFull as full:
         raise HTTPException(429, str(full)) from None
     if job is None:
         raise HTTPException(404, f"no scene {scene_id}")
-    try:
-        send(celery, JOBS, job.id)
-    except (KombuError, OSError) as err:
-        log.error("cannot queue job %s: %s", job.id, err)
-        JOBS.fail(settings, job.id, public_error(f"the broker refused the job: {err}", settings))
-        raise HTTPException(503, public_error(f"the job queue is unavailable ({err}); try again later",
-                                              settings)) from None
+    work.send_or_503(settings, celery, JOBS, job.id)
     response.headers["Location"] = f"/jobs/{job.id}"
     return JobOut.from_row(JOBS.get(settings, job.id))

@@ -1,15 +1,34 @@
 """What the routes of every kind of queued work share (training jobs: :mod:`app.routes.jobs`, output jobs:
-:mod:`app.routes.outputs`): the row or a 404, and a cancel request's answer. Their lifecycle is
-:mod:`app.core.lease`'s."""
+:mod:`app.routes.outputs`, capture imports: :mod:`app.routes.imports`): sending a new row's message (or failing
+the row: 503), the row or a 404, and a cancel request's answer. Their lifecycle is :mod:`app.core.lease`'s."""
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
+from celery import Celery
 from fastapi import HTTPException
+from kombu.exceptions import KombuError
 
+from app.core.dispatch import send
 from app.core.lease import WorkKind
+from app.core.redact import public_error
 from app.core.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+def send_or_503(settings: Settings, celery: Celery, kind: WorkKind, row_id: str) -> None:
+    """Publish the message of the new row ``row_id`` of ``kind``; when the broker refuses it the row is failed
+    (naming why) and the client gets 503."""
+    try:
+        send(celery, kind, row_id)
+    except (KombuError, OSError) as err:
+        log.error("cannot queue %s %s: %s", kind.name, row_id, err)
+        kind.fail(settings, row_id, public_error(f"the broker refused it: {err}", settings))
+        raise HTTPException(503, public_error(f"the {kind.name} queue is unavailable ({err}); try again later",
+                                              settings)) from None
 
 
 def found(settings: Settings, kind: WorkKind, row_id: str) -> Any:

@@ -310,6 +310,49 @@ async function refreshJobs() {
   }
 }
 
+function importRow(item) {
+  // one capture import: its state and stage, progress, and the scene it made (or why it failed)
+  const row = document.createElement("tr");
+  row.dataset.importId = item.id;
+  const percent = Math.round(100 * item.progress);
+  const bar = document.createElement("progress");
+  bar.max = 100;
+  bar.value = percent;
+  bar.setAttribute("aria-label", `import ${item.id.slice(0, 8)}`);
+  const outcome = document.createElement("td");
+  if (item.scene_id) outcome.textContent = `scene ${item.scene_id.slice(0, 8)} · ${item.summary.frames} frames`;
+  else if (item.error) outcome.textContent = item.error;
+  const cells = [item.id.slice(0, 8), `${item.name} (${item.layout})`, item.state, item.stage || ""];
+  row.append(...cells.map((text) => Object.assign(document.createElement("td"), { textContent: text })));
+  const progressCell = document.createElement("td");
+  progressCell.append(bar, ` ${percent}%`);
+  const actions = document.createElement("td");
+  if (item.state === "queued" || item.state === "running") {
+    const button = Object.assign(document.createElement("button"), { textContent: "Cancel", type: "button" });
+    button.addEventListener("click", () => api(`/imports/${item.id}/cancel`, { method: "POST" })
+      .then(refreshImports).catch((err) => showMessage(err.message)));
+    actions.append(button);
+  }
+  row.append(progressCell, outcome, actions);
+  row.dataset.state = item.state;
+  return row;
+}
+
+let importsSucceeded = 0;
+
+async function refreshImports() {
+  try {
+    const items = await (await api("/imports?limit=20")).json();
+    $("imports").tBodies[0].replaceChildren(...items.map(importRow));
+    $("imports-section").hidden = items.length === 0;
+    const succeeded = items.filter((item) => item.state === "succeeded").length;
+    if (succeeded !== importsSucceeded) refreshScenes();  // an import just made a scene
+    importsSucceeded = succeeded;
+  } catch (err) {
+    showMessage(err.message);
+  }
+}
+
 async function refreshScenes() {
   try {
     const scenes = await (await api("/scenes")).json();
@@ -349,6 +392,7 @@ $("token-form").addEventListener("submit", (event) => {
   showMessage("");
   refreshJobs();
   refreshScenes();
+  refreshImports();
 });
 
 $("upload-form").addEventListener("submit", async (event) => {
@@ -359,9 +403,18 @@ $("upload-form").addEventListener("submit", async (event) => {
   form.append("file", file, file.name);
   try {
     showMessage(`Uploading ${file.name}…`, "info");
-    const scene = await (await api("/scenes", { method: "POST", body: form })).json();
-    showMessage(`Scene ${scene.id} stored: ${scene.summary.frames} frames, ` +
-      `${scene.summary.image_size.join("x")} pixels.`, "info");
+    const response = await api("/scenes", { method: "POST", body: form });
+    const stored = await response.json();
+    if (response.status === 202) {  // a capture: its import is queued, and its scene comes when it succeeds
+      showMessage(`Capture ${file.name} queued for import (${stored.id}); its scene appears when it is done.`,
+        "info");
+      refreshImports();
+      return;
+    }
+    const sizes = Object.keys(stored.summary.image_sizes || {});
+    const pixels = sizes.length > 1 ? `images of ${sizes.length} sizes (${sizes.join(", ")})`
+      : `${stored.summary.image_size.join("x")} pixels`;
+    showMessage(`Scene ${stored.id} stored: ${stored.summary.frames} frames, ${pixels}.`, "info");
     refreshScenes();
   } catch (err) {
     showMessage(`Upload refused: ${err.message}`);
@@ -415,5 +468,7 @@ $("token").value = savedToken();
 refreshHealth();
 refreshScenes();
 refreshJobs();
+refreshImports();
 setInterval(refreshJobs, POLL_MS);
+setInterval(refreshImports, POLL_MS);
 setInterval(refreshHealth, HEALTH_MS);

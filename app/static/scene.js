@@ -36,13 +36,19 @@ function depthText(summary) {
   return frames ? `yes: ${frames.all} frames (${frames.train} training frames)` : "yes";
 }
 
+function imageSizeText(summary) {
+  const sizes = Object.entries(summary.image_sizes || {});
+  if (sizes.length < 2) return `${summary.image_size[0]} x ${summary.image_size[1]} pixels`;
+  return sizes.map(([size, n]) => `${size.replace("x", " x ")} (${n} frames)`).join(", ") + " pixels";
+}
+
 function drawScene(scene) {
   const s = scene.summary;
   $("scene-name").textContent = scene.name;
   document.title = `VoxNeRF · scene ${scene.name}`;
   const facts = [
     ["Frames", String(s.frames)],
-    ["Image size", `${s.image_size[0]} x ${s.image_size[1]} pixels`],
+    ["Image size", imageSizeText(s)],
     ["Prior", priorText(s.prior)],
     ["Depth maps", depthText(s)],
     ["Camera models", Object.entries(s.camera_models || {}).map(([m, n]) => `${m}: ${n}`).join(", ") || "–"],

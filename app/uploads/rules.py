@@ -34,12 +34,15 @@ class ValidatedScene:
 
     size_bytes: int  # of the files in ``root``
     summary: dict  # the engine's summary (``voxnerf.data.scene.inspect_scene``), with ``imported`` for an import
+    queued_layout: str | None = None  # an import to queue (QUEUED_LAYOUTS): unpacked beside ``root``, not imported
 
 
 ALLOWED_SUFFIXES = frozenset(
     {".json", ".png", ".jpg", ".jpeg", ".npy", ".ply", ".obj", ".mtl", ".glb", ".off"}
 )
-IMPORT_SUFFIXES = frozenset({".txt", ".bin"})  # COLMAP models and ScanNet poses: only in an import layout
+# only in an import layout: COLMAP models and ScanNet poses, Record3D depth, a Stray Scanner recording's video and
+# odometry, a ROS 2 bag folder's metadata and storage
+IMPORT_SUFFIXES = frozenset({".txt", ".bin", ".exr", ".mp4", ".csv", ".yaml", ".db3", ".mcap"})
 IGNORED_PREFIXES = ("__MACOSX/",)  # resource forks written by macOS's archiver
 IGNORED_NAMES = frozenset({".DS_Store", "Thumbs.db"})
 MAX_PATH_BYTES = 1024  # a relative path inside a scene; with the staging prefix well under Linux's PATH_MAX

@@ -135,9 +135,15 @@ def _memory_detail(settings: Settings) -> str:
 
 def _limit_resources(settings: Settings) -> None:
     """This process's address space capped at its current size plus the budget; its CPU time at the timeout."""
-    address_space = _address_space_bytes() + settings.upload_validation_memory_bytes
-    _lower_limit(resource.RLIMIT_AS, address_space)
-    _lower_limit(resource.RLIMIT_CPU, math.ceil(settings.upload_validation_timeout_s) + CPU_GRACE_S)
+    limit_child(settings.upload_validation_memory_bytes, settings.upload_validation_timeout_s)
+
+
+def limit_child(memory_bytes: int, timeout_s: float) -> None:
+    """The limits of a child that reads untrusted or large files (an upload's validation, a scene read for the
+    viewer): its address space capped at its current size plus ``memory_bytes`` (past it: MemoryError), its CPU
+    time a little past ``timeout_s`` (ends it even if the API is gone), torch on one thread."""
+    _lower_limit(resource.RLIMIT_AS, _address_space_bytes() + memory_bytes)
+    _lower_limit(resource.RLIMIT_CPU, math.ceil(timeout_s) + CPU_GRACE_S)
     torch = sys.modules.get("torch")  # loaded by the forkserver; one thread keeps the address space small
     if torch is not None:
         torch.set_num_threads(1)

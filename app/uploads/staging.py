@@ -11,7 +11,12 @@ store it atomically.
    runs :mod:`app.uploads.validation`, whose docstring lists its checks): the API process parses nothing the
    client sent and never imports torch;
 4. only then one ``os.replace`` of the staging scene into ``data_dir/scenes/<id>``, and, when ``storage_url``
-   is set, its upload to the object store (:func:`app.core.storage.publish_scene`).
+   is set, its upload to the object store (:func:`app.core.scene_store.commit_scene`).
+
+A capture whose import takes long (``QUEUED_LAYOUTS``: a ROS bag, sent as one file or as a zip of a ROS 2 bag
+folder) is not imported here: the zip is unpacked under the same limits (3.), the file is copied as it is
+(recognised by its first bytes alone), and the raw capture is queued as an import job
+(:func:`app.core.imports.create_import`); a worker writes and checks its scene.
 
 Any failure removes the staging directory, so a refused upload leaves nothing behind.
 """
@@ -22,11 +27,13 @@ import logging
 import shutil
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
-from app.core import jobstore, storage
+from app.core.imports import create_import
+from app.core.lease import QueueFull
+from app.core.models import ImportRow
+from app.core.scene_store import PublishFailed, StoredScene, commit_scene
 from app.core.settings import Settings
 from app.uploads.rules import (
     StagedUpload,
@@ -38,23 +45,19 @@ from app.uploads.rules import (
     safe_relpath,
 )
 from app.uploads.sandbox import validate_in_child
+from app.uploads.validation import RAW_DIR
+from voxnerf.data.importers import CAPTURE_MAGIC_BYTES, capture_file_layout
 from voxnerf.data.importers.splits import PaperSplitRule
 from voxnerf.files import TRANSFORMS
 
-__all__ = ["TRANSFORMS", "StoredScene", "UploadError", "safe_relpath", "split_rule", "store_parts", "store_zip"]
+__all__ = ["TRANSFORMS", "StoredScene", "UploadError", "capture_kind", "safe_relpath", "split_rule",
+           "store_capture", "store_parts", "store_zip"]
 
 SPLIT_RULES = {"paper": PaperSplitRule()}
 SCENE_DIR = "scene"  # in an upload's staging directory: the scene being filled and validated
 ARCHIVE_NAME = "upload.zip"  # in an upload's staging directory: the zip as it was sent
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class StoredScene:
-    id: str
-    size_bytes: int
-    summary: dict
 
 
 def split_rule(value: object) -> PaperSplitRule | None:
@@ -91,37 +94,32 @@ def _write_parts(parts: list[tuple[str, BinaryIO]], root: Path, settings: Settin
         total += copy_limited(source, root / path, settings.max_scene_bytes - total, str(path))
 
 
-def _publish(settings: Settings, scene_id: str) -> None:
-    """Copy the stored scene to the object store, if one is configured; 503 when the store fails."""
-    try:
-        storage.publish_scene(settings, scene_id)
-    except Exception as err:
-        log.error("scene %s: upload to the object store failed", scene_id, exc_info=True)
-        raise UploadError(
-            503, f"the scene could not be copied to the object store ({type(err).__name__}: {err}); try again"
-        ) from None
-
-
 def _commit(settings: Settings, root: Path, name: str, summary: dict, size: int) -> StoredScene:
-    """Move a validated scene into ``scenes_dir``, publish it to the store and add its row (or undo the move)."""
-    scene_id = jobstore.new_id()
-    final = settings.scenes_dir / scene_id
-    root.replace(final)
+    """Move a validated scene into ``scenes_dir`` (:func:`app.core.scene_store.commit_scene`); 503 when the object
+    store refuses its copy."""
     try:
-        _publish(settings, scene_id)
-        jobstore.add_scene(settings, scene_id, name, summary, size)
-    except BaseException:
-        shutil.rmtree(final, ignore_errors=True)
-        raise
-    return StoredScene(scene_id, size, summary)
+        return commit_scene(settings, root, name, summary, size)
+    except PublishFailed as err:
+        raise UploadError(503, str(err)) from None
 
 
-def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpload]) -> StoredScene:
+def _queue_import(settings: Settings, raw: Path, name: str, layout: str,
+                  splits: PaperSplitRule | None) -> ImportRow:
+    """Queue the import of the raw capture at ``raw`` (moved out of staging); 429 when the queue is full."""
+    params = {"splits": next((key for key, rule in SPLIT_RULES.items() if rule == splits), None)}
+    try:
+        return create_import(settings, raw, name, layout, params)
+    except QueueFull as full:
+        raise UploadError(429, str(full)) from None
+
+
+def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpload]) -> StoredScene | ImportRow:
     """Stage an upload with ``stage(root) -> StagedUpload`` (``root``: an empty scene directory in a fresh
     staging directory, which ``stage`` may also write beside), validate it in a validation process, and move
     the scene into ``scenes_dir``.
 
-    Returns the new scene (its row added to the job store); raises UploadError leaving nothing stored.
+    Returns the new scene (its row added to the job store), or the queued import of a capture whose import
+    takes long; raises UploadError leaving nothing stored.
     """
     settings.make_dirs()
     staging = Path(tempfile.mkdtemp(prefix="upload-", dir=settings.staging_dir))
@@ -130,14 +128,44 @@ def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpl
     try:
         upload = stage(root)
         validated = validate_in_child(upload, settings)
+        if validated.queued_layout is not None:
+            return _queue_import(settings, staging / RAW_DIR, name, validated.queued_layout, upload.splits)
         return _commit(settings, upload.root, name, validated.summary, validated.size_bytes)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def store_zip(settings: Settings, name: str, source: BinaryIO, splits: PaperSplitRule | None = None) -> StoredScene:
+def capture_kind(source: BinaryIO) -> tuple[str, str] | None:
+    """``(layout, suffix)`` of a capture sent as one file (a ROS bag) from its first bytes, None for anything
+    else (:func:`voxnerf.data.importers.capture_file_layout`); the stream is left at its start."""
+    source.seek(0)
+    head = source.read(CAPTURE_MAGIC_BYTES)
+    source.seek(0)
+    return capture_file_layout(head)
+
+
+def store_capture(settings: Settings, name: str, source: BinaryIO, kind: tuple[str, str],
+                  splits: PaperSplitRule | None = None) -> ImportRow:
+    """Queue the import of a capture sent as one file of ``kind`` (:func:`capture_kind`): copied as it is (at
+    most ``max_upload_bytes``) and moved into the imports directory; nothing of it is parsed here."""
+    layout, suffix = kind
+    settings.make_dirs()
+    staging = Path(tempfile.mkdtemp(prefix="upload-", dir=settings.staging_dir))
+    try:
+        capture = staging / f"capture{suffix}"
+        source.seek(0)
+        copy_limited(source, capture, settings.max_upload_bytes, "file")
+        return _queue_import(settings, capture, name, layout, splits)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def store_zip(
+    settings: Settings, name: str, source: BinaryIO, splits: PaperSplitRule | None = None
+) -> StoredScene | ImportRow:
     """Store the scene in a zip archive (a binary file): a scene directory, or a COLMAP model or ScanNet export
-    to import (with ``splits``, the paper's splits; see :func:`split_rule`)."""
+    to import (with ``splits``, the paper's splits; see :func:`split_rule`), or a ROS 2 bag folder whose import
+    is queued."""
 
     def stage(root: Path) -> StagedUpload:
         archive = root.parent / ARCHIVE_NAME

@@ -12,11 +12,12 @@ Order of checks, each refusing with :class:`~app.uploads.rules.UploadError` (an 
    declared over ``max_transforms_bytes``, a total declared size over ``max_scene_bytes``, and compression
    ratios typical of zip bombs;
 3. extraction into the staging directory, never writing more bytes than declared;
-4. every file whose first bytes (or, failing that, its suffix) say PNG, JPEG or ``.npy``, whatever its name:
+4. every file whose first bytes (or, failing that, its suffix) say PNG, JPEG, ``.npy`` or EXR, whatever its name:
    the width x height its header declares, before any pixel is decoded, against ``max_image_pixels``, and
    their sum over the scene against ``max_scene_pixels``;
-   an archive without ``transforms.json`` holding a COLMAP model (``sparse/0/cameras.bin|txt``) or a ScanNet
-   export (``color/ pose/ intrinsic/``) is extracted beside the staging scene and written into it by the
+   an archive without ``transforms.json`` holding a COLMAP model (``sparse/0/cameras.bin|txt``), a ScanNet
+   export (``color/ pose/ intrinsic/``), a Record3D EXR + JPG export (``metadata.json rgb/ depth/``) or a
+   Polycam raw export (``keyframes/``) is extracted beside the staging scene and written into it by the
    matching importer (:mod:`voxnerf.data.importers`), optionally with the paper's splits;
 5. the size of ``transforms.json`` on disk against ``max_transforms_bytes``, then
    :func:`voxnerf.data.scene.inspect_scene`: the engine's own validation of transforms.json, images (sizes must
@@ -39,6 +40,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from app.core.scene_store import tree_size
 from app.core.settings import Settings
 from app.uploads.rules import (
     IMPORT_SUFFIXES,
@@ -53,8 +55,8 @@ from app.uploads.rules import (
     ignored,
     safe_relpath,
 )
-from voxnerf.data.image_io import PNG_SIGNATURE, image_size
-from voxnerf.data.importers import PaperSplitRule, detect_layout, run_import
+from voxnerf.data.image_io import EXR_MAGIC, PNG_SIGNATURE, image_size
+from voxnerf.data.importers import QUEUED_LAYOUTS, PaperSplitRule, detect_layout, run_import
 from voxnerf.errors import SceneError
 from voxnerf.files import TRANSFORMS
 
@@ -93,10 +95,13 @@ def validate_upload(upload: StagedUpload, settings: Settings) -> ValidatedScene:
     imported = None
     if upload.archive is not None:
         imported = _unpack(upload.archive, upload.root, settings, upload.splits)
+    if isinstance(imported, str):  # a layout imported as queued work: the worker checks the scene it writes
+        raw = upload.root.parent / RAW_DIR
+        return ValidatedScene(tree_size(raw), {}, queued_layout=imported)
     summary = _validate_staged(upload.root, settings)
     if imported is not None:
         summary["imported"] = imported
-    return ValidatedScene(_tree_size(upload.root), summary)
+    return ValidatedScene(tree_size(upload.root), summary)
 
 
 # ------------------------------------------------------------------------------------------------ the archive
@@ -295,10 +300,6 @@ def _extract_zip(path: Path, root: Path, settings: Settings) -> str | None:
     return layout
 
 
-def _tree_size(root: Path) -> int:
-    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
-
-
 def _import_layout(layout: str, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict:
     """Write the extracted ``layout`` (in RAW_DIR beside ``root``) into ``root`` with its importer.
 
@@ -319,16 +320,20 @@ def _import_layout(layout: str, root: Path, settings: Settings, rule: PaperSplit
     return imported
 
 
-def _unpack(archive: Path, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict | None:
+def _unpack(archive: Path, root: Path, settings: Settings, rule: PaperSplitRule | None) -> dict | str | None:
     """Extract the zip into ``root``, or import it there when it holds a COLMAP model or a ScanNet export
-    (then the importer's summary, else None)."""
+    (then the importer's summary, else None); a layout imported as queued work (``QUEUED_LAYOUTS``, a ROS 2 bag
+    folder) is only extracted beside ``root`` (RAW_DIR) and its name returned."""
     layout = _extract_zip(archive, root, settings)
     if layout is None:
         if rule is not None:
             raise UploadError(
-                422, "splits: only a COLMAP or ScanNet upload takes splits; a transforms.json scene names its own"
+                422, "splits: only an upload to import takes splits; a transforms.json scene names its own"
             )
         return None
+    if layout in QUEUED_LAYOUTS:
+        check_declared_sizes(root.parent / RAW_DIR, settings)
+        return layout
     return _import_layout(layout, root, settings, rule)
 
 
@@ -351,9 +356,21 @@ def _npy_size(path: Path) -> tuple[int, int]:
     return math.prod(shape[1:]), shape[0]
 
 
+def _exr_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of an EXR's data window (a phone app's depth map), from its header alone."""
+    import OpenEXR
+
+    try:
+        window = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
+        (x0, y0), (x1, y1) = (int(v) for v in window[0]), (int(v) for v in window[1])
+    except (RuntimeError, OSError, KeyError, TypeError, ValueError) as err:
+        raise SceneError(path, f"cannot read EXR header: {err}") from None
+    return max(x1 - x0 + 1, 0), max(y1 - y0 + 1, 0)
+
+
 def _pixel_kind(path: Path) -> str | None:
-    """``"image"`` (PNG, JPEG) or ``"npy"`` by the file's first bytes, else by its suffix (a ``.png`` that is
-    no image is then refused by the header reader); None for any other file."""
+    """``"image"`` (PNG, JPEG), ``"npy"`` or ``"exr"`` by the file's first bytes, else by its suffix (a ``.png``
+    that is no image is then refused by the header reader); None for any other file."""
     with open(path, "rb") as f:
         head = f.read(len(PNG_SIGNATURE))
     suffix = path.suffix.lower()
@@ -361,6 +378,8 @@ def _pixel_kind(path: Path) -> str | None:
         return "image"
     if head.startswith(NPY_MAGIC) or suffix == ".npy":
         return "npy"
+    if head.startswith(EXR_MAGIC) or suffix == ".exr":
+        return "exr"
     return None
 
 
@@ -371,7 +390,7 @@ def _declared_pixels(path: Path, rel: Path, settings: Settings) -> int:
     if kind is None:
         return 0
     try:
-        width, height = _npy_size(path) if kind == "npy" else image_size(path)
+        width, height = {"npy": _npy_size, "exr": _exr_size}.get(kind, image_size)(path)
     except SceneError as err:
         raise UploadError(422, f"{rel}: {err.message}") from None
     if width * height > settings.max_image_pixels:
@@ -415,7 +434,8 @@ def _validate_staged(root: Path, settings: Settings) -> dict:
         raise UploadError(
             422,
             f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder), nor a COLMAP "
-            "model (sparse/0/cameras.bin|txt) or a ScanNet export (color/, pose/, intrinsic/) to import",
+            "model (sparse/0/cameras.bin|txt), a ScanNet export (color/, pose/, intrinsic/), a Record3D export "
+            "(metadata.json, rgb/, depth/) or a Polycam export (keyframes/) to import",
         )
     check_transforms_size(PurePosixPath(TRANSFORMS), transforms.stat().st_size, settings)
     check_declared_sizes(root, settings)

@@ -21,7 +21,8 @@ from PIL import Image
 
 from voxnerf.cli import main
 from voxnerf.data.importers import import_images
-from voxnerf.data.importers.sfm import REASONS, StagedPhotos, stage_photo
+from voxnerf.data.importers.sfm import EXHAUSTIVE_MAX_IMAGES, MATCHING_CHOICES, REASONS, StagedPhotos, stage_photo
+from voxnerf.data.importers.video import DEFAULT_FRAMES
 from voxnerf.errors import SceneError
 
 KITCHEN_INDICES = range(0, 250, 10)
@@ -263,3 +264,21 @@ def test_too_few_registered_for_the_paper_splits_is_a_one_line_error(kitchen_pho
     assert err.startswith(f"voxnerf: error: {kitchen_photos}: --splits paper: 25 frames are too few")
     assert "\n" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_cli_states_the_importers_defaults(capsys):
+    """The parser does not load the importers, so it repeats their defaults in its help: they must agree."""
+    from voxnerf.cli import build_parser
+
+    parser = build_parser()
+    with pytest.raises(SystemExit):
+        parser.parse_args(["import", "images", "--help"])
+    assert f"exhaustive up to {EXHAUSTIVE_MAX_IMAGES} photos" in " ".join(capsys.readouterr().out.split())
+    with pytest.raises(SystemExit):
+        parser.parse_args(["import", "video", "--help"])
+    assert f"(default {DEFAULT_FRAMES})" in " ".join(capsys.readouterr().out.split())
+    images = parser.parse_args(["import", "images", "d", "--out", "o"])
+    assert images.matching == "auto" and "auto" in MATCHING_CHOICES
+    for choice in MATCHING_CHOICES:
+        assert parser.parse_args(["import", "images", "d", "--out", "o", "--matching", choice]).matching == choice
+    assert not hasattr(parser.parse_args(["import", "video", "f", "--out", "o"]), "frames")

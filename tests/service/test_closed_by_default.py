@@ -152,7 +152,7 @@ def test_a_remote_client_is_refused_without_a_token(tmp_path, overrides, allowed
 
     async def get(client_address: str) -> httpx.Response:
         transport = httpx.ASGITransport(app=app, client=(client_address, 40000))
-        async with httpx.AsyncClient(transport=transport, base_url="http://voxnerf.example") as client:
+        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1:8000") as client:
             return await client.get("/openapi.json")
 
     remote = asyncio.run(get("203.0.113.9"))

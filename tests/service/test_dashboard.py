@@ -96,3 +96,21 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
     page.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 10_000
     print(f"dashboard screenshot: {shot}")
+
+
+def test_a_bag_uploaded_from_the_dashboard_is_imported_and_its_scene_offered_for_training(service, page, tmp_path):
+    from rosbag_fixtures import REDKITCHEN, BagSpec, make_frames, write_bag
+
+    if not (REDKITCHEN / "transforms.json").is_file():
+        pytest.skip("shared redkitchen data not present")
+    bag = write_bag(tmp_path / "robot.bag", BagSpec(make_frames(step=15, n=6), scale=4), "ros1")
+    page.goto(service.base_url + "/")
+    page.fill("#token", TOKEN)
+    page.click("#token-form button")
+    page.set_input_files("#upload-file", str(bag))
+    page.click("#upload-form button")
+    page.wait_for_selector("text=queued for import")
+    done = page.wait_for_selector('#imports tr[data-state="succeeded"]', timeout=240_000)
+    assert "robot (rosbag)" in done.inner_text() and "frames" in done.inner_text()
+    page.wait_for_function("() => [...document.querySelectorAll('#job-scene option')]"
+                           ".some((o) => o.textContent.startsWith('robot'))", timeout=10_000)

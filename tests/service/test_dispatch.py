@@ -1,6 +1,7 @@
 """Publishing (app/core/dispatch.py) on the embedded filesystem broker: train and render messages land in their
 queues under their task names, a render expires, stale jobs are published again before they are marked, and the
-sweep re-sends the message of a queued training or output job no worker took."""
+sweep re-sends the message of a queued training or output job no worker took, but not one the broker (the
+filesystem queue, a real redis-server) still holds."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import json
 import time
 
 import pytest
+from service_fixtures import start_redis
 
 from app.core import jobstore, outputs
 from app.core.celery_app import OUTPUTS_QUEUE, RENDER_QUEUE, RENDER_TASK, TRAIN_QUEUE, TRAIN_TASK, create_celery
@@ -127,3 +129,57 @@ def test_a_queued_row_whose_message_was_lost_is_sent_again_by_the_sweep(settings
     assert len(_messages(settings, queue)) == 1
     with session_scope(settings) as session:
         assert session.get(table, row_id).state == "queued"
+
+
+def _lose_time(settings: Settings, table: type, row_id: str) -> None:
+    """``resend_queued_after_s`` pass with the row still queued."""
+    with session_scope(settings) as session:
+        session.get(table, row_id).heartbeat_at = time.time() - settings.resend_queued_after_s - 1
+
+
+@pytest.mark.parametrize("kind", ["train", "output"])
+def test_a_queued_row_whose_message_waits_its_turn_gets_no_copy(settings, kind):
+    """Issue #42: a row queued behind a long job gathered a copy of its message every resend_queued_after_s (one
+    every 300 s behind a 24 h job), and the filesystem broker listed them all at every poll. Its one message
+    waits in the queue: the sweep sees it there and sends nothing; once it is lost the sweep sends one."""
+    celery = create_celery(settings)
+    row_id, table, queue = _queued_without_a_send(settings, kind)
+    send(celery, jobstore.JOBS if kind == "train" else outputs.OUTPUTS, row_id)
+    for _ in range(3):
+        _lose_time(settings, table, row_id)
+        sweep_jobs(settings, celery)
+        assert [m["args"] for m in _messages(settings, queue)] == [[row_id]]
+    (message,) = (settings.broker_dir / "queue").glob(f"*.{queue}.msg")
+    message.unlink()  # now it is lost
+    _lose_time(settings, table, row_id)
+    sweep_jobs(settings, celery)
+    assert [m["args"] for m in _messages(settings, queue)] == [[row_id]]
+
+
+@pytest.fixture
+def redis_settings(tmp_path):
+    server = start_redis(tmp_path / "redis")
+    s = Settings(_env_file=None, data_dir=tmp_path / "data", broker_url=server.url)
+    s.make_dirs()
+    yield s
+    server.stop()
+
+
+def test_on_redis_a_waiting_message_gets_no_copy_and_a_lost_one_is_sent_again(redis_settings):
+    import redis
+
+    settings = redis_settings
+    celery = create_celery(settings)
+    row_id, table, queue = _queued_without_a_send(settings, "output")
+    send(celery, outputs.OUTPUTS, row_id)
+    server = redis.Redis.from_url(settings.broker_url)
+    assert server.llen(queue) == 1
+    for _ in range(3):
+        _lose_time(settings, table, row_id)
+        sweep_jobs(settings, celery)
+        assert server.llen(queue) == 1
+    server.delete(queue)  # Redis lost it (the last second before a crash)
+    _lose_time(settings, table, row_id)
+    sweep_jobs(settings, celery)
+    (message,) = server.lrange(queue, 0, -1)
+    assert json.loads(message)["headers"]["argsrepr"] == repr([row_id])

@@ -14,7 +14,7 @@ from synthetic_fixtures import make_micro_scene, micro_config
 
 from app.core import jobstore, outputs
 from app.core.db import session_scope
-from app.core.models import JobRow
+from app.core.models import JobRow, SceneRow
 from app.core.settings import Settings
 from app.main import create_app
 from voxnerf.config import TrainConfig
@@ -33,7 +33,7 @@ SCENE = "c" * 32
 @pytest.fixture
 def api(tmp_path):
     settings = Settings(_env_file=None, data_dir=tmp_path / "data", device="cpu", api_token=TOKEN,
-                        max_queued_jobs=2, sweep_interval_s=3600)
+                        max_queued_jobs=2, max_queued_outputs=2, max_output_pixels=20_000, sweep_interval_s=3600)
     with TestClient(create_app(settings), headers={"Authorization": f"Bearer {TOKEN}"}) as client:
         jobstore.add_scene(settings, SCENE, "room", {"frames": 1}, 10)
         yield client, settings
@@ -60,6 +60,89 @@ def test_queued_jobs_beyond_the_limit_are_answered_429(api):
     assert len(jobstore.JOBS.newest(settings)) == 2  # the refused job left no row
     _set_state(settings, first.json()["id"], "running")  # one started: room for one more
     assert _submit(client).status_code == 202
+
+
+def _trained_job(client: TestClient, settings: Settings, **options) -> str:
+    job_id = client.post(f"/scenes/{SCENE}/jobs", json={"max_iters": 5, **options}).json()["id"]
+    _set_state(settings, job_id, "succeeded")
+    return job_id
+
+
+def _video(client: TestClient, job_id: str, **fields):
+    return client.post(f"/jobs/{job_id}/videos", json={"path": "orbit", "frames": 4, **fields})
+
+
+def test_queued_outputs_beyond_their_own_limit_are_answered_429(api):
+    """Issue #42: ten video requests were all accepted with VOXNERF_MAX_QUEUED_JOBS=3 (outputs had no limit)."""
+    client, settings = api
+    job_id = _trained_job(client, settings)
+    first, second = _video(client, job_id), client.post(f"/jobs/{job_id}/exports", json={"kind": "mesh"})
+    assert first.status_code == second.status_code == 202, second.text
+    refused = _video(client, job_id)
+    assert refused.status_code == 429
+    assert "limit is 2, VOXNERF_MAX_QUEUED_OUTPUTS" in refused.json()["detail"]
+    assert len(outputs.OUTPUTS.newest(settings)) == 2  # the refused output left no row
+    assert _submit(client).status_code == 202  # training jobs have their own limit
+    outputs.OUTPUTS.request_cancel(settings, first.json()["id"])  # one gone from the queue: room for one more
+    assert _video(client, job_id).status_code == 202
+
+
+def test_a_video_beyond_the_cost_cap_is_refused_naming_the_limit(api):
+    client, settings = api
+    job_id = _trained_job(client, settings)
+    assert _video(client, job_id, frames=100, width=16, height=12).status_code == 202  # 19 200 pixels in all
+    refused = _video(client, job_id, frames=100, width=16, height=14)  # 22 400
+    assert refused.status_code == 422
+    detail = refused.json()["detail"]
+    assert "22400 pixels" in detail and "limit of 20000" in detail and "VOXNERF_MAX_OUTPUT_PIXELS" in detail
+    assert len(outputs.OUTPUTS.newest(settings)) == 1
+
+
+def test_the_cost_of_a_video_without_a_size_is_counted_at_the_jobs_training_size(api):
+    client, settings = api
+    with session_scope(settings) as session:
+        session.get(SceneRow, SCENE).summary = {"frames": 1, "image_size": [64, 48]}
+    halved = _trained_job(client, settings, downscale=2)  # 32 x 24 = 768 pixels a frame
+    assert _video(client, halved, frames=26).status_code == 202  # 19 968
+    assert _video(client, halved, frames=27).status_code == 422  # 20 736
+    full = _trained_job(client, settings)  # 64 x 48 = 3072 a frame
+    assert _video(client, full, frames=7).status_code == 422  # 21 504
+
+
+def _export(client: TestClient, job_id: str, **fields):
+    return client.post(f"/jobs/{job_id}/exports", json={"kind": "pointcloud", **fields})
+
+
+def test_an_export_beyond_the_cost_cap_is_refused_naming_the_limit(api):
+    """An export renders five views per training camera (voxnerf.inference.export_plan), each at most 320 pixels
+    a side: 64 x 48 here (3072 pixels), under the limit of 20 000 for one camera (5 views), over it for two."""
+    client, settings = api
+    with session_scope(settings) as session:
+        session.get(SceneRow, SCENE).summary = {"frames": 3, "image_size": [64, 48], "splits": {"train": 2}}
+    job_id = _trained_job(client, settings)
+    refused = _export(client, job_id)  # 10 views: 30 720 pixels
+    assert refused.status_code == 422
+    assert refused.json()["detail"] == ("10 views of 64x48 are 30720 pixels, beyond the limit of 20000 per output "
+                                        "(VOXNERF_MAX_OUTPUT_PIXELS): a lower max_views")
+    assert _export(client, job_id, max_views=6).status_code == 202  # 18 432
+    with session_scope(settings) as session:
+        session.get(SceneRow, SCENE).summary = {"frames": 3, "image_size": [1280, 960], "splits": {"train": 1}}
+    detail = _export(client, job_id, kind="mesh").json()["detail"]  # 5 views scaled to 320 x 240
+    assert detail.startswith("5 views of 320x240 are 384000 pixels")
+
+
+def test_the_cost_of_an_export_of_mixed_sizes_counts_every_view_at_the_largest_size(api):
+    """Two training cameras of 32x24 and 64x48: 10 views counted at 64x48 (30 720 pixels, over the limit), not at
+    the first training image's 32x24 (7 680)."""
+    client, settings = api
+    with session_scope(settings) as session:
+        session.get(SceneRow, SCENE).summary = {"frames": 3, "image_size": [32, 24], "splits": {"train": 2},
+                                                "image_sizes": {"32x24": 2, "64x48": 1}}
+    job_id = _trained_job(client, settings)
+    refused = _export(client, job_id)
+    assert refused.status_code == 422
+    assert refused.json()["detail"].startswith("10 views of up to 64x48 are 30720 pixels")
+    assert _export(client, job_id, max_views=6).status_code == 202  # 18 432
 
 
 # ------------------------------------------------------------------------------------------------ DELETE

@@ -1,6 +1,7 @@
-"""Stopping stops everything (issue #22, item 7): a real ``voxnerf serve`` with its three embedded workers,
-sent SIGTERM (``kill``, a service manager) or SIGINT (Ctrl-C), exits within a bound and leaves no process of
-its tree behind. The tree (workers and their pool processes) is read from /proc before the signal."""
+"""Stopping stops everything (issue #22, item 7; issue #42, item 7): a real ``voxnerf serve`` with its three
+embedded workers, sent SIGTERM (``kill``, a service manager) or SIGINT (Ctrl-C), exits within a bound and leaves no
+process of its tree behind; sent SIGKILL, its workers notice and stop themselves. The tree (workers and their pool
+processes) is read from /proc before the signal."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -58,8 +60,10 @@ def _all_workers_ready(base_url: str) -> bool:
     return all(body.get("workers", {}).get(queue) for queue in QUEUES)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-def test_a_stop_signal_stops_serve_and_every_worker(tmp_path, sig):
+@contextlib.contextmanager
+def _serving(tmp_path: Path) -> Iterator[tuple[subprocess.Popen, set[int], Path]]:
+    """A real ``voxnerf serve`` with its three workers ready: ``(process, its tree read from /proc, its log)``;
+    every process of the tree is SIGKILLed on the way out (only what the test started)."""
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("VOXNERF_")}
     env.update(
@@ -81,15 +85,34 @@ def test_a_stop_signal_stops_serve_and_every_worker(tmp_path, sig):
             raise AssertionError(f"{err}; voxnerf serve's log ends:\n{log_tail}") from err
         tree = _descendants(serve.pid)
         assert len(tree) >= len(QUEUES), f"expected the workers below voxnerf serve, found {sorted(tree)}"
+        yield serve, tree, log_path
+    finally:
+        for pid in [serve.pid, *sorted(tree)]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            serve.wait(10)
 
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_stop_signal_stops_serve_and_every_worker(tmp_path, sig):
+    with _serving(tmp_path) as (serve, tree, log_path):
         serve.send_signal(sig)
         serve.wait(STOP_GRACE_S + 60)  # a bound: the workers' grace, then they are killed
         wait_for(lambda: not any(_running(pid) for pid in tree), 10, "the reparented pool processes to end")
         log_text = log_path.read_text(errors="replace")
         assert f"received {sig.name}: stopping the workers" in log_text, log_text[-3000:]
-    finally:
-        for pid in [serve.pid, *sorted(tree)]:  # only what this test started
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            serve.wait(10)
+
+
+def test_a_sigkilled_serve_takes_every_worker_with_it(tmp_path):
+    """SIGKILL leaves ``voxnerf serve`` no chance to stop its workers: each one, told by the kernel
+    (``PR_SET_PDEATHSIG``) or its watchdog, stops itself: within the grace, with no process of the tree left."""
+    with _serving(tmp_path) as (serve, tree, log_path):
+        serve.kill()
+        serve.wait(10)
+        try:
+            wait_for(lambda: not any(_running(pid) for pid in tree), STOP_GRACE_S + 30, "the orphaned workers to end")
+        except AssertionError as err:
+            left = sorted(pid for pid in tree if _running(pid))
+            raise AssertionError(f"{err}: {len(left)} of {len(tree)} processes still run: {left}") from err
+        assert "parent process" in log_path.read_text(errors="replace"), "no worker said why it stopped"

@@ -169,6 +169,7 @@ def test_upload_as_files_and_top_level_folder_zip_are_both_accepted(api, client,
     meta = json.loads((small_room / "transforms.json").read_text())
     assert scene["summary"]["frames"] == len(meta["frames"])
     assert scene["summary"]["image_size"] == [64, 48]
+    assert scene["summary"]["image_sizes"] == {"64x48": len(meta["frames"])}
     assert scene["summary"]["prior"]["kind"] == "points"
     assert scene["summary"]["prior"]["sigma"] == pytest.approx(0.02)
     assert (api.data_dir / "scenes" / scene["id"] / "transforms.json").is_file()

@@ -45,6 +45,8 @@ def _documented_default(cell: str) -> Any:
 def _same(documented: Any, default: Any) -> bool:
     if isinstance(default, Path):
         return documented is not None and Path(documented) == default
+    if isinstance(default, list):  # a comma-separated list: "unset" is the empty one
+        return (documented or []) == default
     if isinstance(default, bool) or not isinstance(default, int | float):
         return documented == default
     return isinstance(documented, float) and documented == float(default)

@@ -162,7 +162,7 @@ def test_bad_splits_field_and_stray_text_files(api, client, tmp_path, small_room
     _refused(api, client, zip_scene(small_room), 422, "a transforms.json scene names its own", splits="paper")
     before = _stored(api)
     parts = client.post("/scenes", files=[("files", ("transforms.json", b"{}"))], data={"splits": "paper"})
-    assert parts.status_code == 422 and "only a zip" in parts.json()["detail"] and _stored(api) == before
+    assert parts.status_code == 422 and "only an upload to import" in parts.json()["detail"] and _stored(api) == before
     buffer = io.BytesIO(zip_scene(small_room))
     with zipfile.ZipFile(buffer, "a") as archive:
         archive.writestr("room/notes.txt", "not part of a scene")

@@ -41,9 +41,47 @@ def test_a_checkpoint_holds_what_a_resumed_run_and_the_renderer_read(tmp_path):
                            "depth_unit_scale", "scene_dir"]
     assert saved["iteration"] == 12 and saved["train_seconds"] >= 5.0
     assert saved["history"] == [{"elapsed_s": 1.0, "iteration": 3, "psnr": {"test": 20.0}}]
-    assert saved["default_intrinsics"] == {"fl_x": 1.0, "index": 4} and saved["scene_dir"].endswith("scene")
+    assert saved["default_intrinsics"] == {"fl_x": 1.0, "index": 4} and saved["scene_dir"] == "scene"
     assert load_previous(tmp_path / "checkpoint.pt", resume=False) is None
     assert load_previous(tmp_path / "missing.pt", resume=True) is None
+
+
+def test_a_checkpoint_names_its_scene_relative_to_its_run_and_no_server_path(tmp_path):
+    """Issue #42, item 8: the scene as the service lays it out (``runs/<id>``, ``scenes/<id>``) is recorded as
+    ``../../scenes/<id>``; the file holds no absolute path; the renderer finds the scene from the run, also
+    once the whole data directory has moved."""
+    from tiny_run import write_tiny_run
+
+    from voxnerf.inference.render import load_model
+
+    data = tmp_path / "data"
+    run, scene = data / "runs" / "a1", data / "scenes" / "b2"
+    scene.mkdir(parents=True)
+    write_tiny_run(run)
+    real = torch.load(run / "checkpoint.pt", weights_only=True)
+    writer = _writer(tmp_path)
+    writer.path, writer.scene.root = run / "checkpoint.pt", scene
+    writer(7)
+    assert load_previous(run / "checkpoint.pt", resume=True)["scene_dir"] == "../../scenes/b2"
+    assert str(tmp_path).encode() not in (run / "checkpoint.pt").read_bytes()
+
+    state = torch.load(run / "checkpoint.pt", weights_only=True)  # the tiny run's weights, this scene_dir
+    torch.save({**real, "scene_dir": state["scene_dir"]}, run / "checkpoint.pt")
+    assert load_model(run, "cpu").scene_dir == str(scene.resolve())
+    moved = tmp_path / "elsewhere"
+    data.rename(moved)
+    assert load_model(moved / "runs" / "a1", "cpu").scene_dir == str((moved / "scenes" / "b2").resolve())
+
+
+def test_a_checkpoint_from_before_keeps_its_absolute_scene_path(tmp_path):
+    from tiny_run import write_tiny_run
+
+    from voxnerf.inference.render import load_model
+
+    run = write_tiny_run(tmp_path / "run")
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    torch.save({**state, "scene_dir": "/tmp/oldckpt/scene"}, run / "checkpoint.pt")  # as tests/fixtures/run_v0_1
+    assert load_model(run, "cpu").scene_dir == "/tmp/oldckpt/scene"
 
 
 def test_non_finite_weights_are_never_saved(tmp_path):

@@ -9,7 +9,14 @@ import pytest
 import torch
 
 from voxnerf.config import TrainConfig
-from voxnerf.training.pixels import TrainingPixels, per_pixel, rays_in_chunks, sample_batch, training_pixels
+from voxnerf.training.pixels import (
+    TrainingPixels,
+    per_pixel,
+    rays_in_chunks,
+    sample_batch,
+    sensor_ray_distance,
+    training_pixels,
+)
 
 
 def _pixels(n: int = 3, h: int = 6, w: int = 7) -> TrainingPixels:
@@ -83,10 +90,69 @@ def test_rays_in_chunks_are_the_rays_of_the_pixels_asked_for(chunk):
     assert not list(rays_in_chunks(pixels, torch.zeros(0, dtype=torch.int64), chunk))
 
 
-def test_training_images_of_different_sizes_are_refused():
-    scene = SimpleNamespace(train_indices=[0, 1], images=[np.zeros((4, 5, 3)), np.zeros((5, 4, 3))])
-    with pytest.raises(ValueError, match="differ in size"):
-        training_pixels(scene, None, torch.device("cpu"))
+def _mixed_scene():
+    """A landscape 4x5 and a portrait 6x3 training image (values 1 and 2), pinhole cameras at the origin."""
+    from voxnerf.cameras.rules import Intrinsics
+    from voxnerf.data.scene import SceneTransform
+
+    images = [np.full((4, 5, 3), 1, np.uint8), np.full((6, 3, 3), 2, np.uint8)]
+    cameras = [Intrinsics(4.0, 4.0, 2.5, 2.0, 5, 4), Intrinsics(4.0, 4.0, 1.5, 3.0, 3, 6)]
+    frames = [SimpleNamespace(c2w=np.eye(4)) for _ in images]
+    scene = SimpleNamespace(train_indices=[0, 1], images=images, frames=frames, intrinsics=lambda i: cameras[i])
+    return scene, SceneTransform((0.0, 0.0, 0.0), 1.0)
+
+
+def test_training_images_of_different_sizes_share_the_largest_grid():
+    scene, transform = _mixed_scene()
+    pixels = training_pixels(scene, transform, torch.device("cpu"))
+    assert pixels.shape == (2, 6, 5) and pixels.sizes.tolist() == [[4, 5], [6, 3]]
+    assert pixels.pixel_count == 20 + 18 and pixels.smallest_side == (4, 3)
+    assert int(pixels.images[0, 4:].max()) == 0 and int(pixels.images[1, :, 3:].max()) == 0  # padding
+    assert pixels.inside().sum() == 38 and len(pixels.real_pixels()) == 38
+    torch.testing.assert_close(pixels.mean_colour(), torch.full((3,), (20 * 1 + 18 * 2) / 38 / 255))
+    same = training_pixels(SimpleNamespace(**{**vars(scene), "images": [scene.images[0]] * 2,
+                                             "intrinsics": lambda i: scene.intrinsics(0)}), transform, "cpu")
+    assert same.sizes is None and same.inside() is None and same.pixel_count == 40
+
+
+def test_batches_of_mixed_sizes_cover_every_image_pixel_uniformly_and_never_the_padding():
+    scene, transform = _mixed_scene()
+    pixels = training_pixels(scene, transform, torch.device("cpu"))
+    cfg = TrainConfig(max_iters=1, rays_per_batch=38_000, smooth_patches=50, patch_size=3)
+    img, py, px = sample_batch(pixels, cfg, True, torch.Generator().manual_seed(3))
+    assert bool((pixels.images[img, py, px] > 0).all())  # every ray hits an image pixel
+    counts = torch.zeros(2, 6, 5).index_put_((img[:38_000], py[:38_000], px[:38_000]), torch.ones(38_000),
+                                             accumulate=True)
+    assert int((counts > 0).sum()) == 38 and float(counts[counts > 0].min()) > 800  # ~1000 each
+    for p in range(50):  # whole 3x3 squares inside their own image
+        sl = slice(38_000 + 9 * p, 38_000 + 9 * (p + 1))
+        assert len(set(img[sl].tolist())) == 1
+    flat = pixels.random_pixels(5000, torch.Generator().manual_seed(4))
+    assert bool(pixels.inside().view(-1)[flat].all())
+
+
+def test_per_pixel_caches_of_mixed_sizes_are_nan_on_the_padding():
+    scene, transform = _mixed_scene()
+    pixels = training_pixels(scene, transform, torch.device("cpu"))
+    model = SimpleNamespace(ray_bundle=lambda origins, dirs: SimpleNamespace(origins=origins, dirs=dirs))
+    t, ok = per_pixel(pixels, model, lambda rays, index: (torch.ones(len(index)), torch.ones(len(index)) > 0))
+    inside = pixels.inside()
+    assert torch.equal(ok, inside) and bool((t[inside] == 1).all()) and bool(torch.isnan(t[~inside]).all())
+    z = torch.ones(2, 6, 5)
+    sensor_t = sensor_ray_distance(pixels, z, 1.0)
+    assert bool(torch.isfinite(sensor_t[inside]).all()) and bool(torch.isnan(sensor_t[~inside]).all())
+    assert pixels.fraction(torch.isfinite(sensor_t)) == 1.0
+
+
+def test_a_point_seen_only_past_a_smaller_image_edge_is_not_seen():
+    """seen_by bounds each view by its own size: the padding of a portrait view does not see."""
+    from voxnerf.training.prior_rays import seen_by
+
+    intr = torch.tensor([[4.0, 4.0, 1.5, 3.0]])
+    depth_t = torch.full((1, 6, 5), float("nan"))
+    point = torch.tensor([[3.5 / 4.0, 0.0, -1.0]])  # projects to pixel (row 2, column 4): past a 3-wide image
+    assert bool(seen_by(point, torch.eye(4)[None], intr, depth_t, 0.1)[0])  # as if 5 wide: seen
+    assert not bool(seen_by(point, torch.eye(4)[None], intr, depth_t, 0.1, sizes=torch.tensor([[6, 3]]))[0])
 
 
 def test_lens_rays_from_the_direction_table_equal_the_inverse_model():
@@ -126,3 +192,27 @@ def test_a_direction_table_past_its_memory_bound_is_not_built(monkeypatch):
     lens = LensBatch.of([Lens("OPENCV", k1=-0.1)] * 2)
     assert pixels.direction_table(intr, lens, 12, 16) is None
     assert pixels.direction_table(intr[:1], LensBatch.of([Lens("OPENCV", k1=-0.1)]), 12, 16) is not None
+
+
+def test_direction_tables_of_mixed_sizes_equal_the_inverse_model_inside_each_image():
+    """Two frames share intrinsics and lens but not their size: two tables, each filled up to its own size."""
+    from voxnerf.cameras.lens import LensBatch
+    from voxnerf.cameras.rules import Lens
+    from voxnerf.training.pixels import direction_table
+
+    intr = torch.tensor([[14.0, 15.0, 8.2, 5.9]] * 3)
+    lens = LensBatch.of([Lens("OPENCV", k1=-0.2, k2=0.03, p1=0.002)] * 3)
+    sizes = torch.tensor([[12, 16], [11, 16], [12, 16]])
+    table = direction_table(intr, lens, 12, 16, sizes)
+    assert table.dirs.shape == (2, 12, 16, 3) and table.camera.tolist() == [1, 0, 1]
+    assert bool((table.dirs[0, 11] == 0).all())  # the 11-row camera's padding row
+    poses = torch.eye(4).repeat(3, 1, 1)
+    images = torch.zeros(3, 12, 16, 3, dtype=torch.uint8)
+    g = torch.Generator().manual_seed(2)
+    img = torch.randint(0, 3, (400,), generator=g)
+    py = (torch.rand(400, generator=g) * sizes[img, 0]).long()
+    px = torch.randint(0, 16, (400,), generator=g)
+    looked_up = TrainingPixels(images, poses, intr, lens, directions=table, sizes=sizes).rays(img, py, px)
+    computed = TrainingPixels(images, poses, intr, lens, sizes=sizes).rays(img, py, px)
+    for a, b in zip(looked_up, computed, strict=True):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=0)

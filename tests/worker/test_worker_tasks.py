@@ -114,10 +114,11 @@ def test_train_task_marks_engine_errors_failed(settings, monkeypatch):
 
 
 def _fake_model(monkeypatch, settings: Settings) -> None:
-    trained = SimpleNamespace(default_intrinsics=Intrinsics(8.0, 8.0, 4.0, 3.0, 8, 6), depth_unit_scale=0.001)
+    trained = SimpleNamespace(default_intrinsics=Intrinsics(8.0, 8.0, 4.0, 3.0, 8, 6), depth_unit_scale=0.001,
+                              model=SimpleNamespace(device=SimpleNamespace(type="cpu")))
     monkeypatch.setattr(tasks, "model_cache", lambda: SimpleNamespace(get=lambda run_dir, device: trained))
 
-    def render(model, c2w, intrinsics, outputs, path):
+    def render(model, c2w, intrinsics, outputs, path, should_stop):
         assert path == settings.render_path
         shape = (intrinsics.height, intrinsics.width)
         return {"rgb": np.full((*shape, 3), 0.5, np.float32), "depth": np.ones(shape, np.float32),

@@ -116,13 +116,23 @@ class Scene:
             counts[frame.camera_model] = counts.get(frame.camera_model, 0) + 1
         return counts
 
+    def image_sizes(self) -> dict[str, int]:
+        """Frames per image size, e.g. ``{"1000x657": 12, "1000x659": 11}`` (in the order the sizes first appear)."""
+        counts: dict[str, int] = {}
+        for frame in self.frames:
+            size = f"{frame.intrinsics.width}x{frame.intrinsics.height}"
+            counts[size] = counts.get(size, 0) + 1
+        return counts
+
     def summary(self) -> dict:
-        """JSON-able description (frames, split sizes, image size, prior file and stated sigma, depth)."""
-        first = self.frames[0].intrinsics
+        """JSON-able description (frames, split sizes, image sizes, prior file and stated sigma, depth).
+        ``image_size`` is the first training frame's: the camera a run renders with when asked for no other."""
+        first = self.frames[self.train_indices[0]].intrinsics
         return {
             "frames": len(self.frames),
             "splits": {name: len(idx) for name, idx in self.splits.items()},
             "image_size": [first.width, first.height],
+            "image_sizes": self.image_sizes(),
             "prior": None if self.prior_path is None else {
                 "file": self.prior_path.name, "sigma": self.prior_sigma, "source": self.prior_key,
             },

@@ -75,6 +75,26 @@ def _corrections_note(model: VoxNeRFModel) -> dict[str, str]:
     return note
 
 
+LpipsChoice = tuple[LPIPS | None, str | None]  # the network to score with (None: none) and why there is none
+
+
+def _lpips_of(views: dict[str, list[EvalView]], asked: bool, half_image: bool) -> tuple[LpipsChoice, LpipsChoice]:
+    """The LPIPS network for the views and for their right halves (the half-image protocol), each with the note
+    saying why it is left out: not asked for, weights not installed, or an image smaller than AlexNet's layers
+    accept (31 pixels; a view wide enough may have a half too narrow, as a narrow portrait view does)."""
+    lp = lpips_model() if asked else None
+    note = LPIPS_UNAVAILABLE if asked and lp is None else None
+    every = [v.intrinsics for split_views in views.values() for v in split_views]
+    smallest = min((min(k.width, k.height) for k in every), default=0)
+    if lp is not None and smallest < lp.min_size:  # AlexNet's layers need 31 pixels: skip, say why
+        lp, note = None, f"LPIPS needs images of at least {lp.min_size}x{lp.min_size} pixels"
+    smallest_half = min((min(k.height, k.width - k.width // 2) for k in every), default=0)
+    if half_image and lp is not None and smallest_half < lp.min_size:
+        return (lp, note), (None, f"LPIPS needs images of at least {lp.min_size}x{lp.min_size} pixels, and the "
+                                  f"right half of some view is {smallest_half} pixels across")
+    return (lp, note), (lp, None)
+
+
 def evaluate_views(
     model: VoxNeRFModel,
     views: dict[str, list[EvalView]],
@@ -95,16 +115,12 @@ def evaluate_views(
     appearance ``"colours"``.
     ``half_image`` adds ``"half": {"psnr", "ssim", "lpips"}``, the means of the half-image protocol
     (:func:`voxnerf.inference.metrics.half_image_pairs`: colour affine fitted on each view's left half, scored on its
-    right).
+    right); its LPIPS is left out, with ``"half_lpips_note"`` saying why, when a half is too small for the network
+    (a narrow portrait view).
     Writes ``out_dir/<split>/<name>.png`` when ``out_dir`` is given. Raises EvaluationStopped when
     ``should_stop()`` (asked before each view) returns True.
     """
-    lp = lpips_model() if lpips else None
-    note = LPIPS_UNAVAILABLE if lpips and lp is None else None
-    sides = [min(v.intrinsics.width, v.intrinsics.height) for split_views in views.values() for v in split_views]
-    smallest = min(sides, default=0)
-    if lp is not None and smallest < lp.min_size:  # AlexNet's layers need 31 pixels: skip, say why
-        lp, note = None, f"LPIPS needs images of at least {lp.min_size}x{lp.min_size} pixels"
+    (lp, note), (half_lp, half_note) = _lpips_of(views, lpips, half_image)
     results: dict[str, dict] = {}
     for split, split_views in views.items():
         preds, gts = [], []
@@ -130,7 +146,9 @@ def evaluate_views(
         entry |= _corrections_note(model)
         if half_image:
             halves = [half_image_pairs(p, g) for p, g in zip(preds, gts, strict=True)]
-            entry["half"] = evaluate_images([p for p, _ in halves], [g for _, g in halves], lp)["mean"]
+            entry["half"] = evaluate_images([p for p, _ in halves], [g for _, g in halves], half_lp)["mean"]
+            if half_note is not None:
+                entry["half_lpips_note"] = half_note
         if note is not None:
             entry["lpips_note"] = note
         results[split] = entry

@@ -3,10 +3,11 @@
 Views: every training camera of the scene the run trained on, each also shifted by :data:`OFFSET_OF_EXTENT` of
 the scene box along :data:`OFFSET_DIRECTIONS` (its own right/left/up/down, same orientation). Every view is a
 pinhole (lenses left out) at the trained resolution, scaled down so that its longer side is at most
-:data:`MAX_RENDER_SIDE` pixels, rendered with :func:`voxnerf.inference.render.render` (rgb, z-depth in scene units,
-opacity). Pixels with opacity below ``min_opacity``, or any non-finite output, carry no surface. Colours are the
-rendered rgb (composited over the model's background; a surface a training view saw is opaque, so it shows
-little of it).
+:data:`~voxnerf.inference.export_plan.MAX_RENDER_SIDE` pixels (how many views, at what size:
+:mod:`voxnerf.inference.export_plan`, torch-free), rendered with :func:`voxnerf.inference.render.render` (rgb,
+z-depth in scene units, opacity). Pixels with opacity below ``min_opacity``, or any non-finite output, carry no
+surface. Colours are the rendered rgb (composited over the model's background; a surface a training view saw is
+opaque, so it shows little of it).
 (An orbit looking inward at the cameras' centre was left out: inside a room it crosses the unobserved middle,
 whose floaters put its depth decimetres off; docs/engine.md, Geometry export.)
 
@@ -37,17 +38,16 @@ from voxnerf.cameras.rules import Intrinsics
 from voxnerf.data.image_io import write_atomic
 from voxnerf.data.scene import Scene, load_scene
 from voxnerf.errors import RunError
+from voxnerf.inference.export_plan import OFFSET_DIRECTIONS, render_camera
 from voxnerf.inference.render import TrainedModel, render, scene_as_trained
 from voxnerf.prior.depth_fusion import DepthView, FusionError, fuse_tsdf, point_map
 
 EXPORT_KINDS = ("mesh", "pointcloud")
-MAX_RENDER_SIDE = 320  # pixels: the longer side of every rendered view
 VOXELS_PER_SIDE = 512  # default voxel: the scene box's longest side over this
 MAX_VOXELS_PER_SIDE = 4096  # a finer voxel_size is refused (memory and time grow with its cube)
 TRUNCATION_VOXELS = 4.0
 MIN_VIEWS = 3  # surface (a mesh voxel, a cloud voxel) that fewer views see is left out: floaters are seen by few
 OFFSET_OF_EXTENT = 1 / 40  # offset views: shift of the training camera, as a fraction of the box's longest side
-OFFSET_DIRECTIONS = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))  # along the camera's (right, up)
 OUTPUTS = ("rgb", "depth", "opacity")
 
 
@@ -171,13 +171,6 @@ def box_extent(trained: TrainedModel) -> float:
     model = trained.model
     side = (model.aabb[1] - model.aabb[0]).max().item()
     return float(side / model.transform.scale)
-
-
-def render_camera(intrinsics: Intrinsics) -> Intrinsics:
-    """``intrinsics`` as a pinhole, scaled down so its longer side is at most :data:`MAX_RENDER_SIDE`."""
-    pinhole = intrinsics.undistorted()
-    longest = max(pinhole.width, pinhole.height)
-    return pinhole if longest <= MAX_RENDER_SIDE else pinhole.scaled(MAX_RENDER_SIDE / longest)
 
 
 def export_views(scene: Scene, extent: float, max_views: int | None = None) -> list[ExportView]:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,16 +14,17 @@ from voxnerf.cameras.rays import Intrinsics, image_rays
 from voxnerf.cameras.rules import CameraError, validate_pose
 from voxnerf.data.scene import Scene, with_focal_scale
 from voxnerf.devices import resolve_device
-from voxnerf.errors import RunError
+from voxnerf.errors import RenderStopped, RunError
 from voxnerf.files import CHECKPOINT
 from voxnerf.inference.encoding import OUTPUT_NAMES
 from voxnerf.inference.fast_path import FAST, render_rays_fast
 from voxnerf.model.voxnerf_model import VoxNeRFModel
-from voxnerf.training.checkpoint import load_checkpoint
+from voxnerf.training.checkpoint import load_checkpoint, stored_scene_dir
 
 OUTPUTS = OUTPUT_NAMES
 RENDER_PATHS = ("auto", "fast", "full")
 FAST_CHUNK = 1 << 20  # rays per call of the fast path (it samples and composites them in cache-sized blocks)
+STOPPABLE_FAST_CHUNK = 1 << 18  # the same for a render that may be stopped: it stops within one such pass
 
 
 @dataclass
@@ -56,7 +57,7 @@ def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
             Intrinsics(**state["default_intrinsics"]),  # a "lens" dict becomes a Lens
             float(state["depth_unit_scale"]),
             int(state["iteration"]),
-            state.get("scene_dir"),
+            stored_scene_dir(state.get("scene_dir"), Path(run_dir)),
         )
     # TypeError, KeyError, AttributeError: not a checkpoint's dict; RuntimeError: weights of another shape
     except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as exc:
@@ -89,6 +90,7 @@ def render_normalized(
     outputs: Sequence[str] = OUTPUTS,
     chunk: int | None = None,
     path: str = "auto",
+    should_stop: Callable[[], bool] | None = None,
 ) -> dict[str, Tensor]:
     """Render one view whose pose is already in normalised units (a model that refined the training poses moves
     it by its nearest training cameras' corrections first, :mod:`voxnerf.cameras.pose_refinement`; one that learnt
@@ -104,6 +106,8 @@ def render_normalized(
         path: ``"fast"`` (:mod:`voxnerf.inference.fast_path`: front to back, rays stop when opaque, no compiling),
             ``"full"`` (every sample of every ray, compiled when the config says so: the training-time path) or
             ``"auto"`` (:func:`resolved_render_path`).
+        should_stop: asked before each pass over ``chunk`` rays (at most :data:`STOPPABLE_FAST_CHUNK` on the fast
+            path); True stops the render there with RenderStopped (its caller gave up on it).
     Returns:
         the requested outputs, rgb [H, W, 3] and depth/opacity [H, W], float32 on the model's device.
     """
@@ -112,6 +116,8 @@ def render_normalized(
         raise RunError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
     fast = resolved_render_path(path, model.device) == "fast"
     chunk = chunk or (FAST_CHUNK if fast else int(model.config.evaluation.eval_chunk))
+    if fast and should_stop is not None:
+        chunk = min(chunk, STOPPABLE_FAST_CHUNK)
     c2w = c2w.to(model.device, torch.float32)
     origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
     n = origins.shape[0]
@@ -123,6 +129,8 @@ def render_normalized(
     sampler = model.sampler()
     parts: dict[str, list[Tensor]] = {name: [] for name in outputs}
     for i in range(0, n, chunk):
+        if should_stop is not None and should_stop():
+            raise RenderStopped(f"stopped after {i} of {n} rays: its caller no longer waits for it")
         rays = model.ray_bundle(origins[i : i + chunk], dirs[i : i + chunk])
         if fast:
             out = render_rays_fast(model, rays, sampler, FAST)
@@ -168,6 +176,7 @@ def render(
     intrinsics: Intrinsics | None = None,
     outputs: Sequence[str] = OUTPUTS,
     path: str = "auto",
+    should_stop: Callable[[], bool] | None = None,
 ) -> dict[str, np.ndarray]:
     """Render a pose given in scene units.
 
@@ -180,6 +189,8 @@ def render(
             give an :class:`Intrinsics` with a ``lens`` to render through one.
         outputs: subset of ("rgb", "depth", "opacity"); only these are computed.
         path: ``"fast"`` or ``"full"``, see :func:`render_normalized`.
+        should_stop: asked between passes over the rays; True stops the render with RenderStopped (see
+            :func:`render_normalized`).
     Returns:
         rgb float32 [H, W, 3] in [0, 1] (sRGB-encoded, as the images it was trained on), depth float32 [H, W]
         z-depth in scene units, opacity float32 [H, W].
@@ -190,7 +201,8 @@ def render(
         raise RunError(f"c2w: {err}") from None
     model = trained.model
     pose_n = torch.from_numpy(model.transform.c2w_to_normalized(pose)).float()
-    out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics.undistorted(), outputs, path=path)
+    out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics.undistorted(), outputs, path=path,
+                            should_stop=should_stop)
     result = {name: value.float().cpu().numpy() for name, value in out.items()}
     if "depth" in result:
         result["depth"] = result["depth"] / model.transform.scale

@@ -7,7 +7,9 @@ estimated here; the Sparse Voxel Octree is built from ``points`` with leaves of 
 
 from __future__ import annotations
 
+import json
 import math
+import struct
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -24,6 +26,8 @@ OUTLIER_NEIGHBOURS = 20
 OUTLIER_STD_RATIO = 2.0
 _PLANE_NEIGHBOURS = 32
 _SIGMA_MAX_QUERIES = 50_000
+# A GLB's JSON chunk this large is refused before it is read (a prior's layout is a few kilobytes).
+MAX_GLB_JSON_BYTES = 64 * 1024 * 1024
 
 
 @dataclass
@@ -161,6 +165,8 @@ def _read_geometry(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise SceneError(path, f"unsupported prior format {path.suffix!r}; use one of {SUPPORTED_EXTENSIONS}")
     if not path.is_file():
         raise SceneError(path, "prior file not found")
+    if path.suffix.lower() == ".glb":
+        _refuse_external_uris(path)
     try:
         loaded = trimesh.load(path, process=False)
     except Exception as err:  # trimesh raises many types for malformed files
@@ -175,6 +181,32 @@ def _read_geometry(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     if len(vertices) == 0:
         raise SceneError(path, "contains no geometry (no faces and no vertices)")
     return vertices, None
+
+
+def _refuse_external_uris(path: Path) -> None:
+    """Refuse (:class:`SceneError`) a GLB whose layout names another file: a buffer or image ``uri`` that is
+    not a ``data:`` URI. trimesh would read it (since 5.0 only from the prior's own directory): a prior is one
+    self-contained file, and an uploaded one must not read the scene's other files or anything else. A file
+    that is no GLB is left to trimesh, which refuses it."""
+    with open(path, "rb") as stream:
+        header = stream.read(20)  # magic, version, length; the first chunk's length and type
+        if len(header) < 20 or header[:4] != b"glTF" or header[16:20] != b"JSON":
+            return
+        (json_bytes,) = struct.unpack("<I", header[12:16])
+        if json_bytes > MAX_GLB_JSON_BYTES:
+            raise SceneError(path, f"GLB JSON chunk of {json_bytes} bytes; the limit is {MAX_GLB_JSON_BYTES}")
+        text = stream.read(json_bytes)
+    try:
+        layout = json.loads(text)
+    except (UnicodeDecodeError, ValueError) as err:
+        raise SceneError(path, f"unreadable GLB JSON chunk: {err}") from None
+    for kind in ("buffers", "images"):
+        items = layout.get(kind) if isinstance(layout, dict) else None
+        for index, item in enumerate(items if isinstance(items, list) else []):
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if uri is not None and not (isinstance(uri, str) and uri.lower().startswith("data:")):
+                why = f"names the external file {uri!r}: a GLB prior must hold its data itself"
+                raise SceneError(path, why, key=f"{kind}[{index}].uri")
 
 
 def _mesh_prior(

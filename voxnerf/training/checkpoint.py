@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import pickle
 import re
 from pathlib import Path
@@ -86,6 +87,25 @@ def load_previous(path: Path, resume: bool) -> dict | None:
     return load_checkpoint(path) if resume and path.is_file() else None
 
 
+def scene_dir_to_store(scene_root: Path, run_dir: Path) -> str | None:
+    """The scene directory as a checkpoint in ``run_dir`` records it: relative to the run directory
+    (``../../scenes/<id>`` in the service's data directory), so a checkpoint names no server path and a data
+    directory moved or mounted elsewhere keeps finding its scenes; None where no relative path exists (another
+    drive on Windows)."""
+    try:
+        return Path(os.path.relpath(Path(scene_root).resolve(), Path(run_dir).resolve())).as_posix()
+    except ValueError:
+        return None
+
+
+def stored_scene_dir(value: str | None, run_dir: Path) -> str | None:
+    """The scene directory a checkpoint in ``run_dir`` recorded: a relative one (:func:`scene_dir_to_store`)
+    resolved against ``run_dir``, an absolute one (checkpoints from before) as it is, None as None."""
+    if not value:
+        return None
+    return str(Path(value) if Path(value).is_absolute() else (Path(run_dir) / value).resolve())
+
+
 def save_atomic_torch(obj: dict, path: Path) -> None:
     """``torch.save`` of ``obj`` to ``path``, atomically; TypeError (:func:`check_plain`) when ``obj`` holds
     anything ``weights_only`` loading would refuse."""
@@ -130,5 +150,5 @@ class CheckpointWriter:
             "history": [h.to_json_dict() for h in self.history],
             "default_intrinsics": first.as_dict(),
             "depth_unit_scale": self.scene.depth_unit_scale,
-            "scene_dir": str(self.scene.root),
+            "scene_dir": scene_dir_to_store(self.scene.root, self.path.parent),
         }

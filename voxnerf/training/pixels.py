@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -29,25 +29,33 @@ class DirectionTable:
     camera: torch.Tensor
 
 
-def direction_table(intr: torch.Tensor, lens: LensBatch | None, h: int, w: int) -> DirectionTable | None:
-    """The table of frames with intrinsics ``intr`` [N, 4] and lenses ``lens``; None without a lens or when it
-    would exceed :data:`MAX_DIRECTION_TABLE_BYTES`."""
+def direction_table(intr: torch.Tensor, lens: LensBatch | None, h: int, w: int,
+                    sizes: torch.Tensor | None = None) -> DirectionTable | None:
+    """The table of frames with intrinsics ``intr`` [N, 4] and lenses ``lens`` on an ``h`` x ``w`` grid; None
+    without a lens or when it would exceed :data:`MAX_DIRECTION_TABLE_BYTES`. With ``sizes`` (int64 [N, 2], each
+    frame's height and width, when they differ) a camera's size is part of what makes it distinct, and only its
+    own pixels get directions (the padding beyond them stays zero and is never looked up)."""
     if lens is None:
         return None
     keys = torch.cat([intr, lens.coeffs.to(intr.dtype), lens.codes[:, None].to(intr.dtype)], dim=1)
+    if sizes is not None:
+        keys = torch.cat([keys, sizes.to(intr.dtype)], dim=1)
     unique, camera = torch.unique(keys, dim=0, return_inverse=True)
     if unique.shape[0] * h * w * 3 * 4 > MAX_DIRECTION_TABLE_BYTES:
         return None
-    py, px = torch.meshgrid(torch.arange(h, device=intr.device), torch.arange(w, device=intr.device), indexing="ij")
-    py, px = py.reshape(-1), px.reshape(-1)
     eye = torch.eye(4, device=intr.device)
     tables = []
     for c in range(unique.shape[0]):
         frame = int(torch.nonzero(camera == c)[0, 0])
+        ch, cw = (h, w) if sizes is None else (int(sizes[frame, 0]), int(sizes[frame, 1]))
+        py, px = torch.meshgrid(torch.arange(ch, device=intr.device), torch.arange(cw, device=intr.device),
+                                indexing="ij")
         k = intr[frame]
         one = lens.select(torch.tensor([frame], device=intr.device))
-        _, dirs, _ = camera_rays(eye, k[0], k[1], k[2], k[3], px, py, one)
-        tables.append(dirs.view(h, w, 3))
+        _, dirs, _ = camera_rays(eye, k[0], k[1], k[2], k[3], px.reshape(-1), py.reshape(-1), one)
+        table = torch.zeros(h, w, 3, device=intr.device, dtype=dirs.dtype)
+        table[:ch, :cw] = dirs.view(ch, cw, 3)
+        tables.append(table)
     return DirectionTable(torch.stack(tables), camera)
 
 
@@ -59,6 +67,12 @@ class TrainingPixels:
     lens: the frames' lenses (coefficients float32 [N, 6], model codes int64 [N]), None when every frame is a
     pinhole (the rays then cost what they always did);
     pseudo_t / hit_t float32 [N, H, W] ray distances (normalised; NaN where invalid), hit bool [N, H, W].
+
+    Images of different sizes (per-image cameras, portrait beside landscape) share one grid: ``H`` x ``W`` is the
+    largest height by the largest width, each image sits in the top-left corner of its slice, and ``sizes``
+    (int64 [N, 2], each image's height and width) says where it ends. The padding is never sampled
+    (:meth:`random_pixels`, :func:`sample_batch`) and every per-pixel cache is NaN / False there. ``sizes`` is
+    None when every image has the grid's size: the batches are then drawn as they always were.
     """
 
     images: torch.Tensor
@@ -71,11 +85,75 @@ class TrainingPixels:
     depth_t: torch.Tensor | None = None  # [N, H, W] the depth loss's target (normalised ray distance, NaN: none)
     depth_beta_scale: torch.Tensor | None = None  # [N, H, W] each pixel's log-Huber beta over the run's
     directions: DirectionTable | None = None  # the lens rays of every pixel, when the frames have lenses
+    sizes: torch.Tensor | None = None  # int64 [N, 2] each image's (height, width) when they differ, else None
+    # What the batches of images of different sizes need, computed once (no host sync per step): pixels of all
+    # images, the smallest height and width, and where each image's pixels end when counted image by image.
+    pixel_count: int = field(init=False)
+    smallest_side: tuple[int, int] = field(init=False)
+    _pixel_ends: torch.Tensor | None = field(init=False, default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        n, h, w = self.shape
+        if self.sizes is None:
+            self.pixel_count, self.smallest_side = n * h * w, (h, w)
+            return
+        per_image = self.sizes.prod(dim=1)
+        self._pixel_ends = torch.cumsum(per_image, 0)
+        self.pixel_count = int(per_image.sum())
+        self.smallest_side = int(self.sizes[:, 0].min()), int(self.sizes[:, 1].min())
 
     @property
     def shape(self) -> tuple[int, int, int]:
+        """(N, H, W) of the grid every per-pixel tensor has (the largest height and width)."""
         n, h, w, _ = self.images.shape
         return n, h, w
+
+    def inside(self) -> torch.Tensor | None:
+        """bool [N, H, W]: which grid pixels belong to their image; None when every one does."""
+        if self.sizes is None:
+            return None
+        n, h, w = self.shape
+        device = self.images.device
+        rows = torch.arange(h, device=device)[None, :, None] < self.sizes[:, 0, None, None]
+        cols = torch.arange(w, device=device)[None, None, :] < self.sizes[:, 1, None, None]
+        return rows & cols
+
+    def real_pixels(self) -> torch.Tensor:
+        """int64 [P] flat indices into [N, H, W] of every image pixel (the padding left out), in order."""
+        n, h, w = self.shape
+        inside = self.inside()
+        if inside is None:
+            return torch.arange(n * h * w, device=self.images.device)
+        return torch.nonzero(inside.view(-1)).view(-1)
+
+    def random_pixels(self, count: int, gen: torch.Generator) -> torch.Tensor:
+        """int64 [count] flat indices into [N, H, W] drawn uniformly over every image pixel (each pixel of each
+        image equally likely, the padding never)."""
+        n, h, w = self.shape
+        device = self.images.device
+        if self.sizes is None:
+            return torch.randint(0, n * h * w, (count,), generator=gen, device=device)
+        return self._flat_of_ordinal(torch.randint(0, self.pixel_count, (count,), generator=gen, device=device))
+
+    def _flat_of_ordinal(self, ordinal: torch.Tensor) -> torch.Tensor:
+        """Flat grid indices of the pixels numbered ``ordinal`` when the images' pixels are counted image by
+        image, row by row (the padding skipped)."""
+        n, h, w = self.shape
+        img = torch.searchsorted(self._pixel_ends, ordinal, right=True)
+        width = self.sizes[img, 1]
+        rem = ordinal - (self._pixel_ends[img] - self.sizes[img, 0] * width)
+        return img * (h * w) + (rem // width) * w + rem % width
+
+    def fraction(self, mask: torch.Tensor) -> float:
+        """The fraction of the image pixels where ``mask`` (bool [N, H, W], False on the padding) holds."""
+        return float(mask.sum()) / max(self.pixel_count, 1)
+
+    def mean_colour(self) -> torch.Tensor:
+        """float32 [3] the mean colour (in [0, 1]) of every training pixel."""
+        if self.sizes is None:
+            return self.images.float().mean((0, 1, 2)) / 255.0
+        total = self.images.float().sum((0, 1, 2))  # the padding is black: it adds nothing
+        return total / (255.0 * self.pixel_count)
 
     def rays(self, img: torch.Tensor, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Rays of the given pixels (through their frame's lens): origins, dirs [R, 3], normalised units."""
@@ -89,19 +167,31 @@ class TrainingPixels:
         return origins, dirs
 
 
+def padded_stack(arrays: list[np.ndarray], fill) -> np.ndarray:
+    """``arrays`` ([h_i, w_i, ...] each) stacked on a grid of the largest height and width, each in the top-left
+    corner of its slice and ``fill`` beyond it (a plain stack when they all have one size)."""
+    if len({a.shape for a in arrays}) == 1:
+        return np.stack(arrays)
+    h, w = max(a.shape[0] for a in arrays), max(a.shape[1] for a in arrays)
+    out = np.full((len(arrays), h, w, *arrays[0].shape[2:]), fill, dtype=arrays[0].dtype)
+    for i, a in enumerate(arrays):
+        out[i, : a.shape[0], : a.shape[1]] = a
+    return out
+
+
 def training_pixels(scene: Scene, transform: SceneTransform, device: torch.device) -> TrainingPixels:
-    """The scene's training images and normalised poses on ``device``; one image size per scene."""
+    """The scene's training images and normalised poses on ``device``; images of different sizes share the grid
+    of the largest (:class:`TrainingPixels`)."""
     idx = scene.train_indices
-    sizes = {scene.images[i].shape for i in idx}
-    if len(sizes) != 1:
-        raise ValueError(f"training images differ in size ({sorted(sizes)}); one size per scene is supported")
-    images = torch.from_numpy(np.stack([scene.images[i] for i in idx])).to(device)
+    shapes = [scene.images[i].shape[:2] for i in idx]
+    images = torch.from_numpy(padded_stack([scene.images[i] for i in idx], 0)).to(device)
+    sizes = None if len(set(shapes)) == 1 else torch.tensor(shapes, dtype=torch.int64, device=device)
     c2w = np.stack([transform.c2w_to_normalized(scene.frames[i].c2w) for i in idx])
     intr = [scene.intrinsics(i) for i in idx]
     intr_t = torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intr], dtype=torch.float32, device=device)
     lens = LensBatch.of([k.lens for k in intr], device)
     return TrainingPixels(images, torch.from_numpy(c2w).float().to(device), intr_t, lens,
-                          directions=direction_table(intr_t, lens, *images.shape[1:3]))
+                          directions=direction_table(intr_t, lens, *images.shape[1:3], sizes), sizes=sizes)
 
 
 def per_pixel(
@@ -111,12 +201,12 @@ def per_pixel(
     chunk: int = 262_144,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Evaluate ``fn`` ((rays, flat pixel indices [R]) -> (t [R], valid [R])) on every training pixel -> [N, H, W]
-    each; t NaN if invalid."""
+    each; t NaN if invalid (and on the padding of a smaller image, where valid is False)."""
     n, h, w = pixels.shape
     device = pixels.images.device
-    t_all = torch.empty(n * h * w, device=device)
-    ok_all = torch.empty(n * h * w, dtype=torch.bool, device=device)
-    for f, _, origins, dirs in rays_in_chunks(pixels, torch.arange(n * h * w, device=device), chunk):
+    t_all = torch.full((n * h * w,), float("nan"), device=device)
+    ok_all = torch.zeros(n * h * w, dtype=torch.bool, device=device)
+    for f, _, origins, dirs in rays_in_chunks(pixels, pixels.real_pixels(), chunk):
         t, ok = fn(model.ray_bundle(origins, dirs), f)
         t_all[f] = torch.where(ok, t, torch.full_like(t, float("nan")))
         ok_all[f] = ok
@@ -135,7 +225,10 @@ def rays_in_chunks(pixels: TrainingPixels, flat: torch.Tensor, chunk: int = 262_
 
 
 def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, gen: torch.Generator) -> PixelIndex:
-    """Random pixels plus (optionally) s x s patches: index tensors img, py, px [R] (patches last)."""
+    """Random pixels plus (optionally) s x s patches: index tensors img, py, px [R] (patches last). Every pixel
+    of every image is equally likely; a patch lies inside one image."""
+    if pixels.sizes is not None:
+        return _sample_batch_sized(pixels, cfg, use_patches, gen)
     n, h, w = pixels.shape
     device = pixels.images.device
     r = int(cfg.schedule.rays_per_batch)
@@ -154,14 +247,34 @@ def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, ge
     return img, py, px
 
 
+def _sample_batch_sized(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool,
+                        gen: torch.Generator) -> PixelIndex:
+    """:func:`sample_batch` for images of different sizes: pixels drawn over every image's own pixels, patches
+    placed inside their image (a side no larger than the smallest image's)."""
+    n, h, w = pixels.shape
+    device = pixels.images.device
+    flat = pixels.random_pixels(int(cfg.schedule.rays_per_batch), gen)
+    img, py, px = flat // (h * w), flat % (h * w) // w, flat % w
+    if use_patches:
+        s, p = min(cfg.loss.patch_size, *pixels.smallest_side), cfg.loss.smooth_patches
+        pi = torch.randint(0, n, (p,), generator=gen, device=device)
+        room = pixels.sizes[pi] - s + 1  # [p, 2] the top-left corners that keep the patch inside its image
+        corner = (torch.rand(p, 2, generator=gen, device=device) * room).long().minimum(room - 1)
+        dy, dx = torch.meshgrid(torch.arange(s, device=device), torch.arange(s, device=device), indexing="ij")
+        img = torch.cat([img, pi[:, None].expand(p, s * s).reshape(-1)])
+        py = torch.cat([py, (corner[:, :1] + dy.reshape(1, -1)).reshape(-1)])
+        px = torch.cat([px, (corner[:, 1:] + dx.reshape(1, -1)).reshape(-1)])
+    return img, py, px
+
+
 def sensor_ray_distance(pixels: TrainingPixels, z: torch.Tensor, scale: float, chunk: int = 262_144) -> torch.Tensor:
     """Ray distances [N, H, W] (normalised units) of the z-depths ``z`` [N, H, W] (scene units, along each
     camera's -Z axis; NaN where invalid) of the training pixels: ``t = z * scale / cos``, ``cos`` the angle
-    between the pixel's ray and the camera's axis."""
+    between the pixel's ray and the camera's axis (NaN on the padding of a smaller image)."""
     n, h, w = pixels.shape
     z_flat = z.reshape(-1)
-    t_all = torch.empty(n * h * w, device=z.device)
-    for f, img, _, dirs in rays_in_chunks(pixels, torch.arange(n * h * w, device=z.device), chunk):
+    t_all = torch.full((n * h * w,), float("nan"), device=z.device)
+    for f, img, _, dirs in rays_in_chunks(pixels, pixels.real_pixels(), chunk):
         cos = (dirs * -pixels.c2w[img, :3, 2]).sum(-1) / torch.linalg.vector_norm(dirs, dim=-1)
         t_all[f] = z_flat[f] * scale / cos.clamp_min(1e-6)
     return t_all.view(n, h, w)

@@ -75,11 +75,13 @@ def bank_size(prior_rays: int) -> int:
 
 
 def seen_by(points: Tensor, c2w: Tensor, intr: Tensor, depth_t: Tensor, tolerance: float,
-            chunk: int = 8) -> Tensor:
+            chunk: int = 8, sizes: Tensor | None = None) -> Tensor:
     """[M] bool: whether some training view sees each of ``points`` [M, 3] (normalised): it projects inside
     the view (pinhole model of ``intr`` [N, 4] fl_x fl_y cx cy, ``c2w`` [N, 4, 4] OpenGL), in front of the
     camera, and the view's depth target there (``depth_t`` [N, H, W] ray distances, NaN where none) is within
-    ``tolerance`` of the point's distance (a pixel with no target counts as seeing it)."""
+    ``tolerance`` of the point's distance (a pixel with no target counts as seeing it). ``sizes`` (int64
+    [N, 2], each view's height and width when they differ) bounds each view to its own pixels (else the
+    [H, W] of ``depth_t``)."""
     n, h, w = depth_t.shape
     seen = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
     for i in range(0, n, chunk):
@@ -90,7 +92,8 @@ def seen_by(points: Tensor, c2w: Tensor, intr: Tensor, depth_t: Tensor, toleranc
         k = intr[i : i + chunk, :, None]
         px = (cam[..., 0] / z.clamp_min(1e-9) * k[:, 0] + k[:, 2] - 0.5).round()
         py = (-cam[..., 1] / z.clamp_min(1e-9) * k[:, 1] + k[:, 3] - 0.5).round()
-        inside = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        hi, wi = (h, w) if sizes is None else (sizes[i : i + chunk, 0, None], sizes[i : i + chunk, 1, None])
+        inside = (z > 0) & (px >= 0) & (px < wi) & (py >= 0) & (py < hi)
         view = torch.arange(i, min(i + chunk, n), device=points.device)[:, None].expand_as(px)
         target = depth_t[view, py.clamp(0, h - 1).long(), px.clamp(0, w - 1).long()]
         distance = torch.linalg.vector_norm(rel, dim=-1)

@@ -161,7 +161,7 @@ def _set_up(run: Run, scene_dir: str | Path, previous: dict | None) -> SetupCont
 def _patches(cfg: TrainConfig, setup: SetupContext) -> tuple[bool, int, int]:
     """(whether batches carry smoothness patches, patch side, rays of all patches)."""
     use_patches = setup.use_depth and cfg.loss.smooth_patches > 0 and cfg.loss.lambda_smooth > 0
-    patch = min(cfg.loss.patch_size, setup.pixels.shape[1], setup.pixels.shape[2])
+    patch = min(cfg.loss.patch_size, *setup.pixels.smallest_side)
     return use_patches, patch, cfg.loss.smooth_patches * patch * patch if use_patches else 0
 
 

@@ -55,7 +55,7 @@ class TrainStep:
                  prior_rays: PriorRayBank | None = None) -> None:
         self.model, self.optimizer, self.pixels, self.cfg = model, optimizer, pixels, cfg
         self.prior_rays = prior_rays
-        self.mean_colour = pixels.images.float().mean((0, 1, 2)) / 255.0 if prior_rays is not None else None
+        self.mean_colour = pixels.mean_colour() if prior_rays is not None else None
         self.loss_fn, self.use_patches, self.sampler, self.gen = loss_fn, use_patches, sampler, gen
         # lambda_d now, as a tensor the schedule sets
         self.depth_weight = torch.tensor(float(cfg.loss.lambda_depth), device=pixels.images.device)

@@ -36,10 +36,12 @@ def pixel_rays_key(pixels: TrainingPixels, model: VoxNeRFModel) -> list:
 
 
 def training_rays_key(pixels: TrainingPixels) -> list:
-    """What fixes the rays of every training pixel (:meth:`TrainingPixels.rays`), for :mod:`setup_cache` keys."""
+    """What fixes the rays of every training pixel (:meth:`TrainingPixels.rays`) and which pixels there are, for
+    :mod:`setup_cache` keys (a scene of one image size keys as it always did)."""
     lens = None if pixels.lens is None else (pixels.lens.coeffs, pixels.lens.codes)
     table = None if pixels.directions is None else (pixels.directions.dirs, pixels.directions.camera)
-    return [pixels.shape, pixels.c2w, pixels.intr, lens, table]
+    key = [pixels.shape, pixels.c2w, pixels.intr, lens, table]
+    return key if pixels.sizes is None else [*key, pixels.sizes]
 
 
 def prior_key(prior_n: GeometryPrior) -> list:

@@ -13,7 +13,7 @@ from voxnerf.data.scene import Scene, SceneTransform
 from voxnerf.model.losses import PAPER_BETA
 from voxnerf.prior.depth_fusion import DepthNoise, FusedPrior, fit_noise
 from voxnerf.prior.loading import GeometryPrior
-from voxnerf.training.pixels import TrainingPixels, sensor_ray_distance
+from voxnerf.training.pixels import TrainingPixels, padded_stack, sensor_ray_distance
 from voxnerf.training.records import StageRecord
 from voxnerf.training.stages.common import stage_record
 from voxnerf.training.stages.load_scene import check_sensor_depth
@@ -74,19 +74,19 @@ def depth_target_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | No
     base_sigma = prior.sigma if prior is not None else None
     if source == "prior":
         beta = cfg.loss.depth_beta or DEPTH_BETA_PER_SIGMA * base_sigma
-        valid = float(torch.isfinite(pixels.pseudo_t).float().mean())
+        valid = pixels.fraction(torch.isfinite(pixels.pseudo_t))
         summary = {"source": "prior", "why": why, "prior_fraction": valid, "beta": beta}
         return DepthTargetStage(stage_record("depth_target", True, f"{why}: the prior's depth on {valid:.1%} of "
                                         "training pixels", t0), pixels.pseudo_t, None, beta, summary)
-    z = torch.from_numpy(np.stack([_depth_or_nan(scene, i, pixels.shape[1:]) for i in scene.train_indices]))
+    z = torch.from_numpy(padded_stack([_depth_or_nan(scene, i) for i in scene.train_indices], np.nan))
     z = z.to(pixels.images.device)
     sensor_t = sensor_ray_distance(pixels, z, transform.scale)
     noise = fused.noise if fused is not None else measure_noise_against(sensor_t, pixels.pseudo_t, z, transform,
                                                                          base_sigma)
     sensor_ok = torch.isfinite(sensor_t)
     target = sensor_t if pixels.pseudo_t is None else torch.where(sensor_ok, sensor_t, pixels.pseudo_t)
-    summary = {"source": "sensor", "why": why, "sensor_fraction": float(sensor_ok.float().mean()),
-               "prior_fraction": float((~sensor_ok & torch.isfinite(target)).float().mean())}
+    summary = {"source": "sensor", "why": why, "sensor_fraction": pixels.fraction(sensor_ok),
+               "prior_fraction": pixels.fraction(~sensor_ok & torch.isfinite(target))}
     text = (f"{why}: sensor depth on {summary['sensor_fraction']:.1%} of training pixels, the prior's on "
             f"{summary['prior_fraction']:.1%}; ")
     if cfg.loss.depth_beta or noise is None:
@@ -104,9 +104,10 @@ def depth_target_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | No
                             beta_scale.clamp(*BETA_SCALE_RANGE), beta, summary, sensor_t)
 
 
-def _depth_or_nan(scene: Scene, index: int, shape: tuple[int, int]) -> np.ndarray:
+def _depth_or_nan(scene: Scene, index: int) -> np.ndarray:
+    """Frame ``index``'s depth on its image's pixels (float32 [h, w]), all NaN when it has none."""
     depth = scene.depths[index]
-    return np.full(shape, np.nan, np.float32) if depth is None else depth.astype(np.float32)
+    return np.full(scene.images[index].shape[:2], np.nan, np.float32) if depth is None else depth.astype(np.float32)
 
 
 def measure_noise_against(sensor_t: torch.Tensor, prior_t: torch.Tensor | None, z: torch.Tensor,

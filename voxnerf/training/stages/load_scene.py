@@ -24,8 +24,24 @@ def load_scene_stage(scene_dir: str | Path, cfg: TrainConfig) -> SceneStage:
     t0 = time.perf_counter()
     scene = load_scene(scene_dir, downscale=cfg.run.downscale)
     check_sensor_depth(cfg, scene)  # before any set-up work, not after it
-    why = f"{len(scene.frames)} frames, {len(scene.train_indices)} for training"
+    why = f"{len(scene.frames)} frames, {len(scene.train_indices)} for training" + training_sizes_note(scene)
     return SceneStage(stage_record("load_scene", True, why, t0), scene)
+
+
+def training_sizes_note(scene: Scene) -> str:
+    """For training images of several sizes: how many of each, and how much of the grid they share
+    (:class:`voxnerf.training.pixels.TrainingPixels`) is padding; "" for one size."""
+    sizes = [(scene.intrinsics(i).width, scene.intrinsics(i).height) for i in scene.train_indices]
+    counts: dict[tuple[int, int], int] = {}
+    for size in sizes:
+        counts[size] = counts.get(size, 0) + 1
+    if len(counts) < 2:
+        return ""
+    grid_w, grid_h = max(w for w, _ in sizes), max(h for _, h in sizes)
+    padding = 1.0 - sum(w * h for w, h in sizes) / (len(sizes) * grid_w * grid_h)
+    listed = ", ".join(f"{w}x{h}: {n}" for (w, h), n in counts.items())
+    return (f"; training images of {len(counts)} sizes ({listed}) on a {grid_w}x{grid_h} grid, "
+            f"{padding:.0%} of it padding")
 
 
 def check_sensor_depth(cfg: TrainConfig, scene: Scene) -> None:

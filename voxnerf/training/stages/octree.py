@@ -48,7 +48,7 @@ def sampler_octree(
                         f"(normalised; {why})")
     n, h, w = pixels.shape
     gen = torch.Generator(device=device).manual_seed(0)
-    flat = torch.randint(0, n * h * w, (min(COVERAGE_RAYS, n * h * w),), generator=gen, device=device)
+    flat = pixels.random_pixels(min(COVERAGE_RAYS, pixels.pixel_count), gen)
     rays = model.ray_bundle(*pixels.rays(flat // (h * w), flat % (h * w) // w, flat % w))
     octree, misses = coverage_octree(points, prior.sigma, rays.origins, rays.dirs, rays.near, rays.far)
     tried = ", ".join(f"{s} sigma: {m:.1%}" for s, m in misses.items())

@@ -45,6 +45,6 @@ def prior_rays_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, use_depth:
         depth = pixels.depth_t if pixels.depth_t is not None else pixels.pseudo_t
         points = bank.rays.origins + bank.target_t[:, None] * bank.rays.dirs
         tolerance = UNSEEN_TOLERANCE_LEAVES * (octree.leaf_size if octree is not None else prior_n.sigma)
-        bank.unseen = ~seen_by(points, pixels.c2w, pixels.intr, depth, tolerance)
+        bank.unseen = ~seen_by(points, pixels.c2w, pixels.intr, depth, tolerance, sizes=pixels.sizes)
         why += f"; {float(bank.unseen.float().mean()):.1%} meet surfaces no training view sees (mean-colour term)"
     return PriorRaysStage(stage_record("prior_rays", True, why, t0), bank)

@@ -1,0 +1,90 @@
+"""Import time and pose agreement of the LiDAR phone-app importers on redkitchen written in each app's layout.
+
+For each app (Record3D, Polycam, Stray Scanner) the shared redkitchen frames are written in the app's export
+layout exactly as the tests write them (``tests/phone_app_fixtures.py``: poses in the app's convention, depth
+resampled to 256 x 192, confidence maps with low and medium regions; Stray's colour as an H.264 MP4), then
+imported with ``voxnerf import <app>``. Only the import is timed. Reported per app: frames imported, frames with
+depth, measured depth pixels dropped for low confidence, the largest pose difference from the source (against the
+nearest rotation for the quaternion apps), and the import's wall time.
+
+    python benchmarks/phone_app_imports.py [--frames N] [--out benchmarks/results/phone_app_imports]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from phone_app_fixtures import (  # noqa: E402  (the tests' export writers, one definition)
+    REDKITCHEN,
+    nearest_rigid,
+    redkitchen_frames,
+    write_polycam,
+    write_record3d,
+    write_stray,
+)
+
+from voxnerf.data.importers.polycam import import_polycam  # noqa: E402
+from voxnerf.data.importers.record3d import import_record3d  # noqa: E402
+from voxnerf.data.importers.stray import import_stray  # noqa: E402
+
+APPS = {
+    "record3d": (write_record3d, import_record3d, True),
+    "polycam": (write_polycam, import_polycam, False),
+    "stray": (write_stray, import_stray, True),
+}
+
+
+def measure(app: str, frames: list[dict], work: Path) -> dict:
+    write, run_import, quaternions = APPS[app]
+    export = write(work / f"{app}_export", frames)
+    start = time.perf_counter()
+    summary = run_import(export, work / f"{app}_scene")
+    seconds = time.perf_counter() - start
+    meta = json.loads((work / f"{app}_scene" / "transforms.json").read_text())
+    error = 0.0
+    for got, want in zip(meta["frames"], frames, strict=True):
+        reference = np.asarray(want["transform_matrix"])
+        reference = nearest_rigid(reference) if quaternions else reference
+        error = max(error, float(np.abs(np.asarray(got["transform_matrix"]) - reference).max()))
+    dropped = next((n for n in summary["notes"] if "measured depth pixels" in n), "")
+    return {"app": app, "frames": summary["frames"], "depth_frames": summary["depth_frames"],
+            "max_pose_difference": error, "import_seconds": round(seconds, 2),
+            "depth_note": dropped.split("; ")[-1]}
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| app | frames | with depth | largest pose difference | import time (s) | depth dropped |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| {r['app']} | {r['frames']} | {r['depth_frames']} | {r['max_pose_difference']:.1e} | "
+              f"{r['import_seconds']:.1f} | {r['depth_note']} |" for r in rows]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=1000, help="redkitchen frames to write (default: all 1000)")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/phone_app_imports"))
+    args = parser.parse_args(argv)
+    if not (REDKITCHEN / "transforms.json").is_file():
+        print(f"redkitchen not found at {REDKITCHEN}", file=sys.stderr)
+        return 2
+    frames = redkitchen_frames(args.frames)
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = [measure(app, frames, Path(tmp)) for app in APPS]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
+    (args.out / "table.md").write_text(table(rows) + "\n")
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

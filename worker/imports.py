@@ -1,0 +1,103 @@
+"""Celery task of capture imports (queued on the ``train`` queue): turn an uploaded raw capture (a ROS bag) into a
+scene with the engine's importer, check it as an upload is checked, and add it to the service.
+
+The task holds the import (:func:`worker.lease.hold`: claimed in the job store, fenced by its attempt, its lease
+renewed every ``heartbeat_s`` and its cancel flag turned into ``should_stop``, read between the stages). Stages:
+``importing`` (the importer writes the scene into a fresh directory under ``staging_dir``), ``checking``
+(:func:`voxnerf.data.scene.inspect_scene`, the upload's full validation), ``storing``
+(:func:`app.core.scene_store.commit_scene`: the scene's directory renamed into ``scenes_dir``, published to the
+object store, its row added) and then ``done`` with ``scene_id``. A refusal (the importer's or the check's
+one-line SceneError) fails the import naming the file at fault, and nothing is stored; an import that ends in any
+state removes its raw capture, and a requeued one starts again from it.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from app.core.imports import IMPORTS, elapsed_eta, raw_dir, remove_raw
+from app.core.models import ImportRow
+from app.core.redact import public_error
+from app.core.scene_store import PublishFailed, commit_scene, tree_size
+from app.core.settings import Settings, get_settings
+from voxnerf.data.importers import PaperSplitRule, run_import
+from voxnerf.data.scene import inspect_scene
+from voxnerf.errors import VoxNeRFError
+from worker.lease import Lease, hold, leased_task
+
+log = logging.getLogger(__name__)
+SPLIT_RULES = {"paper": PaperSplitRule()}
+SCENE_DIR = "scene"  # in the import's staging directory: the scene the importer writes
+STAGE_PROGRESS = {"importing": 0.05, "checking": 0.8, "storing": 0.95}  # how far the import is when each begins
+
+
+class Stopped(Exception):
+    """The import was cancelled, or its lease lost, between two stages."""
+
+
+def _capture(settings: Settings, row: ImportRow) -> Path:
+    """The raw capture of an import: the one file or folder in its :func:`app.core.imports.raw_dir`."""
+    entries = list(raw_dir(settings, row.id).iterdir()) if raw_dir(settings, row.id).is_dir() else []
+    if len(entries) != 1:
+        raise VoxNeRFError(f"import {row.id}: its raw capture is missing (found {len(entries)} entries)")
+    return entries[0]
+
+
+class Stages:
+    """Writes each stage and its progress (with an ETA from the time so far) and stops a cancelled import."""
+
+    def __init__(self, settings: Settings, row: ImportRow, lease: Lease) -> None:
+        self.settings, self.row, self.lease = settings, row, lease
+        self._started = time.monotonic()
+
+    def enter(self, stage: str) -> None:
+        """Begin ``stage``; Stopped when the import was cancelled or its lease lost (before ``storing``, the
+        store is asked: a scene is added only by the attempt that owns the import)."""
+        if self.lease.should_stop() or (stage == "storing" and not self.lease.still_owned()):
+            raise Stopped(stage)
+        progress = STAGE_PROGRESS[stage]
+        IMPORTS.record_progress(self.settings, self.row.id, self.row.attempt, stage, progress,
+                                elapsed_eta(self._started, progress))
+
+
+def import_capture(settings: Settings, row: ImportRow, lease: Lease) -> dict:
+    """Import a claimed capture; the final row values: ``state`` succeeded (``scene_id``, ``summary``),
+    cancelled, or failed (``error``)."""
+    stages = Stages(settings, row, lease)
+    settings.make_dirs()
+    staging = Path(tempfile.mkdtemp(prefix=f"import-{row.id}-", dir=settings.staging_dir))
+    scene = staging / SCENE_DIR
+    try:
+        stages.enter("importing")
+        summary = run_import(row.layout, _capture(settings, row), scene, SPLIT_RULES.get(row.params.get("splits")))
+        stages.enter("checking")
+        checked = inspect_scene(scene)
+        stages.enter("storing")
+        stored = commit_scene(settings, scene, row.name, {**checked, "imported": summary}, tree_size(scene))
+    except Stopped:
+        return {"state": "cancelled"}
+    except (VoxNeRFError, PublishFailed) as err:
+        log.warning("import %s failed: %s", row.id, err)
+        return {"state": "failed", "error": public_error(str(err), settings)}
+    except Exception as err:
+        log.exception("import %s crashed", row.id)
+        return {"state": "failed", "error": public_error(f"internal error: {type(err).__name__}: {err}", settings)}
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return {"state": "succeeded", "scene_id": stored.id, "summary": summary}
+
+
+def _remove_capture(settings: Settings, row: ImportRow, state: str) -> None:
+    """An import that ended (in any state) leaves no raw capture behind."""
+    remove_raw(settings, row.id)
+
+
+@leased_task(IMPORTS)
+def run_capture_import(import_id: str) -> None:
+    """Import capture ``import_id`` to a final state (succeeded, cancelled, failed) unless another worker owns
+    it."""
+    hold(get_settings(), IMPORTS, import_id, import_capture, ending=_remove_capture)
