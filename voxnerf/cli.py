@@ -367,6 +367,15 @@ def _import(args: argparse.Namespace) -> int:
         summary = import_colmap(args.dir, args.out, splits, images=args.images)
     elif args.layout in PHONE_APP_LAYOUTS:
         summary = _import_phone_app(args, splits)
+    elif args.layout == "images":
+        from voxnerf.data.importers.sfm import import_images
+
+        summary = import_images(args.dir, args.out, splits, matching=args.matching)
+    elif args.layout == "video":
+        from voxnerf.data.importers.video import import_video
+
+        summary = import_video(args.file, args.out, splits=splits,
+                               **({"n_frames": args.frames} if hasattr(args, "frames") else {}))
     else:
         summary = import_scannet(args.dir, args.out, splits)
     for line in describe(summary):
@@ -606,10 +615,11 @@ def _add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import_command(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("import", help="write a COLMAP model, a ScanNet export, a LiDAR phone app's export or a "
-                       "ROS bag as a scene (docs/scene-format.md)",
+    p = sub.add_parser("import", help="write a COLMAP model, a ScanNet export, a LiDAR phone app's export, a "
+                       "ROS bag, photos or a video as a scene (docs/scene-format.md)",
                        description="Write a COLMAP sparse model, a ScanNet export, a Record3D / Polycam / Stray "
-                       "Scanner export or a robot's ROS bag as a scene in the project's format; see "
+                       "Scanner export, a robot's ROS bag, or photos or a video without poses (posed by structure "
+                       "from motion) as a scene in the project's format; see "
                        "docs/scene-format.md.")
     layouts = p.add_subparsers(dest="layout", required=True)
     colmap = layouts.add_parser("colmap", help="a COLMAP sparse model (sparse/0, sparse or DIR; text or binary)")
@@ -627,8 +637,20 @@ def _add_import_command(sub: argparse._SubParsersAction) -> None:
     for q in (record3d, stray):
         q.add_argument("--every", type=_at_least_one, default=1, metavar="N",
                        help="keep every N-th frame (the apps record up to 60 per second; default 1: all)")
-    for q in (colmap, scannet, record3d, polycam, stray):
+    # The SfM flags' defaults live in voxnerf.data.importers.sfm / .video (absent here, so that building the parser
+    # does not load the importers); tests/data/test_import_images.py checks that the help states them.
+    images = layouts.add_parser("images", help="a folder of photos without poses, posed by structure from motion")
+    images.add_argument("--matching", choices=["auto", "exhaustive", "sequential"], default="auto",
+                        help="image pairs to match: auto (exhaustive up to 60 photos, else sequential in name "
+                        "order), exhaustive or sequential")
+    video = layouts.add_parser("video", help="a video (MP4/MOV, H.264/HEVC) without poses: the sharpest frames, "
+                               "posed by structure from motion")
+    video.add_argument("file", metavar="FILE")
+    video.add_argument("--frames", type=int, default=argparse.SUPPRESS, metavar="N",
+                       help="frames to keep: the sharpest of each of N equal time windows (default 100)")
+    for q in (colmap, scannet, record3d, polycam, stray, images):
         q.add_argument("dir", metavar="DIR")
+    for q in (colmap, scannet, record3d, polycam, stray, images, video):
         q.add_argument("--out", required=True, metavar="SCENE", help="scene directory to write (absent or empty)")
         q.add_argument("--splits", choices=["paper"],
                        help="write the paper's train / interpolation / extrapolation splits (default: none)")

@@ -2,6 +2,8 @@
 
 - :func:`import_colmap`: a COLMAP sparse model and its images (:mod:`voxnerf.data.importers.colmap`);
 - :func:`import_scannet`: ScanNet's exported frames (:mod:`voxnerf.data.importers.scannet`);
+- :func:`import_images`: photos without poses, posed by structure from motion (:mod:`voxnerf.data.importers.sfm`);
+- :func:`import_video`: a video's sharpest frames, then the same (:mod:`voxnerf.data.importers.video`);
 - :func:`import_rosbag`: a robot's ROS 1 / ROS 2 bag (:mod:`voxnerf.data.importers.rosbag`);
 - :func:`import_record3d`, :func:`import_polycam`, :func:`import_stray`: LiDAR phone apps' exports with their
   depth (:mod:`voxnerf.data.importers.record3d`, ``.polycam``, ``.stray``; ARKit's conventions in ``.arkit``);
@@ -10,7 +12,8 @@
 
 Each returns a JSON-able summary: ``format``, ``frames``, ``skipped`` (count per reason), ``camera_models``,
 ``depth_frames``, ``prior`` (file, points, sigma and its rule; None without one), ``splits`` (the rule's
-parameters and the frame counts; None without ``splits``) and ``notes``. Torch-free: the API imports this
+parameters and the frame counts; None without ``splits``) and ``notes``; the SfM importers add ``sfm`` (and a
+video ``video``). Torch-free: the API imports this
 package on upload.
 """
 
@@ -24,12 +27,14 @@ from voxnerf.data.importers.polycam import import_polycam
 from voxnerf.data.importers.record3d import import_record3d
 from voxnerf.data.importers.rosbag import RosbagOptions, import_rosbag
 from voxnerf.data.importers.scannet import import_scannet
+from voxnerf.data.importers.sfm import import_images
 from voxnerf.data.importers.splits import PaperSplitRule, paper_splits
 from voxnerf.data.importers.stray import import_stray
+from voxnerf.data.importers.video import import_video
 
 __all__ = ["LAYOUTS", "QUEUED_LAYOUTS", "PaperSplitRule", "RosbagOptions", "capture_file_layout", "describe",
-           "detect_layout", "import_colmap", "import_polycam", "import_record3d", "import_rosbag", "import_scannet",
-           "import_stray", "paper_splits", "run_import"]
+           "detect_layout", "import_colmap", "import_images", "import_polycam", "import_record3d", "import_rosbag",
+           "import_scannet", "import_stray", "import_video", "paper_splits", "run_import"]
 
 LAYOUTS = ("colmap", "scannet", "record3d", "polycam", "stray", "rosbag")
 # Layouts whose import reads a whole capture (a phone's video, a robot's log) or solves for poses: the service

@@ -217,7 +217,7 @@ def _write_prior(root: Path, recon) -> dict:
     return {"keys": keys, "summary": summary, "note": None}
 
 
-def _fill(root: Path, model: _Model, splits: PaperSplitRule | None) -> dict:
+def _fill(root: Path, model: _Model, splits: PaperSplitRule | None, fmt: str = "colmap") -> dict:
     top, frames, models = _frames_and_cameras(model)
     meta = {**top}
     meta["frames"] = frames
@@ -234,7 +234,7 @@ def _fill(root: Path, model: _Model, splits: PaperSplitRule | None) -> dict:
         meta.update(keys)
     writer.write_transforms(root, meta)
     return {
-        "format": "colmap",
+        "format": fmt,
         "frames": len(frames),
         "skipped": dict(model.skipped),
         "camera_models": models,
@@ -265,3 +265,14 @@ def import_colmap(
     summary = writer.build_scene(out, lambda root: _fill(root, model, splits))
     rel = model_dir.relative_to(src).as_posix() if model_dir != src else "."
     return {**summary, "model": rel}
+
+
+def import_reconstruction(
+    recon, images_dir: Path, out: Path, splits: PaperSplitRule | None, fmt: str, named_in: Path
+) -> dict:
+    """Write a pycolmap Reconstruction computed in the product (``voxnerf import images | video``) and its images
+    in ``images_dir`` as a scene at ``out``, the same way as a model read from disk; ``fmt`` names the importer in
+    the summary and ``named_in`` is the file errors name for the model. Nothing is left at ``out`` on error."""
+    model = _Model(named_in, named_in, recon)
+    _collect_frames(model, images_dir)
+    return writer.build_scene(out, lambda root: _fill(root, model, splits, fmt))
