@@ -354,7 +354,7 @@ class ImportOut(BaseModel):
 
     id: str
     name: str
-    layout: str = Field(description="the importer that runs: rosbag or stray")
+    layout: str = Field(description="the importer that runs: images, video, stray or rosbag")
     state: JobState
     stage: str | None = Field(description="queued, starting, importing, checking, storing, then done, failed or "
                               "cancelled")

@@ -43,9 +43,9 @@ UPLOAD_BODY = {
                         "description": "a .zip of the scene directory (transforms.json), or of a COLMAP "
                         "project (sparse/0 or sparse with cameras.bin|txt, and images/) or a ScanNet export "
                         "(color/, depth/, pose/, intrinsic/), imported into a scene; or a capture whose import "
-                        "is queued (answered 202 with the import): a ROS 1 .bag, a ROS 2 bag's .mcap or .db3, "
-                        "or a .zip of a ROS 2 bag folder or of a Stray Scanner recording; see "
-                        "docs/scene-format.md",
+                        "is queued (answered 202 with the import): a video (MP4, MOV), a ROS 1 .bag, a ROS 2 "
+                        "bag's .mcap or .db3, or a .zip of photos alone (posed by structure from motion), of a ROS "
+                        "2 bag folder or of a Stray Scanner recording; see docs/scene-format.md",
                     },
                     "files": {
                         "type": "array",
@@ -87,8 +87,8 @@ def _split_rule(value: object, is_zip: bool):
     responses={202: {"model": ImportOut, "description": "a capture whose import is queued: follow it at "
                      "/imports/{id}; its scene exists once it has succeeded"}},
     openapi_extra={"requestBody": UPLOAD_BODY},
-    summary="Upload a scene (zip in field 'file', or its files in fields 'files'); COLMAP and ScanNet zips are "
-    "imported, ROS bags queued for import",
+    summary="Upload a scene (zip in field 'file', or its files in fields 'files'); COLMAP, ScanNet, Record3D and "
+    "Polycam zips are imported; videos, photos, ROS bags and Stray recordings are queued for import",
 )
 async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDep) -> SceneOut | JSONResponse:
     slots = _upload_slots(request, settings)

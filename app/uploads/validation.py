@@ -435,7 +435,8 @@ def _validate_staged(root: Path, settings: Settings) -> dict:
             422,
             f"{TRANSFORMS} not found at the top of the scene (or inside one top-level folder), nor a COLMAP "
             "model (sparse/0/cameras.bin|txt), a ScanNet export (color/, pose/, intrinsic/), a Record3D export "
-            "(metadata.json, rgb/, depth/) or a Polycam export (keyframes/) to import",
+            "(metadata.json, rgb/, depth/), a Polycam export (keyframes/), a Stray Scanner recording (rgb.mp4, "
+            "odometry.csv), a ROS 2 bag folder (metadata.yaml) or photos alone (.jpg, .png) to import",
         )
     check_transforms_size(PurePosixPath(TRANSFORMS), transforms.stat().st_size, settings)
     check_declared_sizes(root, settings)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from capture_fixtures import redkitchen_rgb, write_redkitchen_photos, write_video
 from phone_app_fixtures import redkitchen_frames, write_stray
 from rosbag_fixtures import REDKITCHEN, BagSpec, make_frames, write_bag
 from service_fixtures import start_service, wait_for, zip_scene
@@ -92,6 +93,28 @@ def test_a_zipped_stray_scanner_recording_is_queued_and_imported_with_its_depth(
     assert done["state"] == "succeeded", done["error"]
     assert done["summary"]["format"] == "stray" and done["summary"]["depth_frames"] > 0
     assert client.get(done["scene_url"]).json()["summary"]["depth"]
+
+
+def test_a_zip_of_photos_is_posed_by_structure_from_motion_in_a_worker(client, tmp_path):
+    photos = write_redkitchen_photos(tmp_path / "photos", range(0, 60, 3))
+    response = client.post("/scenes", files={"file": ("kitchen.zip", zip_scene(photos, "kitchen"))})
+    assert response.status_code == 202, response.text
+    assert response.json()["layout"] == "images"
+    done = _finished(client, response.json()["id"])
+    assert done["state"] == "succeeded", done["error"]
+    assert done["summary"]["format"] == "images" and done["summary"]["sfm"]["registered"] >= 15
+    scene = client.get(done["scene_url"]).json()
+    assert scene["summary"]["prior"] is not None  # the sparse points, with sigma from the reprojection errors
+
+
+def test_a_phone_video_sent_as_one_file_is_picked_and_posed_in_a_worker(client, tmp_path):
+    video = write_video(tmp_path / "walk.mp4", [redkitchen_rgb(i) for i in range(0, 60, 3)])
+    response = client.post("/scenes", files={"file": ("walk.mp4", video.read_bytes())})
+    assert response.status_code == 202, response.text
+    assert (response.json()["layout"], response.json()["name"]) == ("video", "walk")
+    done = _finished(client, response.json()["id"])
+    assert done["state"] == "succeeded", done["error"]
+    assert done["summary"]["format"] == "video" and done["summary"]["video"]["frames_picked"] == 20
 
 
 def test_a_bag_without_a_camera_fails_its_import_naming_the_bag_and_stores_nothing(client, service, frames, tmp_path):

@@ -36,10 +36,11 @@ __all__ = ["LAYOUTS", "QUEUED_LAYOUTS", "PaperSplitRule", "RosbagOptions", "capt
            "detect_layout", "import_colmap", "import_images", "import_polycam", "import_record3d", "import_rosbag",
            "import_scannet", "import_stray", "import_video", "paper_splits", "run_import"]
 
-LAYOUTS = ("colmap", "scannet", "record3d", "polycam", "stray", "rosbag")
+LAYOUTS = ("colmap", "scannet", "record3d", "polycam", "stray", "rosbag", "images", "video")
 # Layouts whose import reads a whole capture (a phone's video, a robot's log) or solves for poses: the service
 # queues them as import jobs instead of importing them while the upload's request waits.
-QUEUED_LAYOUTS = ("stray", "rosbag")
+QUEUED_LAYOUTS = ("stray", "rosbag", "images", "video")
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")  # a folder of only these (at its top) is photos to pose
 COLMAP_MODEL_DIRS = ("sparse/0", "sparse", "")
 SCANNET_FOLDERS = ("color", "pose", "intrinsic")
 STRAY_FILES = ("rgb.mp4", "odometry.csv")
@@ -52,7 +53,9 @@ CAPTURE_FILES = {
     b"\x89MCAP0\r\n": ("rosbag", ".mcap"),
     b"SQLite format 3\x00": ("rosbag", ".db3"),
 }
-CAPTURE_MAGIC_BYTES = max(len(magic) for magic in CAPTURE_FILES)
+VIDEO_BOX = b"ftyp"  # an MP4 or QuickTime file: its first box, at byte 4, is ``ftyp`` with the brand after it
+QUICKTIME_BRAND = b"qt  "
+CAPTURE_MAGIC_BYTES = max(12, *(len(magic) for magic in CAPTURE_FILES))
 
 
 def detect_layout(paths: Iterable[PurePosixPath | str]) -> str | None:
@@ -63,7 +66,8 @@ def detect_layout(paths: Iterable[PurePosixPath | str]) -> str | None:
     ``rgb/`` (at the top or in ``EXR_RGBD/``); a Polycam export camera files in ``cameras/`` or
     ``corrected_cameras/`` (at the top or in ``keyframes/``); a Stray Scanner recording ``rgb.mp4`` and
     ``odometry.csv`` at the top; a ROS 2 bag folder ``metadata.yaml`` and its ``.db3`` or ``.mcap`` storage at
-    the top. (A ``transforms.json`` at the top is a scene already; the caller checks that first.)
+    the top; photos to pose (``images``) JPEG or PNG files alone, all at the top. (A ``transforms.json`` at the
+    top is a scene already; the caller checks that first.)
     """
     paths = {PurePosixPath(p) for p in paths}
     cameras = {PurePosixPath(d) / f"cameras.{ext}" for d in COLMAP_MODEL_DIRS for ext in ("bin", "txt")}
@@ -85,13 +89,18 @@ def detect_layout(paths: Iterable[PurePosixPath | str]) -> str | None:
     top_files = {p for p in paths if len(p.parts) == 1}
     if PurePosixPath(ROS2_BAG_METADATA) in top_files and any(p.suffix in ROS2_STORAGE_SUFFIXES for p in top_files):
         return "rosbag"
+    if paths and paths == top_files and all(p.suffix.lower() in PHOTO_SUFFIXES for p in paths):
+        return "images"
     return None
 
 
 def capture_file_layout(head: bytes) -> tuple[str, str] | None:
     """The layout of a capture sent as one file and the suffix its file needs, from its first
     :data:`CAPTURE_MAGIC_BYTES` bytes (nothing else is read): ``("rosbag", ".bag")`` for a ROS 1 bag, ``.mcap``
-    or ``.db3`` for a ROS 2 bag's storage; None for anything else (a zip, say)."""
+    or ``.db3`` for a ROS 2 bag's storage, ``("video", ".mp4")`` or ``".mov"`` for an MP4 or QuickTime video (as
+    phones write them); None for anything else (a zip, say)."""
+    if head[4:8] == VIDEO_BOX:
+        return ("video", ".mov" if head[8:12] == QUICKTIME_BRAND else ".mp4")
     return next((kind for magic, kind in CAPTURE_FILES.items() if head.startswith(magic)), None)
 
 
@@ -110,6 +119,10 @@ def run_import(layout: str, src: str | Path, out: str | Path, splits: PaperSplit
         return import_stray(src, out, splits)
     if layout == "rosbag":
         return import_rosbag(src, out, splits)
+    if layout == "images":
+        return import_images(src, out, splits)
+    if layout == "video":
+        return import_video(src, out, splits=splits)
     raise ValueError(f"unknown layout {layout!r} (one of {', '.join(LAYOUTS)})")
 
 
