@@ -48,6 +48,7 @@ SCENES_PER_CLIENT = 2
 API_RSS_GROWTH = 64 * MiB
 TINY = {"max_iters": 3, "compile": False, "downscale": 2}
 VIDEO = {"path": "orbit", "frames": 2, "width": 16, "height": 12}
+LONG_JOB = {"max_seconds": 30, "compile": False, "downscale": 2}  # training when its worker is killed
 LONG_VIDEO = {"path": "orbit", "frames": 600, "width": 32, "height": 24}  # running when its worker is killed
 FINAL = ("succeeded", "failed", "cancelled")
 SETTINGS = {
@@ -165,6 +166,16 @@ def _running(client: httpx.Client, queue: str) -> str | None:
     return next((o["id"] for o in outputs if o["state"] == "running"), None)
 
 
+def _request_long_job(client: httpx.Client, tally: Tally) -> None:
+    with tally.lock:
+        scenes = list(tally.scenes)
+    if scenes:
+        response = _post(client, tally, "train", f"/scenes/{scenes[0]}/jobs", json=LONG_JOB)
+        if response is not None and response.status_code == 202:
+            with tally.lock:
+                tally.jobs.append(response.json()["id"])
+
+
 def _request_long_video(client: httpx.Client, tally: Tally) -> None:
     succeeded = [j["id"] for j in client.get("/jobs", params={"limit": 1000}).json() if j["state"] == "succeeded"]
     if succeeded:
@@ -176,14 +187,17 @@ def _request_long_video(client: httpx.Client, tally: Tally) -> None:
 
 def _chaos(service: Service, redis: RedisServer, tally: Tally, started: float, log: list[str]) -> None:
     """Each fault of CHAOS at its time; a worker is killed while it runs a job or an output when one starts
-    within ``RUNNING_WAIT_S`` (the log says what the kill interrupted). Before the outputs worker is killed a
-    longer video (``LONG_VIDEO``) is requested, so that one is running."""
+    within ``RUNNING_WAIT_S`` (the log says what the kill interrupted). Before the train worker is killed a longer
+    job (``LONG_JOB``), and before the outputs worker a longer video (``LONG_VIDEO``), is requested, so that one is
+    running (the tiny jobs and videos of the load finish in under a second on an idle machine)."""
     with service.client() as client:
         for at, what in CHAOS:
             time.sleep(max(0.0, started + at - time.monotonic()))
             verb, name = what.split()
             if verb == "kill":
                 interrupted = None
+                if name == "train":
+                    _request_long_job(client, tally)
                 if name == "outputs":
                     _request_long_video(client, tally)
                 if name in ("train", "outputs"):
