@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import httpx
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
@@ -310,6 +311,19 @@ def wait_until_succeeded(service: Service, client: httpx.Client, job_id: str, ti
             raise AssertionError(f"job {job_id} is {job['state']} ({job['error']})\n{service.logs()}")
         time.sleep(0.5)
     return job
+
+
+FINAL_STATES = ("succeeded", "failed", "cancelled")
+
+
+def wait_until_final(service: Service, client: httpx.Client, path: str, timeout_s: float) -> dict:
+    """Poll ``GET path`` (a job, output or import) until its state is final; its JSON. The test fails with the
+    service's logs when it is not final within ``timeout_s``."""
+    try:
+        return wait_for(lambda: (row := client.get(path).json())["state"] in FINAL_STATES and row, timeout_s,
+                        f"{path} to finish", 0.5)
+    except AssertionError:
+        pytest.fail(f"{path} did not finish\n{service.logs()}")
 
 
 def first_pose(scene_dir: Path, split_key: str = "test_filenames") -> list[list[float]]:

@@ -32,11 +32,23 @@ class SceneRow(Base):
     summary: Mapped[dict] = mapped_column(JSON)
 
 
+class LeaseColumns:
+    """The columns of a row on the lease lifecycle (:mod:`app.core.lease`), copied into each table of queued work:
+    the cancel flag, ``attempt`` (the fencing token), ``requeues``, the claiming worker and its lease's
+    ``heartbeat_at``."""
+
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    attempt: Mapped[int] = mapped_column(Integer, default=0)
+    requeues: Mapped[int] = mapped_column(Integer, default=0)
+    worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+
 # A declarative mixin: its columns are copied into JobRow (one per stored ProgressEvent field).
 ProgressColumns = type("ProgressColumns", (), progress_columns())
 
 
-class JobRow(ProgressColumns, Base):
+class JobRow(ProgressColumns, LeaseColumns, Base):
     """A training job and everything the API reports about it; the run lives in ``<data_dir>/runs/<id>``.
 
     Besides the columns below it has one column per field of :data:`app.core.progress.PROGRESS_FIELDS`.
@@ -55,17 +67,12 @@ class JobRow(ProgressColumns, Base):
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
-    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
-    attempt: Mapped[int] = mapped_column(Integer, default=0)
-    requeues: Mapped[int] = mapped_column(Integer, default=0)
-    worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
-    heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)
 
 
 OUTPUT_KINDS = ("video", "mesh", "pointcloud")
 
 
-class OutputRow(Base):
+class OutputRow(LeaseColumns, Base):
     """An output job: a video, mesh or point cloud made from a trained job's model by an ``outputs`` worker.
 
     The file lives in ``<data_dir>/runs/<job_id>/outputs/<id>/<file_name>`` (and in the object store under
@@ -92,14 +99,9 @@ class OutputRow(Base):
     created_at: Mapped[float] = mapped_column(Float)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
-    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
-    attempt: Mapped[int] = mapped_column(Integer, default=0)
-    requeues: Mapped[int] = mapped_column(Integer, default=0)
-    worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
-    heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)
 
 
-class ImportRow(Base):
+class ImportRow(LeaseColumns, Base):
     """A capture import: a raw capture (a ROS bag...) that a worker turns into a scene, which exists only once the
     import has succeeded (``scene_id``).
 
@@ -126,8 +128,3 @@ class ImportRow(Base):
     created_at: Mapped[float] = mapped_column(Float)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
-    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
-    attempt: Mapped[int] = mapped_column(Integer, default=0)
-    requeues: Mapped[int] = mapped_column(Integer, default=0)
-    worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
-    heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)

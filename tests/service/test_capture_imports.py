@@ -11,13 +11,12 @@ import pytest
 from capture_fixtures import redkitchen_rgb, write_redkitchen_photos, write_video
 from phone_app_fixtures import redkitchen_frames, write_stray
 from rosbag_fixtures import REDKITCHEN, BagSpec, make_frames, write_bag
-from service_fixtures import start_service, wait_for, zip_scene
+from service_fixtures import start_service, wait_until_final, zip_scene
 
 pytestmark = [
     pytest.mark.skipif(not (REDKITCHEN / "transforms.json").is_file(), reason="shared redkitchen data not present"),
     pytest.mark.timeout(600),
 ]
-FINAL = ("succeeded", "failed", "cancelled")
 
 
 @pytest.fixture(scope="module")
@@ -44,9 +43,6 @@ def _storage(folder: Path) -> Path:
     return storage
 
 
-def _finished(client, import_id: str) -> dict:
-    return wait_for(lambda: (row := client.get(f"/imports/{import_id}").json())["state"] in FINAL and row, 300,
-                    f"import {import_id} to finish", 0.5)
 
 
 def test_a_bag_sent_as_one_file_is_imported_by_a_worker_into_a_scene_that_trains(client, service, frames, tmp_path):
@@ -57,7 +53,7 @@ def test_a_bag_sent_as_one_file_is_imported_by_a_worker_into_a_scene_that_trains
     assert response.headers["location"] == f"/imports/{queued['id']}"
     assert (queued["layout"], queued["name"], queued["scene_id"]) == ("rosbag", "robot", None)
     assert queued["size_bytes"] == bag.stat().st_size
-    done = _finished(client, queued["id"])
+    done = wait_until_final(service, client, f"/imports/{queued['id']}", 300)
     assert (done["state"], done["stage"], done["progress"], done["error"]) == ("succeeded", "done", 1.0, None)
     assert done["summary"]["format"] == "rosbag" and done["summary"]["frames"] >= 2
     assert done["scene_url"] == f"/scenes/{done['scene_id']}"
@@ -66,53 +62,52 @@ def test_a_bag_sent_as_one_file_is_imported_by_a_worker_into_a_scene_that_trains
     assert scene["summary"]["frames"] == done["summary"]["frames"] and scene["summary"]["depth"]
     assert not list((service.data_dir / "imports").iterdir())  # the raw capture went with the import
     job = client.post(f"/scenes/{done['scene_id']}/jobs", json={"max_iters": 2}).json()
-    trained = wait_for(lambda: (j := client.get(f"/jobs/{job['id']}").json())["state"] in FINAL and j, 300,
-                       "the job on the imported scene", 0.5)
+    trained = wait_until_final(service, client, f"/jobs/{job['id']}", 300)
     assert trained["state"] == "succeeded", trained
 
 
-def test_a_zipped_ros2_bag_folder_is_queued_and_takes_the_paper_splits(client, tmp_path):
+def test_a_zipped_ros2_bag_folder_is_queued_and_takes_the_paper_splits(client, service, tmp_path):
     folder = write_bag(tmp_path / "kitchen", BagSpec(make_frames(step=15, n=66), scale=8), "sqlite3")
     response = client.post("/scenes", files={"file": ("kitchen.zip", zip_scene(folder, "kitchen"))},
                            data={"splits": "paper"})
     assert response.status_code == 202, response.text
     assert response.json()["params"] == {"splits": "paper"}
-    done = _finished(client, response.json()["id"])
+    done = wait_until_final(service, client, f"/imports/{response.json()['id']}", 300)
     assert done["state"] == "succeeded", done["error"]
     assert done["summary"]["splits"]["extrapolation"] > 0
     scene = client.get(done["scene_url"]).json()
     assert scene["summary"]["splits"]["extrapolation"] == done["summary"]["splits"]["extrapolation"]
 
 
-def test_a_zipped_stray_scanner_recording_is_queued_and_imported_with_its_depth(client, tmp_path):
+def test_a_zipped_stray_scanner_recording_is_queued_and_imported_with_its_depth(client, service, tmp_path):
     recording = write_stray(tmp_path / "stray", redkitchen_frames(12))
     response = client.post("/scenes", files={"file": ("phone.zip", zip_scene(recording, "phone"))})
     assert response.status_code == 202, response.text
     assert response.json()["layout"] == "stray"
-    done = _finished(client, response.json()["id"])
+    done = wait_until_final(service, client, f"/imports/{response.json()['id']}", 300)
     assert done["state"] == "succeeded", done["error"]
     assert done["summary"]["format"] == "stray" and done["summary"]["depth_frames"] > 0
     assert client.get(done["scene_url"]).json()["summary"]["depth"]
 
 
-def test_a_zip_of_photos_is_posed_by_structure_from_motion_in_a_worker(client, tmp_path):
+def test_a_zip_of_photos_is_posed_by_structure_from_motion_in_a_worker(client, service, tmp_path):
     photos = write_redkitchen_photos(tmp_path / "photos", range(0, 60, 3))
     response = client.post("/scenes", files={"file": ("kitchen.zip", zip_scene(photos, "kitchen"))})
     assert response.status_code == 202, response.text
     assert response.json()["layout"] == "images"
-    done = _finished(client, response.json()["id"])
+    done = wait_until_final(service, client, f"/imports/{response.json()['id']}", 300)
     assert done["state"] == "succeeded", done["error"]
     assert done["summary"]["format"] == "images" and done["summary"]["sfm"]["registered"] >= 15
     scene = client.get(done["scene_url"]).json()
     assert scene["summary"]["prior"] is not None  # the sparse points, with sigma from the reprojection errors
 
 
-def test_a_phone_video_sent_as_one_file_is_picked_and_posed_in_a_worker(client, tmp_path):
+def test_a_phone_video_sent_as_one_file_is_picked_and_posed_in_a_worker(client, service, tmp_path):
     video = write_video(tmp_path / "walk.mp4", [redkitchen_rgb(i) for i in range(0, 60, 3)])
     response = client.post("/scenes", files={"file": ("walk.mp4", video.read_bytes())})
     assert response.status_code == 202, response.text
     assert (response.json()["layout"], response.json()["name"]) == ("video", "walk")
-    done = _finished(client, response.json()["id"])
+    done = wait_until_final(service, client, f"/imports/{response.json()['id']}", 300)
     assert done["state"] == "succeeded", done["error"]
     assert done["summary"]["format"] == "video" and done["summary"]["video"]["frames_picked"] == 20
 
@@ -122,7 +117,7 @@ def test_a_bag_without_a_camera_fails_its_import_naming_the_bag_and_stores_nothi
     bag = write_bag(tmp_path / "nocamera.bag", BagSpec(frames[:3], scale=4, colour="none"), "ros1")
     response = client.post("/scenes", files={"file": ("nocamera.bag", bag.read_bytes())})
     assert response.status_code == 202, response.text
-    done = _finished(client, response.json()["id"])
+    done = wait_until_final(service, client, f"/imports/{response.json()['id']}", 300)
     assert done["state"] == "failed" and done["scene_id"] is None
     assert done["error"].startswith(f"imports/{done['id']}/capture.bag: no camera topic")
     assert "\n" not in done["error"] and str(service.data_dir) not in done["error"]
@@ -130,10 +125,10 @@ def test_a_bag_without_a_camera_fails_its_import_naming_the_bag_and_stores_nothi
     assert not list((service.data_dir / "imports").iterdir())
 
 
-def test_bytes_that_only_start_like_a_bag_fail_as_an_unreadable_bag(client, tmp_path):
+def test_bytes_that_only_start_like_a_bag_fail_as_an_unreadable_bag(client, service, tmp_path):
     response = client.post("/scenes", files={"file": ("x.bag", b"#ROSBAG V2.0\n" + b"\x00" * 64)})
     assert response.status_code == 202, response.text
-    done = _finished(client, response.json()["id"])
+    done = wait_until_final(service, client, f"/imports/{response.json()['id']}", 300)
     assert done["state"] == "failed" and "not a readable ROS 1 or ROS 2 bag" in done["error"]
 
 

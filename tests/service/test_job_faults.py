@@ -21,7 +21,7 @@ import time
 import httpx
 import pytest
 import redis as redis_client
-from service_fixtures import Service, start_redis, start_service, upload_scene, wait_for
+from service_fixtures import Service, start_redis, start_service, upload_scene, wait_for, wait_until_final
 
 from app.core import jobstore
 from app.core.settings import Settings
@@ -48,19 +48,8 @@ def _submit(client: httpx.Client, scene_id: str) -> str:
     return response.json()["id"]
 
 
-def _wait_final(service: Service, client: httpx.Client, job_id: str) -> dict:
-    def final():
-        job = client.get(f"/jobs/{job_id}").json()
-        return job if job["state"] in ("succeeded", "failed", "cancelled") else None
-
-    try:
-        return wait_for(final, JOB_TIMEOUT_S, f"job {job_id} to finish", 0.5)
-    except AssertionError:
-        pytest.fail(f"job {job_id} did not finish\n{service.logs()}")
-
-
 def _ran_once(service: Service, client: httpx.Client, job_id: str) -> None:
-    job = _wait_final(service, client, job_id)
+    job = wait_until_final(service, client, f"/jobs/{job_id}", JOB_TIMEOUT_S)
     assert job["state"] == "succeeded", f"{job['error']}\n{service.logs()}"
     assert job["attempt"] == 1 and job["requeues"] == 0  # one claim: every other copy was refused
 
@@ -113,7 +102,7 @@ def test_a_job_whose_message_was_never_sent_is_sent_by_the_sweep(embedded, clien
 def test_a_job_that_kills_its_worker_fails_after_three_deaths_and_the_queue_moves_on(embedded, client, scenes):
     poison = _submit(client, scenes["poison"])
     good = _submit(client, scenes["good"])
-    failed = _wait_final(embedded, client, poison)
+    failed = wait_until_final(embedded, client, f"/jobs/{poison}", JOB_TIMEOUT_S)
     assert failed["state"] == "failed", embedded.logs()
     assert failed["error"].startswith("the worker died 3 times while running this job (last: ")
     assert "signal 9" in failed["error"] and failed["attempt"] == 3

@@ -17,9 +17,8 @@ from __future__ import annotations
 import errno
 from collections.abc import Iterator
 
-import httpx
 import pytest
-from service_fixtures import Service, start_service, upload_scene, wait_for
+from service_fixtures import Service, start_service, upload_scene, wait_for, wait_until_final
 from synthetic_fixtures import make_micro_scene
 
 from voxnerf.files import CHECKPOINT
@@ -82,23 +81,12 @@ def service(tmp_path_factory) -> Iterator[Service]:
     svc.stop()
 
 
-def _final(service: Service, client: httpx.Client, job_id: str) -> dict:
-    def final():
-        job = client.get(f"/jobs/{job_id}").json()
-        return job if job["state"] in ("succeeded", "failed", "cancelled") else None
-
-    try:
-        return wait_for(final, JOB_TIMEOUT_S, f"job {job_id} to finish", 0.5)
-    except AssertionError:
-        pytest.fail(f"job {job_id} did not finish\n{service.logs()}")
-
-
 def test_a_full_disk_keeps_the_last_checkpoint_and_the_job_renderable(service, tmp_path_factory):
     with service.client() as client:
         scene_id = upload_scene(client, make_micro_scene(tmp_path_factory, "disk-full-scene"))["id"]
         response = client.post(f"/scenes/{scene_id}/jobs", json=OPTIONS)
         assert response.status_code == 202, response.text
-        job = _final(service, client, response.json()["id"])
+        job = wait_until_final(service, client, f"/jobs/{response.json()['id']}", JOB_TIMEOUT_S)
         assert job["state"] == "cancelled", f"{job['state']}: {job['error']}\n{service.logs()}"
         assert "the disk filled up" in job["error"] and "No space left on device" in job["error"], job["error"]
         run_dir = service.data_dir / "runs" / job["id"]
@@ -114,7 +102,7 @@ def test_a_full_disk_keeps_the_last_checkpoint_and_the_job_renderable(service, t
 
         second = client.post(f"/scenes/{scene_id}/jobs", json=OPTIONS)
         assert second.status_code == 202, second.text
-        failed = _final(service, client, second.json()["id"])
+        failed = wait_until_final(service, client, f"/jobs/{second.json()['id']}", JOB_TIMEOUT_S)
     assert failed["state"] == "failed", f"{failed['state']}: {failed['error']}\n{service.logs()}"
     assert "before its first checkpoint: nothing is kept" in failed["error"], failed["error"]
     assert not (service.data_dir / "runs" / failed["id"] / CHECKPOINT).exists()

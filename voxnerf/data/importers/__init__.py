@@ -36,7 +36,18 @@ __all__ = ["LAYOUTS", "QUEUED_LAYOUTS", "PaperSplitRule", "RosbagOptions", "capt
            "detect_layout", "import_colmap", "import_images", "import_polycam", "import_record3d", "import_rosbag",
            "import_scannet", "import_stray", "import_video", "paper_splits", "run_import"]
 
-LAYOUTS = ("colmap", "scannet", "record3d", "polycam", "stray", "rosbag", "images", "video")
+# Each layout's importer with its default options, called as ``importer(src, out, splits)``.
+IMPORTERS = {
+    "colmap": import_colmap,
+    "scannet": import_scannet,
+    "record3d": import_record3d,
+    "polycam": import_polycam,
+    "stray": import_stray,
+    "rosbag": import_rosbag,
+    "images": import_images,
+    "video": lambda src, out, splits: import_video(src, out, splits=splits),
+}
+LAYOUTS = tuple(IMPORTERS)
 # Layouts whose import reads a whole capture (a phone's video, a robot's log) or solves for poses: the service
 # queues them as import jobs instead of importing them while the upload's request waits.
 QUEUED_LAYOUTS = ("stray", "rosbag", "images", "video")
@@ -107,22 +118,9 @@ def capture_file_layout(head: bytes) -> tuple[str, str] | None:
 def run_import(layout: str, src: str | Path, out: str | Path, splits: PaperSplitRule | None = None) -> dict:
     """Run the importer of ``layout`` (one of LAYOUTS) from ``src`` into ``out``, with each importer's default
     options (a bag's topics found automatically); its summary."""
-    if layout == "colmap":
-        return import_colmap(src, out, splits)
-    if layout == "scannet":
-        return import_scannet(src, out, splits)
-    if layout == "record3d":
-        return import_record3d(src, out, splits)
-    if layout == "polycam":
-        return import_polycam(src, out, splits)
-    if layout == "stray":
-        return import_stray(src, out, splits)
-    if layout == "rosbag":
-        return import_rosbag(src, out, splits)
-    if layout == "images":
-        return import_images(src, out, splits)
-    if layout == "video":
-        return import_video(src, out, splits=splits)
+    importer = IMPORTERS.get(layout)
+    if importer is not None:
+        return importer(src, out, splits)
     raise ValueError(f"unknown layout {layout!r} (one of {', '.join(LAYOUTS)})")
 
 
