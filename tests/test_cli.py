@@ -151,3 +151,10 @@ def test_a_set_of_an_unknown_dotted_name_is_a_one_line_error(tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "model.lr" in err
+
+
+def test_synth_with_too_few_frames_is_a_one_line_error_writing_nothing(tmp_path, capsys):
+    assert main(["synth", str(tmp_path / "room"), "--frames", "24"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("voxnerf: error: voxnerf synth --frames 24: only 0 training frame")
+    assert not (tmp_path / "room").exists()

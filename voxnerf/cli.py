@@ -354,7 +354,10 @@ def _synth(args: argparse.Namespace) -> int:
 
     spec = RoomSpec(width=args.width, height=args.height, n_frames=args.frames, prior_kind=args.prior,
                     prior_sigma=args.sigma, seed=args.seed)
-    make_room_scene(Path(args.out), spec)
+    try:
+        make_room_scene(Path(args.out), spec)
+    except ValueError as err:  # a spec the room's camera path or splits cannot be made from
+        raise VoxNeRFError(f"voxnerf synth --frames {args.frames}: {err}") from None
     print(f"wrote {args.out}")
     return 0
 
