@@ -11,6 +11,8 @@ from synthetic_fixtures import make_micro_scene, micro_config
 
 import voxnerf.trainer
 from voxnerf.config import TrainConfig
+from voxnerf.files import CHECKPOINT
+from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.records import ProgressEvent, StageRecord, TrainReport
 from voxnerf.training.run import REPORT, throughput, train
 
@@ -71,3 +73,23 @@ def test_the_trainer_facade_keeps_the_old_names():
     for name in ("train", "Budget", "eval_views_of", "REPORT", "TrainingDiverged", "TrainingPixels"):
         assert hasattr(voxnerf.trainer, name), name
     assert voxnerf.trainer.train is train
+
+
+def test_every_event_names_the_checkpoint_the_run_directory_holds_then(tiny_room, tmp_path):
+    """``checkpoint_iteration`` (what the service's viewer renders from while a job trains): None until the first
+    save, then always the iteration of the complete checkpoint on disk; a resumed run starts from its checkpoint's."""
+    seen: list[tuple[str, int | None, int | None]] = []
+
+    def check(event: ProgressEvent) -> None:
+        path = tmp_path / CHECKPOINT
+        on_disk = int(load_checkpoint(path)["iteration"]) if path.is_file() else None
+        seen.append((event.stage, event.checkpoint_iteration, on_disk))
+
+    train(tiny_room, tmp_path, _config(final_eval=False, checkpoint_every_s=1e-6), on_progress=check,
+          progress_bar=False)
+    assert all(named == on_disk for _, named, on_disk in seen), seen
+    assert seen[0] == ("load_scene", None, None) and seen[-1] == ("done", 3, 3)
+    seen.clear()
+    train(tiny_room, tmp_path, _config(max_iters=5, final_eval=False), on_progress=check, progress_bar=False)
+    assert seen[0] == ("load_scene", 3, 3) and seen[-1] == ("done", 5, 5)
+    assert all(named == on_disk for _, named, on_disk in seen), seen

@@ -133,13 +133,16 @@ class OccupancyGridUpdate(Callback):
 class ProgressEvents(Callback):
     """``on_progress`` events: at every stage, after each progress evaluation and at the end (forced), and
     while training at most one per ``interval`` seconds. Also the run's stage log (:meth:`stage`) and its
-    training-loss series (the report's ``loss_series``: at most a point per ``train`` event, :class:`LossSeries`)."""
+    training-loss series (the report's ``loss_series``: at most a point per ``train`` event, :class:`LossSeries`).
+    Every event carries ``checkpoint_iteration``, the iteration of the run's last complete checkpoint (set by the
+    run after each save, and from the checkpoint a resumed run starts from)."""
 
     def __init__(self, on_progress: ProgressCallback | None, cfg: TrainConfig, budget: Budget,
                  report: TrainReport, clock: Clock = time.perf_counter, interval: float = 1.0) -> None:
         self.on_progress, self.cfg, self.budget, self.report = on_progress, cfg, budget, report
         self.clock, self.interval, self.last = clock, interval, 0.0
         self.series = LossSeries(gap=interval)
+        self.checkpoint_iteration: int | None = None
 
     def stage(self, record: StageRecord, iteration: int) -> None:
         """Add a finished stage to the report and tell ``on_progress``."""
@@ -174,7 +177,7 @@ class ProgressEvents(Callback):
             progress=1.0 if stage == "done" else progress, eta_s=eta,
             loss=loss if loss is not None and math.isfinite(loss) else None,
             history=list(self.report.history), stages=list(self.report.stages),
-            loss_series=list(self.series.points),
+            loss_series=list(self.series.points), checkpoint_iteration=self.checkpoint_iteration,
         )
 
 

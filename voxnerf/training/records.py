@@ -78,6 +78,9 @@ class ProgressEvent(BaseModel):
     loss_series: list[LossPoint] = Field(
         [], description=f"the training loss against training seconds: [seconds, mean loss of the steps since the "
         f"previous point] pairs, evenly thinned to at most {LOSS_SERIES_MAX_POINTS} points")
+    checkpoint_iteration: int | None = Field(
+        None, description="the iteration of the run's last complete checkpoint, which renders of an unfinished run "
+        "use; None before the first")
 
 
 class LossSeries:

@@ -129,6 +129,7 @@ def train(
     report = TrainReport(config=cfg.flat(), device=str(device))
     run = Run(cfg, run_path, device, budget, report, ProgressEvents(on_progress, cfg, budget, report),
               should_stop or never, may_write or always)
+    run.events.checkpoint_iteration = previous["iteration"] if previous else None
     try:
         setup = _set_up(run, scene_dir, previous)
     except StoppedInSetUp:
@@ -254,11 +255,13 @@ def _schedules(cfg: TrainConfig, built: stages.ModelStage, step: TrainStep,
 
 
 def _fenced(run: Run, save: Callable[[int], None]) -> Callable[[int], None]:
-    """``save`` behind the run's fence (:meth:`Run.fence`)."""
+    """``save`` behind the run's fence (:meth:`Run.fence`); once it saved, the run's progress events name
+    ``iteration`` as the last complete checkpoint."""
 
     def fenced_save(iteration: int) -> None:
         run.fence()
         save(iteration)
+        run.events.checkpoint_iteration = iteration
 
     return fenced_save
 
