@@ -16,9 +16,10 @@ DEFAULT_INTRINSICS = Intrinsics(fl_x=20.0, fl_y=20.0, cx=8.0, cy=6.0, width=16, 
 DEPTH_UNIT_SCALE = 0.001
 
 
-def write_tiny_run(run_dir: Path, seed: int = 0) -> Path:
+def write_tiny_run(run_dir: Path, seed: int = 0, iteration: int = 0) -> Path:
     """``run_dir/checkpoint.pt`` of a freshly initialised model (uniform sampler, eager) over the box
-    ``[-2, 2]^3`` in scene units, with :data:`DEFAULT_INTRINSICS` as its default camera."""
+    ``[-2, 2]^3`` in scene units, with :data:`DEFAULT_INTRINSICS` as its default camera, saved as the checkpoint
+    of ``iteration``."""
     torch.manual_seed(seed)
     config = TrainConfig(max_iters=1, device="cpu", sampler="uniform", compile=False, hash_kernel=False)
     transform = SceneTransform((0.0, 0.0, 0.0), 0.5)
@@ -28,7 +29,7 @@ def write_tiny_run(run_dir: Path, seed: int = 0) -> Path:
     torch.save(
         {
             "model": model.state_dict(),
-            "iteration": 0,
+            "iteration": iteration,
             "default_intrinsics": DEFAULT_INTRINSICS.as_dict(),
             "depth_unit_scale": DEPTH_UNIT_SCALE,
             "scene_dir": None,

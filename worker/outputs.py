@@ -3,7 +3,7 @@
 The task holds the output (:func:`worker.lease.hold`: claimed in the job store, fenced by its attempt, its lease
 renewed every ``heartbeat_s`` and its cancel flag turned into ``should_stop``, so a cancelled output stops at its
 next frame or view), loads the trained job's model through this process's model cache
-(:func:`worker.model_cache.model_cache`; with an object store the run's checkpoint is fetched first), and runs the
+(:func:`worker.model_cache.job_model`; with an object store the run's checkpoint is fetched first), and runs the
 engine: :func:`voxnerf.inference.video.render_path` for a video, :func:`voxnerf.inference.export.export_geometry`
 for a mesh or point cloud. Progress (frames or views done, ETA) is written at most every ``progress_interval_s``.
 The engine writes each file under a temporary name and renames it when complete; a failed or cancelled output's
@@ -35,7 +35,7 @@ from voxnerf.inference.export import export_geometry
 from voxnerf.inference.render import TrainedModel, scene_as_trained
 from voxnerf.inference.video import render_path
 from worker.lease import Lease, hold, leased_task
-from worker.model_cache import model_cache
+from worker.model_cache import job_model
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
         with (storage.cache_entry_in_use(settings, storage.SCENES, job.scene_id),
               storage.cache_entry_in_use(settings, storage.RUNS, row.job_id)):
             storage.prune_cache(settings)  # room for what is fetched next (an object store's cache only)
-            trained = model_cache().get(storage.ensure_run(settings, row.job_id, refresh=False), settings.device)
+            trained = job_model(settings, row.job_id, job.checkpoint_iteration)
             make = make_video if row.kind == "video" else make_export
             summary = make(settings, row, job, trained, lease)
             if summary is None:

@@ -62,7 +62,7 @@ from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.records import ProgressEvent
 from voxnerf.training.run import LeaseLost
 from worker.lease import Lease, hold, leased_task
-from worker.model_cache import model_cache
+from worker.model_cache import job_model
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,8 @@ def disk_full_outcome(settings: Settings, job, cause: OSError, progress: float) 
     if iteration is None:
         return _failed(settings, f"{why}, before its first checkpoint: nothing is kept; free space and train again")
     log.warning("job %s: %s; stopped, its checkpoint of iteration %d kept", job.id, why, iteration)
-    return {"state": "cancelled", "stage": "cancelled", "iteration": iteration, "progress": progress, "eta_s": None,
+    return {"state": "cancelled", "stage": "cancelled", "iteration": iteration, "checkpoint_iteration": iteration,
+            "progress": progress, "eta_s": None,
             "error": public_error(f"{why}; stopped with its last checkpoint (iteration {iteration}) kept, which "
                                   "renders and outputs use; free space before training again", settings)}
 
@@ -204,16 +205,17 @@ def train_job(job_id: str) -> None:
     hold(get_settings(), JOBS, job_id, _train_claimed)
 
 
-def render_outcome(job_id: str, request: RenderRequest,
-                   should_stop: Callable[[], bool] | None = None) -> RenderOutcome:
-    """Render ``request`` with job ``job_id``'s model (loaded through the cache); RenderStopped when
-    ``should_stop`` says so between two passes over the rays."""
+def render_outcome(job_id: str, request: RenderRequest, should_stop: Callable[[], bool] | None = None,
+                   checkpoint_iteration: int | None = None) -> RenderOutcome:
+    """Render ``request`` with job ``job_id``'s model (:func:`worker.model_cache.job_model`: its latest checkpoint
+    while it trains, ``checkpoint_iteration`` being the last one its row names); RenderStopped when
+    ``should_stop`` says so between two passes over the rays. The outcome names the checkpoint's iteration."""
     settings = get_settings()
     try:
         with storage.cache_entry_in_use(settings, storage.RUNS, job_id):
             if storage.open_store(settings) is not None and not (settings.runs_dir / job_id / CHECKPOINT).is_file():
                 storage.prune_cache(settings)  # room for the checkpoint about to be fetched
-            trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
+            trained = job_model(settings, job_id, checkpoint_iteration)
     except (RunError, storage.StorageError) as err:
         return RenderOutcome(409, detail=f"job {job_id} cannot be rendered: {err}")
     try:  # the scene's default size is only known here, so the pixel limit is checked here too
@@ -224,7 +226,7 @@ def render_outcome(job_id: str, request: RenderRequest,
     images = render(trained, np.asarray(request.transform_matrix), intrinsics, tuple(request.outputs),
                     path=settings.render_path, should_stop=should_stop)
     data = encode_outputs(images, request.format, request.outputs, trained.depth_unit_scale)
-    return RenderOutcome(200, request.media_type, data)
+    return RenderOutcome(200, request.media_type, data, iteration=trained.iteration)
 
 
 def past(deadline: float | None) -> Callable[[], bool] | None:
@@ -233,12 +235,15 @@ def past(deadline: float | None) -> Callable[[], bool] | None:
 
 
 @shared_task(name=RENDER_TASK)
-def render_pose(request_id: str, job_id: str, request: dict, deadline: float | None = None) -> None:
+def render_pose(request_id: str, job_id: str, request: dict, deadline: float | None = None,
+                checkpoint_iteration: int | None = None) -> None:
     """Render one request and hand its outcome to the waiting API (:mod:`app.core.render_results`). Past the
     ``deadline`` the API answered 504 and waits no more: the render stops at its next pass over the rays and
-    nothing is delivered, so the worker is free for the next render."""
+    nothing is delivered, so the worker is free for the next render. ``checkpoint_iteration``: the job's last
+    checkpoint when the API sent the request (:func:`render_outcome`)."""
     try:
-        outcome = render_outcome(job_id, RenderRequest.model_validate(request), past(deadline))
+        outcome = render_outcome(job_id, RenderRequest.model_validate(request), past(deadline),
+                                 checkpoint_iteration)
     except RenderStopped as stopped:
         log.warning("render %s of job %s %s (its deadline passed); nothing is delivered", request_id, job_id,
                     stopped)

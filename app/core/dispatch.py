@@ -38,11 +38,14 @@ def send(app: Celery, kind: WorkKind, row_id: str) -> None:
     app.send_task(kind.task, args=[row_id])
 
 
-def send_render(app: Celery, request_id: str, job_id: str, request: dict, expires_s: float) -> None:
+def send_render(app: Celery, request_id: str, job_id: str, request: dict, expires_s: float,
+                checkpoint_iteration: int | None = None) -> None:
     """Queue one render; a worker that gets it after ``expires_s`` drops it, and one that is still rendering it
-    then stops (its ``deadline``, a Unix time: the caller has given up)."""
-    app.send_task(RENDER_TASK, args=[request_id, job_id, request], kwargs={"deadline": time.time() + expires_s},
-                  expires=expires_s)
+    then stops (its ``deadline``, a Unix time: the caller has given up). ``checkpoint_iteration``: the job's last
+    checkpoint as its row says (a worker whose cached checkpoint is older fetches the run again from an object
+    store)."""
+    kwargs = {"deadline": time.time() + expires_s, "checkpoint_iteration": checkpoint_iteration}
+    app.send_task(RENDER_TASK, args=[request_id, job_id, request], kwargs=kwargs, expires=expires_s)
 
 
 def requeue_stale(settings: Settings, app: Celery, kind: WorkKind) -> list[str]:

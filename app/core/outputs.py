@@ -6,8 +6,10 @@ fence, lease renewal, progress, cancel, finish, stale sweep, re-send of a lost m
 of ``total`` frames (video) or views (exports).
 
 What an output is made from: a ``succeeded`` training job, or a ``cancelled`` one that kept a checkpoint (the
-output is then marked ``partial``: an unfinished model); :func:`trained_source` is that rule, which
-``POST /render`` follows too.
+output is then marked ``partial``: an unfinished model); :func:`trained_source` is that rule. ``POST /render``
+(and so the viewer) follows :func:`render_source`, which takes besides a *running* job's latest checkpoint and the
+last checkpoint a *failed* job kept: a render is one image of the moment, an output a file that should not mix
+checkpoints.
 
 Files: ``<runs_dir>/<job id>/outputs/<output id>/<file>`` (``video.mp4`` with ``video.mp4.camera_path.json``
 beside it, ``mesh.ply``, ``pointcloud.ply``), written by the engine under a temporary name and renamed when
@@ -73,6 +75,28 @@ def trained_source(settings: Settings, job: JobRow) -> bool:
         f"job {job.id} is {job.state}{' ' + why if why else ''}; only a succeeded job, or a cancelled one that "
         "kept a checkpoint, can be rendered"
     )
+
+
+LIVE_STATES = ("running", "cancelled", "failed")  # renders take their checkpoint, marked partial
+
+
+def render_source(settings: Settings, job: JobRow) -> bool:
+    """Whether renders of ``job`` (``POST /render``, the viewer) are *partial*: False for a succeeded job, True
+    for an unfinished model: a running job's latest checkpoint (the render worker picks up each newer one), or the
+    last checkpoint a cancelled or failed job kept. Raises NotRenderable for a queued job and for one that has
+    written no checkpoint yet."""
+    if job.state == "succeeded":
+        return False
+    if job.state in LIVE_STATES and has_checkpoint(settings, job.id):
+        return True
+    if job.state == "running":
+        why = (f"has no checkpoint yet: training writes its first about {settings.checkpoint_every_s:g} s after its "
+               "set-up (VOXNERF_CHECKPOINT_EVERY_S), and renders start from it")
+    elif job.state == "queued":
+        why = "is queued: it can be rendered once training has written its first checkpoint"
+    else:
+        why = f"is {job.state} without a checkpoint: it stopped before training wrote one"
+    raise NotRenderable(f"job {job.id} {why}")
 
 
 # ------------------------------------------------------------------------------------------------ requests

@@ -40,16 +40,18 @@ class RenderOutcome:
     media_type: str | None = None
     data: bytes | None = None
     detail: str | None = None
+    iteration: int | None = None  # the training iteration of the checkpoint that rendered
 
     def header(self) -> bytes:
         """The JSON header (no image bytes), one line."""
-        meta = {"status": self.status, "media_type": self.media_type, "detail": self.detail}
+        meta = {"status": self.status, "media_type": self.media_type, "detail": self.detail,
+                "iteration": self.iteration}
         return json.dumps(meta).encode()
 
     @classmethod
     def from_parts(cls, header: bytes, data: bytes | None) -> RenderOutcome:
         meta = json.loads(header)
-        return cls(meta["status"], meta.get("media_type"), data, meta.get("detail"))
+        return cls(meta["status"], meta.get("media_type"), data, meta.get("detail"), meta.get("iteration"))
 
 
 def redis_key(request_id: str) -> str:

@@ -1,7 +1,9 @@
-"""``POST /render``: render a pose of a finished job on a render worker and answer the image bytes.
+"""``POST /render``: render a pose of a trained job on a render worker and answer the image bytes.
 
-A succeeded job renders; so does a cancelled one that kept a checkpoint, answered with ``X-VoxNeRF-Partial:
-true`` (:func:`app.core.outputs.trained_source`).
+A succeeded job renders; so does a running job from its latest checkpoint (a newer one is picked up by the next
+render), and a cancelled or failed one from the last checkpoint it kept, each answered with ``X-VoxNeRF-Partial:
+true`` (:func:`app.core.outputs.render_source`). Every image says which checkpoint made it
+(``X-VoxNeRF-Iteration``) and the job's state when it was asked (``X-VoxNeRF-Job-State``).
 
 Each API process serves at most ``max_concurrent_renders`` renders at once. The limit is taken on the event
 loop before a worker thread is used, so a burst above it is answered 429 at once (with ``Retry-After``)
@@ -21,7 +23,7 @@ from redis import RedisError
 from app.core import jobstore
 from app.core.dispatch import send_render
 from app.core.jobstore import JOBS
-from app.core.outputs import NotRenderable, trained_source
+from app.core.outputs import NotRenderable, render_source
 from app.core.redact import public_error
 from app.core.render_request import RenderRequest
 from app.core.render_results import receive_outcome
@@ -34,7 +36,9 @@ log = logging.getLogger(__name__)
 router = APIRouter(tags=["render"])
 
 RETRY_AFTER_S = 1  # what a refused client is told to wait: about one render of a small image
-PARTIAL_HEADER = "X-VoxNeRF-Partial"  # "true" on a render of a cancelled job's checkpoint (an unfinished model)
+PARTIAL_HEADER = "X-VoxNeRF-Partial"  # "true" on a render of an unfinished model: not a succeeded job's
+ITERATION_HEADER = "X-VoxNeRF-Iteration"  # the training iteration of the checkpoint that rendered
+STATE_HEADER = "X-VoxNeRF-Job-State"  # the job's state when the render was asked (running: a live checkpoint)
 
 
 class RenderSlots:
@@ -71,7 +75,7 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
     """
     job = work.found(settings, JOBS, body.job_id)
     try:
-        partial = trained_source(settings, job)
+        partial = render_source(settings, job)
     except NotRenderable as err:
         raise HTTPException(409, str(err)) from None
     pixels, limit = body.pixels(), settings.render_pixel_limit()
@@ -79,7 +83,8 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
         raise HTTPException(422, f"{body.width}x{body.height} exceeds the limit of {limit} pixels")
     request_id = jobstore.new_id()
     try:
-        send_render(celery, request_id, body.job_id, body.model_dump(), settings.render_timeout_s)
+        send_render(celery, request_id, body.job_id, body.model_dump(), settings.render_timeout_s,
+                    job.checkpoint_iteration)
     except (KombuError, OSError) as err:
         raise _queue_unavailable(err, settings) from None
     try:
@@ -90,9 +95,11 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
         raise HTTPException(504, f"no render worker answered within {settings.render_timeout_s:g} s")
     if outcome.status != 200:
         raise HTTPException(outcome.status, outcome.detail)
-    headers = {"Content-Disposition": f'inline; filename="{body.job_id}.{body.format}"'}
+    headers = {"Content-Disposition": f'inline; filename="{body.job_id}.{body.format}"', STATE_HEADER: job.state}
     if partial:
         headers[PARTIAL_HEADER] = "true"
+    if outcome.iteration is not None:
+        headers[ITERATION_HEADER] = str(outcome.iteration)
     return Response(outcome.data, media_type=outcome.media_type, headers=headers)
 
 
@@ -102,14 +109,17 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
     responses={
         200: {
             "content": {media: {} for media in MEDIA_TYPES.values()},
-            "description": f"the image; header {PARTIAL_HEADER}: true when the job was cancelled (its checkpoint)",
+            "description": f"the image; headers {ITERATION_HEADER}: the iteration of the checkpoint that rendered, "
+                           f"{STATE_HEADER}: the job's state, {PARTIAL_HEADER}: true unless the job succeeded (a "
+                           "running job's latest checkpoint, or a cancelled or failed job's last one)",
         },
-        409: {"description": "the job has neither succeeded nor been cancelled with a checkpoint"},
+        409: {"description": "the job is queued, or has written no checkpoint yet"},
         429: {"description": "max_concurrent_renders renders are in progress; retry after Retry-After"},
         503: {"description": "the broker is unreachable"},
         504: {"description": "no render worker answered in time"},
     },
-    summary="Render a camera pose of a succeeded (or cancelled, checkpointed) job to PNG or EXR",
+    summary="Render a camera pose of a trained job (succeeded, or from the latest checkpoint of a running, "
+            "cancelled or failed one) to PNG or EXR",
 )
 async def render(
     body: RenderRequest, request: Request, settings: SettingsDep, celery: CeleryDep

@@ -115,8 +115,8 @@ def test_train_task_marks_engine_errors_failed(settings, monkeypatch):
 
 def _fake_model(monkeypatch, settings: Settings) -> None:
     trained = SimpleNamespace(default_intrinsics=Intrinsics(8.0, 8.0, 4.0, 3.0, 8, 6), depth_unit_scale=0.001,
-                              model=SimpleNamespace(device=SimpleNamespace(type="cpu")))
-    monkeypatch.setattr(tasks, "model_cache", lambda: SimpleNamespace(get=lambda run_dir, device: trained))
+                              model=SimpleNamespace(device=SimpleNamespace(type="cpu")), iteration=42)
+    monkeypatch.setattr(tasks, "job_model", lambda settings, job_id, checkpoint_iteration: trained)
 
     def render(model, c2w, intrinsics, outputs, path, should_stop):
         assert path == settings.render_path
@@ -132,7 +132,7 @@ def test_render_task_answers_the_image_or_a_4xx(settings, monkeypatch):
     request = {"job_id": "b" * 32, "transform_matrix": np.eye(4).tolist()}
     tasks.render_pose("r1", "b" * 32, request)
     outcome = receive_outcome(settings, "r1", timeout_s=5)
-    assert outcome.status == 200 and outcome.media_type == "image/png"
+    assert outcome.status == 200 and outcome.media_type == "image/png" and outcome.iteration == 42
     assert iio.imread(outcome.data).shape == (6, 8, 3)
     tasks.render_pose("r2", "b" * 32, {**request, "width": 20, "height": 10})  # 200 pixels > 100
     outcome = receive_outcome(settings, "r2", timeout_s=5)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import torch
@@ -43,13 +44,14 @@ class TrainedModel:
     scene_dir: str | None = None
 
 
-def load_model(run_dir: str | Path, device: str = "auto") -> TrainedModel:
-    """Load ``run_dir/checkpoint.pt`` for rendering. Raises RunError when it is missing or unreadable."""
+def load_model(run_dir: str | Path, device: str = "auto", opened: BinaryIO | None = None) -> TrainedModel:
+    """Load ``run_dir/checkpoint.pt`` for rendering (from ``opened``, that file already open, when given: see
+    :func:`~voxnerf.training.checkpoint.load_checkpoint`). Raises RunError when it is missing or unreadable."""
     path = Path(run_dir) / CHECKPOINT
-    if not path.is_file():
+    if opened is None and not path.is_file():
         raise RunError(f"{path}: no checkpoint (has the run trained yet?)")
     dev = resolve_device(device)
-    state = load_checkpoint(path, dev)  # weights_only: a checkpoint carrying code is refused, not run
+    state = load_checkpoint(path, dev, opened)  # weights_only: a checkpoint carrying code is refused, not run
     try:
         model = VoxNeRFModel.from_state_dict(state["model"], dev)
         trained = TrainedModel(

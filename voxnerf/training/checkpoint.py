@@ -13,6 +13,7 @@ import os
 import pickle
 import re
 from pathlib import Path
+from typing import BinaryIO
 
 import torch
 
@@ -57,14 +58,17 @@ def _refusal(exc: pickle.UnpicklingError) -> str:
     return f"unreadable checkpoint (UnpicklingError: {detail})"
 
 
-def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict:
+def load_checkpoint(path: Path, map_location: str | torch.device = "cpu", opened: BinaryIO | None = None) -> dict:
     """The dict saved at ``path``, unpickled with ``weights_only=True``: nothing in the file is called.
 
-    Raises RunError naming ``path`` when the file is not a checkpoint: unreadable, truncated, not a dict, or
-    carrying any other object (a pickled callable is refused before it runs).
+    ``opened``: the file already open (read from it instead of opening ``path``, which then only names it in
+    messages), so a caller that looked at the open file (its inode, size and time) loads exactly that file even
+    when a newer checkpoint is renamed over ``path`` meanwhile. Raises RunError naming ``path`` when the file
+    is not a checkpoint: unreadable, truncated, not a dict, or carrying any other object (a pickled callable is
+    refused before it runs).
     """
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        state = torch.load(path if opened is None else opened, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         raise RunError(f"{path}: {_refusal(exc)}") from None
     # EOFError: an empty file; RuntimeError: not a torch zip; OSError: unreadable; and whatever else a
