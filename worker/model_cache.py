@@ -3,6 +3,7 @@ gets a job's model through it (:func:`job_model`)."""
 
 from __future__ import annotations
 
+import logging
 import os
 from collections import OrderedDict
 from functools import lru_cache
@@ -14,6 +15,7 @@ from voxnerf.errors import RunError
 from voxnerf.files import CHECKPOINT
 from voxnerf.inference.render import TrainedModel, load_model
 
+log = logging.getLogger(__name__)
 CheckpointKey = tuple[str, int, int, int, int]  # path, device, inode, size, modification time (ns)
 
 
@@ -55,6 +57,7 @@ class ModelCache:
         except FileNotFoundError:
             raise RunError(f"job {run_dir.name} has no checkpoint") from None
         self.loads += 1
+        log.info("model cache: loaded run %s, checkpoint of iteration %d", run_dir.name, model.iteration)
         for older in [other for other in self._models if other[0] == key[0]]:  # the same run's earlier checkpoint
             del self._models[older]
         self._models[key] = model

@@ -56,6 +56,14 @@ async function apiBlobUrl(path) {
   return URL.createObjectURL(blob);
 }
 
+// Whether the viewer can render `job` (a JobOut), as POST /render decides (app.core.outputs.render_source): a
+// succeeded job, or a running, cancelled or failed one that has written a checkpoint (its latest or last one).
+function viewable(job) {
+  return job.state === "succeeded"
+    || (["running", "cancelled", "failed"].includes(job.state) && job.checkpoint_iteration !== null
+      && job.checkpoint_iteration !== undefined);
+}
+
 // An element with properties (dataset entries under `data`) and children (strings become text).
 function el(tag, props = {}, ...children) {
   const { data, ...rest } = props;

@@ -169,7 +169,7 @@ function pageLink(href, id, className) {
   return link;
 }
 
-// The viewer of a succeeded job (or of a cancelled one's checkpoint, rendered as partial).
+// The viewer of a succeeded job, or of a running, cancelled or failed one's latest checkpoint (api.js `viewable`).
 function viewerLink(job) {
   return Object.assign(document.createElement("a"), { href: `/static/viewer.html?job=${job.id}`, className: "viewer-link", textContent: "view" });
 }
@@ -190,7 +190,7 @@ function updateRow(row, job) {
   }
   if (job.state === "succeeded" && !thumbsLoaded.has(job.id)) loadThumbnails(job, cell("thumbs").firstChild);
   cell("actions").replaceChildren(...(job.state === "queued" || job.state === "running" ? [cancelButton(job)] : []),
-    ...(job.state === "succeeded" || job.state === "cancelled" ? [viewerLink(job)] : []));
+    ...(viewable(job) ? [viewerLink(job)] : []));
   if (job.state === "succeeded") {
     const buttons = cell("outputs").querySelector(".output-buttons");
     if (!buttons.childElementCount) buttons.append(...outputButtons(job));

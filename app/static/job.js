@@ -67,7 +67,19 @@ function drawSummary(job) {
   $("summary").replaceChildren(...facts.flatMap(([term, value]) => [el("dt", {}, term), el("dd", { data: { fact: term } }, value)]));
   $("summary").dataset.state = job.state;
   const active = !FINISHED.includes(job.state);
-  $("actions").replaceChildren(...(active && !job.cancel_requested ? [cancelButton()] : []));
+  $("actions").replaceChildren(...(active && !job.cancel_requested ? [cancelButton()] : []), viewerEntry(job));
+}
+
+// The viewer's link from the job's first checkpoint on (while it trains: its latest checkpoint), else why not yet.
+function viewerEntry(job) {
+  if (!viewable(job)) {
+    const why = FINISHED.includes(job.state) ? "no checkpoint to view" : "the viewer opens at the first checkpoint";
+    return el("span", { id: "viewer-pending", className: "muted" }, ` ${why}`);
+  }
+  const which = job.state === "succeeded" ? "" : ` (iteration ${job.checkpoint_iteration}, ${
+    job.state === "running" ? "training" : job.state})`;
+  return el("a", { id: "viewer-link", className: "viewer-link", href: `/static/viewer.html?job=${jobId}`,
+    data: { iteration: String(job.checkpoint_iteration ?? "") } }, `Open the viewer${which}`);
 }
 
 function cancelButton() {

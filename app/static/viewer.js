@@ -1,6 +1,8 @@
 // VoxNeRF viewer: look around a trained job. The server renders (POST /render); this page moves the camera,
 // draws the scene's cameras over the render and a sparse sample of its prior while the frame of the current view
-// is on its way (the stale frame fades), and manages keyframes.
+// is on its way (the stale frame fades), and manages keyframes. A job still training renders from its latest
+// checkpoint: the page shows which one ("iteration N, training"), looks at the job every few seconds, and renders
+// the view again when a newer checkpoint has been written.
 // No framework and no build step; API access (the token) comes from /static/api.js.
 //
 // Poses are camera-to-world 4x4 row-major arrays, OpenGL axes (the camera looks along -Z, +Y up), scene units,
@@ -10,6 +12,8 @@
 const SMALL_FACTOR = 4;  // the frame rendered while the camera moves is 1/4 of the full size per side
 const REST_MS = 200;  // the camera is at rest this long after its last move: render the full frame
 const RETRY_MS = 1000, MAX_RETRIES = 3;  // a refused render is asked again after a second, at most 3 times
+const JOB_POLL_MS = 3000;  // while the job trains: how often the page asks whether a newer checkpoint was written
+const ACTIVE = ["queued", "running"];
 const ROTATE_RAD_PER_PX = 0.005;
 const FLY_SPEED = 0.35;  // of the scene's extent per second
 const MAX_PITCH_COS = 0.985;  // orbiting stops short of looking straight along the scene's up
@@ -89,11 +93,14 @@ const view = {
 const scene = { frames: [], prior: null };
 const frames = {  // progressive rendering: at most one request in flight
   inflight: null, shownKey: null, shownQuality: null, lastMoveAt: 0, resting: true, restTimer: 0, seq: 0, log: [],
-  failures: 0,
+  failures: 0, renderError: false,
+  shownIteration: null,  // the training iteration of the checkpoint that rendered the frame on screen
+  outdated: false,  // a newer checkpoint than the shown frame's was written: render the view again
 };
+const job = { state: null, checkpointIteration: null, refreshedFor: null, pollTimer: 0 };  // from GET /jobs/{id}
 const path = { keyframes: [], frames: null, cameraPath: null, playing: 0 };
 const currentKey = () => `${view.mode}|${poseKey(view.pose)}|${JSON.stringify(view.camera)}`;  // what a frame shows
-window.viewerState = { view, frames, path, currentKey };  // read by the browser test and benchmarks/viewer_latency.py
+window.viewerState = { view, frames, path, job, currentKey };  // read by the browser test and benchmarks/viewer_latency.py
 
 function showMessage(text, kind = "error") {
   const box = $("message");
@@ -130,6 +137,7 @@ function viewChanged() {
 function wantedFrame() {
   const key = currentKey();
   const quality = frames.resting ? "full" : "small";
+  if (frames.outdated && frames.resting) return { key, quality };
   if (frames.shownKey === key && (frames.shownQuality === "full" || quality === "small")) return null;
   return { key, quality };
 }
@@ -146,11 +154,13 @@ async function pump() {
       method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(request.body),
       signal: request.controller.signal,
     });
-    const partial = response.headers.get("X-VoxNeRF-Partial") === "true";
-    await showFrame(request, await response.arrayBuffer(), partial);
+    const source = { iteration: response.headers.get("X-VoxNeRF-Iteration"),
+      state: response.headers.get("X-VoxNeRF-Job-State") || "" };
+    await showFrame(request, await response.arrayBuffer(), source);
   } catch (err) {
     if (err.name !== "AbortError") {  // e.g. 429 (renders busy): ask again a few times, then wait for a move
-      showMessage(`Render: ${err.message}`);
+      showMessage(`Render: ${err.message}`);  // a job without a checkpoint yet: renders when one is written
+      frames.renderError = true;
       frames.inflight = null;
       frames.failures += 1;
       if (frames.failures <= MAX_RETRIES) setTimeout(pump, RETRY_MS);
@@ -161,7 +171,7 @@ async function pump() {
   pump();
 }
 
-async function showFrame(request, buffer, partial) {
+async function showFrame(request, buffer, source) {
   const canvas = $("render");
   if (request.mode === "depth") {
     const depth = await decodePng16(buffer);
@@ -180,9 +190,13 @@ async function showFrame(request, buffer, partial) {
     setColourBar(request.mode === "opacity" ? [0, 1] : null, false);
   }
   frames.failures = 0;
+  if (frames.renderError) showMessage("");
+  frames.renderError = false;
   frames.shownKey = request.key;
   frames.shownQuality = request.quality;
   frames.shownBody = request.body;
+  if (request.quality === "full") frames.outdated = false;
+  showCheckpoint(source);
   canvas.classList.toggle("stale", request.key !== currentKey());
   canvas.classList.remove("empty");
   drawOverlay();
@@ -192,7 +206,46 @@ async function showFrame(request, buffer, partial) {
     requestedAt: request.requestedAt, shownAt });
   if (frames.log.length > 500) frames.log.shift();
   $("status").textContent = `${request.quality} frame ${canvas.width}x${canvas.height} in ` +
-    `${Math.round(shownAt - request.requestedAt)} ms${partial ? " · partial: a cancelled job's checkpoint" : ""}`;
+    `${Math.round(shownAt - request.requestedAt)} ms`;
+}
+
+// Which checkpoint rendered the frame on screen (the response's X-VoxNeRF-Iteration and X-VoxNeRF-Job-State).
+function showCheckpoint(source) {
+  const box = $("checkpoint"), iteration = source.iteration === null ? null : Number(source.iteration);
+  frames.shownIteration = iteration;
+  const how = { running: "training", cancelled: "cancelled: its last checkpoint",
+    failed: "failed: its last good checkpoint" }[source.state];
+  box.textContent = iteration === null ? "" : `iteration ${iteration}${how ? `, ${how}` : ""}`;
+  box.hidden = iteration === null;
+  Object.assign(box.dataset, { iteration: iteration === null ? "" : String(iteration), state: source.state });
+}
+
+// ------------------------------------------------------------------------------------------- a job in training
+
+// Look at the job while it trains: when its row names a checkpoint newer than the shown frame's (or its first),
+// render the current view again; stop once the job has ended, after rendering its last checkpoint.
+async function watchJob() {
+  clearTimeout(job.pollTimer);
+  let row;
+  try {
+    row = await (await api(`/jobs/${jobId}`)).json();
+  } catch (err) {
+    job.pollTimer = setTimeout(watchJob, JOB_POLL_MS * 3);
+    return;
+  }
+  job.state = row.state;
+  job.checkpointIteration = row.checkpoint_iteration;
+  $("job-label").textContent = `job ${jobId.slice(0, 8)} · ${row.state}`;
+  const newer = viewable(row) && (row.checkpoint_iteration !== job.refreshedFor || frames.renderError)
+    && (frames.shownIteration === null || row.checkpoint_iteration > frames.shownIteration);
+  if (newer && view.pose) {
+    job.refreshedFor = row.checkpoint_iteration;  // once per checkpoint (unless its render failed), whatever
+    // iteration the worker answers (with an object store a render worker may hold an older upload for a while)
+    frames.outdated = true;
+    frames.failures = 0;
+    pump();
+  }
+  if (ACTIVE.includes(row.state)) job.pollTimer = setTimeout(watchJob, JOB_POLL_MS);
 }
 
 // ------------------------------------------------------------------------------------------- depth and colour
@@ -718,6 +771,7 @@ async function start() {
   $("camera-select").replaceChildren(...scene.frames.map((f) => new Option(cameraLabel(f), String(f.index))));
   $("render").classList.add("empty");
   snapTo(scene.frames[0]);
+  watchJob();
 }
 
 $("token").value = savedToken();

@@ -83,7 +83,8 @@ def trained(service, client, scene) -> dict:
 
 @pytest.fixture(scope="module")
 def cancelled(service, client, scene, trained) -> dict:
-    """A long job cancelled while training: it keeps its checkpoint. While it runs, nothing renders from it."""
+    """A long job cancelled while training: it keeps its checkpoint. While it runs no output is made from it, and
+    before its first checkpoint (60 s of training by default) no render either."""
     job = client.post(f"/scenes/{scene['id']}/jobs", json=LONG_JOB).json()
     url = f"/jobs/{job['id']}"
     _watch(service, client, url, lambda j: j["state"] == "running" and j["iteration"] > 0)

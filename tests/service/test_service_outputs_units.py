@@ -1,6 +1,6 @@
 """Output jobs piece by piece, without workers: the store's claims, fencing, cancel and stale-output recovery
-(app/core/outputs.py, app/core/dispatch.py), the rule of which jobs can be rendered from, video request checks,
-and the worker's key cameras (worker/outputs.py)."""
+(app/core/outputs.py, app/core/dispatch.py), the rules of which jobs outputs and renders are made from, video
+request checks, and the worker's key cameras (worker/outputs.py)."""
 
 from __future__ import annotations
 
@@ -108,6 +108,28 @@ def test_only_a_succeeded_or_a_checkpointed_cancelled_job_is_rendered_from(setti
 
 def test_a_succeeded_job_is_not_partial(settings):
     assert outputs.trained_source(settings, _job(settings, "succeeded")) is False
+
+
+@pytest.mark.parametrize(("state", "before_a_checkpoint"), [
+    ("queued", "is queued: it can be rendered once training has written its first checkpoint"),
+    ("running", "has no checkpoint yet: training writes its first about 60 s after its set-up"),
+    ("failed", "is failed without a checkpoint"),
+    ("cancelled", "is cancelled without a checkpoint"),
+])
+def test_renders_take_a_running_or_ended_jobs_latest_checkpoint_as_partial(settings, state, before_a_checkpoint):
+    """POST /render's rule (the viewer's): unlike outputs, a running job renders from its latest checkpoint and a
+    failed one from its last good one, once the run has one; a queued job never."""
+    job = _job(settings, state)
+    with pytest.raises(outputs.NotRenderable, match=before_a_checkpoint):
+        outputs.render_source(settings, job)
+    (settings.runs_dir / job.id).mkdir(parents=True)
+    (settings.runs_dir / job.id / CHECKPOINT).write_bytes(b"x")
+    if state == "queued":
+        with pytest.raises(outputs.NotRenderable, match="is queued"):
+            outputs.render_source(settings, job)
+    else:
+        assert outputs.render_source(settings, job) is True
+    assert outputs.render_source(settings, _job(settings, "succeeded")) is False
 
 
 def _camera_path(**changes) -> dict:
