@@ -96,6 +96,7 @@ const frames = {  // progressive rendering: at most one request in flight
   failures: 0, renderError: false,
   shownIteration: null,  // the training iteration of the checkpoint that rendered the frame on screen
   outdated: false,  // a newer checkpoint than the shown frame's was written: render the view again
+  outdatedAfter: 0,  // ... by a request sent after this one (seq): one already in flight may show the older one
 };
 const job = { state: null, checkpointIteration: null, refreshedFor: null, pollTimer: 0 };  // from GET /jobs/{id}
 const path = { keyframes: [], frames: null, cameraPath: null, playing: 0 };
@@ -195,7 +196,7 @@ async function showFrame(request, buffer, source) {
   frames.shownKey = request.key;
   frames.shownQuality = request.quality;
   frames.shownBody = request.body;
-  if (request.quality === "full") frames.outdated = false;
+  if (request.quality === "full" && request.seq > frames.outdatedAfter) frames.outdated = false;
   showCheckpoint(source);
   canvas.classList.toggle("stale", request.key !== currentKey());
   canvas.classList.remove("empty");
@@ -242,6 +243,7 @@ async function watchJob() {
     job.refreshedFor = row.checkpoint_iteration;  // once per checkpoint (unless its render failed), whatever
     // iteration the worker answers (with an object store a render worker may hold an older upload for a while)
     frames.outdated = true;
+    frames.outdatedAfter = frames.seq;
     frames.failures = 0;
     pump();
   }
