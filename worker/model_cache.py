@@ -83,6 +83,7 @@ def job_model(settings: Settings, job_id: str, checkpoint_iteration: int | None)
     rendered a job while it trained picks up its later checkpoints, and its final one. A machine that trains the
     job itself always holds the newest checkpoint and never fetches."""
     trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=False), settings.device)
-    if checkpoint_iteration is not None and trained.iteration < checkpoint_iteration and storage.open_store(settings):
+    stale = checkpoint_iteration is not None and trained.iteration < checkpoint_iteration
+    if stale and storage.open_store(settings) is not None:
         trained = model_cache().get(storage.ensure_run(settings, job_id, refresh=True), settings.device)
     return trained
