@@ -1,15 +1,15 @@
 """What viewing a job while it trains costs its training: the same job through the service, alone and viewed.
 
-    .venv/bin/python benchmarks/live_render_cost.py [--seconds 60] [--rounds 1] [--interval 0] [--size 160 120]
-        [--checkpoint-every 10] [--out DIR]
+    .venv/bin/python benchmarks/live_render_cost.py [--seconds 150] [--rounds 1] [--interval 0] [--size 96 72]
+        [--checkpoint-every 5] [--out DIR]
 
 One real service (uvicorn + Celery train and render workers on its embedded broker) trains the same job options on
-a synthetic room, ``--rounds`` times each way, the order alternated: *alone* (nobody renders) and *viewed* (from
-its first checkpoint on, a client renders a held-out pose at ``--size`` with ``POST /render`` back to back, or
-one every ``--interval`` seconds: a viewer whose user keeps moving is the worst case, 0). A checkpoint every
-``--checkpoint-every`` seconds, so the viewed job's renders load several checkpoints. An untimed two-step job
-first fills the set-up caches. Per job: steps, training rays/s (report.json's ``throughput``), and for the
-viewed one the renders made, their median latency and the checkpoints they came from. Results go to ``--out``
+a synthetic 96x72 room of 40 frames, ``--rounds`` times each way, the order alternated: *alone* (nobody renders)
+and *viewed* (from its first checkpoint on, a client renders a held-out pose at ``--size`` with ``POST /render``
+back to back, or one every ``--interval`` seconds: a viewer whose user keeps moving is the worst case, 0). A
+checkpoint every ``--checkpoint-every`` seconds, so the viewed job's renders load several checkpoints. An untimed
+two-step job first fills the set-up caches. Per job: steps, training rays/s (report.json's ``throughput``), and
+for the viewed one the renders made, their median latency and the checkpoints they came from. Results go to ``--out``
 (results.json, table.md).
 """
 
@@ -33,7 +33,7 @@ from service_fixtures import first_pose, start_service, wait_for, zip_scene  # n
 
 from voxnerf.synthetic import RoomSpec, make_room_scene  # noqa: E402
 
-ROOM = RoomSpec(width=160, height=120, n_frames=60, train_every=4, n_gaps=0, gap_len=0, prior_max_points=50_000)
+ROOM = RoomSpec(width=96, height=72, n_frames=40, train_every=4, n_gaps=0, gap_len=0, prior_max_points=50_000)
 TIMEOUT_S = 1800
 
 
@@ -103,11 +103,11 @@ def markdown(results: dict, command: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seconds", type=float, default=60.0, help="max_seconds of each job")
+    parser.add_argument("--seconds", type=float, default=150.0, help="max_seconds of each job")
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--interval", type=float, default=0.0, help="seconds between the viewer's renders")
-    parser.add_argument("--size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"))
-    parser.add_argument("--checkpoint-every", type=float, default=10.0)
+    parser.add_argument("--size", type=int, nargs=2, default=(96, 72), metavar=("W", "H"))
+    parser.add_argument("--checkpoint-every", type=float, default=5.0)
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "live_viewer")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="live-render-cost-") as tmp:
