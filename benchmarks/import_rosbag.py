@@ -49,6 +49,7 @@ def pose_errors(meta: dict, frames: list) -> tuple[float, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=1000, help="redkitchen frames in the bag (at most 1000)")
+    parser.add_argument("--stride", type=int, default=1, help="source frames between frames in the bag")
     parser.add_argument("--out", type=Path, required=True, help="folder for the bag, the scenes and results.json")
     parser.add_argument("--train", type=float, default=0.0, metavar="SECONDS",
                         help="also train each imported scene and the given one this long (0: no training)")
@@ -57,7 +58,7 @@ def main() -> None:
     args = parser.parse_args()
     shutil.rmtree(args.out, ignore_errors=True)
     args.out.mkdir(parents=True)
-    frames = make_frames(step=1, n=args.frames)
+    frames = make_frames(step=args.stride, n=args.frames)
     start = time.perf_counter()
     bag = write_bag(args.out / "redkitchen_bag", BagSpec(frames, colour="jpeg", scale=1), "mcap")
     results = {"frames": len(frames), "write_s": round(time.perf_counter() - start, 2),

@@ -10,7 +10,7 @@ imported with ``--splits paper`` and each imported scene, and the given scene cu
 trains for that long (``voxnerf train``, one after another; ``--train-args`` adds options such as ``--max-iters``);
 their evaluation metrics join the table.
 
-    python benchmarks/phone_app_imports.py [--frames N] [--train S] [--out benchmarks/results/phone_app_imports]
+    python benchmarks/phone_app_imports.py [--frames N] [--stride K] [--train S] [--out DIR]
 """
 
 from __future__ import annotations
@@ -86,6 +86,9 @@ def table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=1000, help="redkitchen frames to write (default: all 1000)")
+    parser.add_argument("--stride", type=int, default=1,
+                        help="source frames between written frames (5: every frame has depth, as redkitchen's depth "
+                        "is on every 5th)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/phone_app_imports"))
     parser.add_argument("--train", type=float, default=0.0, metavar="SECONDS",
                         help="also train each imported scene and the given one this long (0: no training)")
@@ -94,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     if not (REDKITCHEN / "transforms.json").is_file():
         print(f"redkitchen not found at {REDKITCHEN}", file=sys.stderr)
         return 2
-    frames = redkitchen_frames(args.frames)
+    frames = redkitchen_frames(args.frames * args.stride)[::args.stride]
     splits = PaperSplitRule() if args.train else None
     given_runs: dict[str, dict] = {}  # one run of the given scene per distinct frame set and splits
     with tempfile.TemporaryDirectory() as tmp:
