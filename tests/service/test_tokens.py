@@ -16,10 +16,13 @@ import stat
 import httpx
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 from service_fixtures import Service, start_service, upload_scene, wait_for, wait_until_final, zip_scene
 from synthetic_fixtures import make_micro_scene
 
-from app.core import tokens
+from app.core import jobstore, outputs, tokens
+from app.core.db import session_scope
+from app.core.models import JobRow
 from app.core.settings import Settings
 from app.main import create_app
 from app.origin_guard import UnsafeBindError, check_bind
@@ -218,6 +221,31 @@ def test_a_tokens_queue_limit_refuses_it_while_another_token_still_queues(queue_
         queued_by_one = next(j for j in admin.get("/jobs").json() if j["created_by"] == "one")
         assert first.post(f"/jobs/{queued_by_one['id']}/cancel").status_code == 202  # room again for "one"
         assert first.post(f"/scenes/{scene_id}/jobs", json=submit).status_code == 202
+
+
+def test_output_jobs_have_the_per_token_limit_too(tmp_path):
+    """As test_job_limits.py does for the service-wide limit: the app in process, a job marked succeeded."""
+    settings = _settings(tmp_path, api_token=ADMIN_TOKEN, max_queued_per_token=1, max_output_pixels=10**9)
+    with TestClient(create_app(settings)) as client:
+        jobstore.add_scene(settings, "c" * 32, "room", {"frames": 1}, 10)
+        one, two = (tokens.create_token(settings, name, "write").token for name in ("one", "two"))
+        trained = client.post(f"/scenes/{'c' * 32}/jobs", json={"max_iters": 5}, headers=_bearer(ADMIN_TOKEN))
+        job_id = trained.json()["id"]
+        with session_scope(settings) as session:
+            session.get(JobRow, job_id).state = "succeeded"
+        video = {"path": "orbit", "frames": 4, "width": 16, "height": 12}
+        assert client.post(f"/jobs/{job_id}/videos", json=video, headers=_bearer(one)).status_code == 202
+        refused = client.post(f"/jobs/{job_id}/exports", json={"kind": "mesh"}, headers=_bearer(one))
+        assert refused.status_code == 429, refused.text
+        assert "1 outputs of token 'one' are queued already" in refused.json()["detail"]
+        assert "VOXNERF_MAX_QUEUED_PER_TOKEN" in refused.json()["detail"]
+        made = client.post(f"/jobs/{job_id}/exports", json={"kind": "mesh"}, headers=_bearer(two))
+        assert made.status_code == 202 and made.json()["created_by"] == "two"
+    assert sorted(row.created_by for row in outputs.OUTPUTS.newest(settings)) == ["one", "two"]
+
+
+def _bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
 
 
 # ------------------------------------------------------------------------------------------------ named tokens alone
