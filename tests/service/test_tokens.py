@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
+import sqlite3
 import stat
 
 import httpx
@@ -18,9 +19,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from service_fixtures import Service, start_service, upload_scene, wait_for, wait_until_final, zip_scene
+from sqlalchemy import inspect
 from synthetic_fixtures import make_micro_scene
 
-from app.core import jobstore, outputs, tokens
+from app.core import db, jobstore, outputs, tokens
 from app.core.db import session_scope
 from app.core.models import JobRow
 from app.core.settings import Settings
@@ -330,3 +332,30 @@ def test_webhook_secrets_per_principal(tmp_path):
         tokens.webhook_secret(settings, "nobody")
     with pytest.raises(tokens.TokenError, match="no VOXNERF_API_TOKEN"):
         tokens.webhook_secret(_settings(tmp_path / "tokenless"), "admin")
+
+
+# ------------------------------------------------------------------------------------------------ older databases
+
+
+def test_a_database_from_before_tokens_gains_the_table_and_the_columns(tmp_path):
+    """Its rows read as made by no one: only an admin may cancel or delete them."""
+    settings = _settings(tmp_path)
+    jobstore.add_scene(settings, "c" * 32, "room", {"frames": 1}, 10)
+    job = jobstore.create_job(settings, "c" * 32, {"max_iters": 5})
+    with sqlite3.connect(settings.data_dir / "voxnerf.sqlite") as conn:
+        conn.execute("DROP TABLE tokens")
+        for table in ("scenes", "jobs", "outputs", "imports"):
+            conn.execute(f"ALTER TABLE {table} DROP COLUMN created_by")
+        for table in ("jobs", "outputs", "imports"):
+            conn.execute(f"ALTER TABLE {table} DROP COLUMN cancelled_by")
+    db._engines.clear()  # a new process opens the old database
+    engine = db.get_engine(settings)
+    found = inspect(engine)
+    columns = {table: {c["name"] for c in found.get_columns(table)} for table in found.get_table_names()}
+    assert "token_sha256" in columns["tokens"] and "created_by" in columns["scenes"]
+    assert all({"created_by", "cancelled_by"} <= columns[table] for table in ("jobs", "outputs", "imports"))
+    old = jobstore.JOBS.get(settings, job.id)
+    assert old.created_by is None
+    assert tokens.may_act_on(tokens.Principal("admin", "admin"), old.created_by)
+    assert not tokens.may_act_on(tokens.Principal("alice", "write"), old.created_by)
+    assert tokens.create_token(settings, "after", "read").name == "after"
