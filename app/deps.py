@@ -45,7 +45,8 @@ def require_token(request: Request, settings: SettingsDep) -> Principal:
             "(VOXNERF_API_TOKEN, or a token made with voxnerf tokens create)",
             headers={"WWW-Authenticate": "Bearer"},
         )
-    if why := tokens.scope_refusal(principal, request.method, request.url.path):
+    route = request.scope.get("route")  # the matched route's template (/tokens/{name}), whatever the mount point
+    if why := tokens.scope_refusal(principal, request.method, getattr(route, "path", request.url.path)):
         raise HTTPException(status_code=403, detail=why)
     request.state.principal = principal
     return principal
