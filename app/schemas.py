@@ -372,6 +372,8 @@ class ImportOut(BaseModel):
     state: JobState
     stage: str | None = Field(description="queued, starting, importing, checking, storing, then done, failed or "
                               "cancelled")
+    step: str | None = Field(description="what the importer is doing within its stage, for photos and video "
+                             "(structure from motion): decoding, extracting features, matching, registering images")
     progress: float
     eta_s: float | None
     size_bytes: int = Field(description="of the raw capture as uploaded")
@@ -392,7 +394,8 @@ class ImportOut(BaseModel):
     @classmethod
     def from_row(cls, row) -> ImportOut:
         return cls(
-            id=row.id, name=row.name, layout=row.layout, state=row.state, stage=row.stage, progress=row.progress,
+            id=row.id, name=row.name, layout=row.layout, state=row.state, stage=row.stage, step=row.step,
+            progress=row.progress,
             eta_s=row.eta_s, size_bytes=row.size_bytes, params=row.params, scene_id=row.scene_id,
             scene_url=f"/scenes/{row.scene_id}" if row.scene_id else None, summary=row.summary, error=row.error,
             cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,

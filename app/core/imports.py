@@ -29,8 +29,9 @@ from voxnerf.data.importers import QUEUED_LAYOUTS
 __all__ = ["IMPORTS", "QUEUED_LAYOUTS", "create_import", "raw_dir", "remove_raw"]
 
 
-def _progress(settings: Settings, import_id: str, stage: str, progress: float, eta_s: float | None) -> dict:
-    return {"stage": stage, "progress": min(max(float(progress), 0.0), 1.0), "eta_s": eta_s}
+def _progress(settings: Settings, import_id: str, stage: str, progress: float, eta_s: float | None,
+              step: str | None = None) -> dict:
+    return {"stage": stage, "progress": min(max(float(progress), 0.0), 1.0), "eta_s": eta_s, "step": step}
 
 
 IMPORTS = WorkKind(
@@ -44,7 +45,7 @@ IMPORTS = WorkKind(
     staged=True,
 )
 """Capture imports' lease lifecycle: ``IMPORTS.get``, ``claim``, ``record_progress(settings, id, attempt, stage,
-progress, eta_s)``, ``finish``, ``request_cancel``..."""
+progress, eta_s[, step])``, ``finish``, ``request_cancel``..."""
 
 
 def raw_dir(settings: Settings, import_id: str) -> Path:

@@ -113,8 +113,10 @@ class ImportRow(LeaseColumns, Base):
 
     The raw capture lives in ``<data_dir>/imports/<id>`` until the import ends. ``layout``: the importer
     (:data:`voxnerf.data.importers.QUEUED_LAYOUTS`); ``params``: the upload's choices (``splits``); ``stage``
-    and ``progress``: where the importer is; ``summary``: the importer's summary once succeeded. ``attempt``
-    fences the claiming worker's writes as for training jobs (:class:`JobRow`).
+    and ``progress``: where the importer is; ``step``: what the importer is doing within its stage ("matching
+    features (sequential): 120 of 450 image pairs"), for the importers that say it; ``summary``: the importer's
+    summary once succeeded. ``attempt`` fences the claiming worker's writes as for training jobs
+    (:class:`JobRow`).
     """
 
     __tablename__ = "imports"
@@ -124,6 +126,7 @@ class ImportRow(LeaseColumns, Base):
     layout: Mapped[str] = mapped_column(String(32))
     state: Mapped[str] = mapped_column(String(16), index=True)
     stage: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    step: Mapped[str | None] = mapped_column(String(255), nullable=True)
     params: Mapped[dict] = mapped_column(JSON)
     size_bytes: Mapped[int] = mapped_column(Integer)
     progress: Mapped[float] = mapped_column(Float, default=0.0)

@@ -323,7 +323,8 @@ function importRow(item) {
   const outcome = document.createElement("td");
   if (item.scene_id) outcome.textContent = `scene ${item.scene_id.slice(0, 8)} · ${item.summary.frames} frames`;
   else if (item.error) outcome.textContent = item.error;
-  const cells = [item.id.slice(0, 8), `${item.name} (${item.layout})`, item.created_by || "", item.state, item.stage || ""];
+  const stage = item.stage && item.step && item.state === "running" ? `${item.stage}: ${item.step}` : item.stage || "";
+  const cells = [item.id.slice(0, 8), `${item.name} (${item.layout})`, item.created_by || "", item.state, stage];
   row.append(...cells.map((text) => Object.assign(document.createElement("td"), { textContent: text })));
   const progressCell = document.createElement("td");
   progressCell.append(bar, ` ${percent}%`);
