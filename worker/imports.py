@@ -98,7 +98,8 @@ def import_capture(settings: Settings, row: ImportRow, lease: Lease) -> dict:
         stages.enter("checking")
         checked = inspect_scene(scene)
         stages.enter("storing")
-        stored = commit_scene(settings, scene, row.name, {**checked, "imported": summary}, tree_size(scene))
+        stored = commit_scene(settings, scene, row.name, {**checked, "imported": summary}, tree_size(scene),
+                              created_by=row.created_by)  # the scene is the import's maker's
     except (Stopped, ImportCancelled):
         return {"state": "cancelled"}
     except Exception as err:

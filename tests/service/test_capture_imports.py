@@ -52,6 +52,7 @@ def test_a_bag_sent_as_one_file_is_imported_by_a_worker_into_a_scene_that_trains
     queued = response.json()
     assert response.headers["location"] == f"/imports/{queued['id']}"
     assert (queued["layout"], queued["name"], queued["scene_id"]) == ("rosbag", "robot", None)
+    assert queued["created_by"] == "local"  # the principal of a tokenless service's loopback clients
     assert queued["size_bytes"] == bag.stat().st_size
     done = wait_until_final(service, client, f"/imports/{queued['id']}", 300)
     assert (done["state"], done["stage"], done["progress"], done["error"]) == ("succeeded", "done", 1.0, None)
@@ -59,6 +60,7 @@ def test_a_bag_sent_as_one_file_is_imported_by_a_worker_into_a_scene_that_trains
     assert done["scene_url"] == f"/scenes/{done['scene_id']}"
     scene = client.get(done["scene_url"]).json()
     assert scene["name"] == "robot" and scene["imported"]["format"] == "rosbag"
+    assert scene["created_by"] == "local"  # the worker made the scene in the name of the import's maker
     assert scene["summary"]["frames"] == done["summary"]["frames"] and scene["summary"]["depth"]
     assert not list((service.data_dir / "imports").iterdir())  # the raw capture went with the import
     job = client.post(f"/scenes/{done['scene_id']}/jobs", json={"max_iters": 2}).json()
@@ -183,6 +185,7 @@ def test_a_queued_import_is_cancelled_at_once_its_capture_removed_and_the_queue_
             assert not list((service.data_dir / "staging").iterdir())
             cancelled = client.post(f"/imports/{first.json()['id']}/cancel")
             assert cancelled.status_code == 202 and cancelled.json()["state"] == "cancelled"
+            assert cancelled.json()["cancelled_by"] == "local"
             assert not list(imports_dir.iterdir())
             assert client.post(f"/imports/{first.json()['id']}/cancel").json()["state"] == "cancelled"
     finally:
