@@ -124,16 +124,16 @@ def test_429_waits_as_long_as_retry_after_says_and_a_post_is_retried(servers):
 
 def test_a_refusal_beyond_the_retries_is_one_line_with_the_server_s_detail(servers):
     server, seen = servers(lambda handler, n: _reply(handler, 503, {"detail": "broker\ndown"}))
-    with Client(f"http://127.0.0.1:{server.server_port}", retries=2, backoff_s=0.01) as client:
-        with pytest.raises(ApiError) as refused:
-            client.job(JOB_ID)
+    with Client(f"http://127.0.0.1:{server.server_port}", retries=2, backoff_s=0.01) as client, \
+            pytest.raises(ApiError) as refused:
+        client.job(JOB_ID)
     assert len(seen.requests) == 3
     assert refused.value.status == 503 and str(refused.value) == "broker down (HTTP 503)"
 
     server, seen = servers(lambda handler, n: _reply(handler, 404, {"detail": f"no job {JOB_ID}"}))
-    with Client(f"http://127.0.0.1:{server.server_port}", backoff_s=0.01) as client:
-        with pytest.raises(ApiError, match=f"no job {JOB_ID}"):
-            client.job(JOB_ID)
+    with Client(f"http://127.0.0.1:{server.server_port}", backoff_s=0.01) as client, \
+            pytest.raises(ApiError, match=f"no job {JOB_ID}"):
+        client.job(JOB_ID)
     assert len(seen.requests) == 1  # a 404 is not retried
 
 
@@ -152,9 +152,9 @@ def test_a_service_not_listening_yet_is_retried_until_it_is(servers):
     threading.Timer(0.8, lambda: servers(lambda handler, n: _reply(handler, 200, []), port)).start()
     with Client(f"http://127.0.0.1:{port}", backoff_s=0.2, retries=8) as client:
         assert client.scenes() == []
-    with Client(f"http://127.0.0.1:{free_port()}", backoff_s=0.01, retries=1) as client:
-        with pytest.raises(ApiError, match="cannot reach"):
-            client.scenes()
+    with Client(f"http://127.0.0.1:{free_port()}", backoff_s=0.01, retries=1) as client, \
+            pytest.raises(ApiError, match="cannot reach"):
+        client.scenes()
 
 
 def _sse(handler, events: list[tuple[int, str, dict]], close_early: bool) -> None:

@@ -8,7 +8,6 @@ import hashlib
 import os
 import socket
 import time
-from pathlib import Path
 
 import httpx
 import pytest
