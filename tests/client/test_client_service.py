@@ -5,6 +5,7 @@ that failed; refusals are one line)."""
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import subprocess
@@ -16,6 +17,7 @@ import pytest
 from PIL import Image
 from service_fixtures import REPO, start_redis, start_service, wait_for, zip_scene
 
+from app.schemas import SceneOut
 from voxnerf.client import ApiError, Client
 
 pytestmark = pytest.mark.slow
@@ -56,6 +58,16 @@ def test_round_trip_upload_train_wait_render_download(service, small_room, tmp_p
         client.session_threshold = 1  # the same scan through an upload session, in 256 KiB parts
         in_parts = client.upload(archive, name="in parts")
         assert in_parts.name == "in parts" and in_parts.summary == scene.summary
+
+        data = archive.read_bytes()  # a session cut short (one part sent), resumed from what the server has
+        with service.client() as http:
+            session = http.post("/uploads", json={"filename": "room.zip", "total_bytes": len(data)}).json()
+            first = data[: session["part_bytes"]]
+            sent = http.put(f"/uploads/{session['id']}/parts/0", content=first,
+                            headers={"X-Content-SHA256": hashlib.sha256(first).hexdigest()})
+            assert sent.status_code == 201, sent.text
+        resumed = SceneOut.model_validate(client.resume_upload(session["id"], archive))
+        assert resumed.summary == scene.summary
         assert {s.id for s in client.scenes()} >= {scene.id, in_parts.id}
 
         queued = client.train(scene.id, **TINY)
@@ -127,8 +139,15 @@ def test_remote_cli_upload_train_wait_status_render_download(service, small_room
     assert rendered.returncode == 0, rendered.stderr
     with service.client() as http:
         assert list(Image.open(out).size) == http.get(f"/scenes/{scene_id}").json()["summary"]["image_size"]
+    service.start_worker("outputs")
+    video = tmp_path / "fly.mp4"
+    made = _remote(service, "video", job_id, "--path", "orbit", "--frames", "3", "--width", "32", "--height", "24",
+                   "--out", str(video))
+    assert made.returncode == 0, made.stderr + service.logs()
+    assert made.stdout.splitlines()[-1] == str(video) and video.read_bytes()[4:8] == b"ftyp"
     downloaded = _remote(service, "download", job_id, "--out", str(tmp_path / "run"))
     assert downloaded.returncode == 0 and (tmp_path / "run" / "checkpoint.pt").is_file(), downloaded.stderr
+    assert any(line.endswith(".mp4") for line in downloaded.stdout.splitlines())  # the video came with the run
 
 
 def test_remote_train_wait_exits_1_when_the_job_fails(service, small_room, tmp_path):
