@@ -24,6 +24,7 @@ import time
 from typing import Any
 
 from sqlalchemy import delete, func, select, update
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.core.db import session_scope
@@ -109,6 +110,18 @@ def journal(session: Session, job_id: str, change: str) -> None:
     if change == "progress":
         session.flush()
         _thin_progress(session, job_id)
+
+
+def complete_log(settings: Settings, job_id: str) -> None:
+    """Journal the final state of a job that ended before it had an event log (its newest state event is not its
+    state), so that its stream ends like any other's. A concurrent request doing the same wins alone."""
+    try:
+        with session_scope(settings) as session:
+            row = session.get(JobRow, job_id)
+            if row is not None and row.state in FINAL_STATES and _last_state(session, job_id) != row.state:
+                journal(session, job_id, "state")
+    except IntegrityError:  # the other request took the event's number first
+        pass
 
 
 def forget(session: Session, job_id: str) -> None:
