@@ -6,6 +6,7 @@
 - that job's webhooks, posted to a loopback receiver (allowed by VOXNERF_WEBHOOK_ALLOW_PRIVATE) that answers 500
   to each event's first delivery: every state change arrives, signed, after a retry, and each delivery's log
   shows both attempts;
+- the job page of a running job drawn from its events: one GET /jobs/{id}, then the stream, in a real browser;
 - without workers: a queued job's stream (its state, keep-alive comments), the stream limit (429), a cancel seen
   on the open stream, unknown jobs (404), loopback and private callback URLs refused (422) without the setting.
 """
@@ -21,6 +22,7 @@ from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
+from browser_fixtures import browser_page, csp_reports
 from service_fixtures import start_service, upload_scene, wait_for
 
 from app.webhooks import CallbackRefused, checked_addresses, signature
@@ -185,6 +187,33 @@ def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, rec
         assert payload["job_id"] == job["id"] and payload["job"]["state"] == payload["state"]
         assert str(payload["event_id"]) == headers["X-VoxNeRF-Event-Id"]
     assert [json.loads(body)["state"] for _, body in delivered] == ["queued", "running", "succeeded"]
+
+
+RUNNING_PAGE_SHOWS_PROGRESS = """() => document.body.dataset.state === 'running'
+  && Number(document.querySelector('#summary [role=progressbar]').getAttribute('aria-valuenow')) > 0"""
+
+
+def test_the_job_page_follows_a_running_job_from_its_events_without_polling(service, small_room):
+    with service.client() as client:
+        scene = upload_scene(client, small_room)
+        job = client.post(f"/scenes/{scene['id']}/jobs", json={"max_seconds": 20, "compile": False,
+                                                                 "downscale": 4}).json()
+    with browser_page(1200, 800) as page:
+        csp = csp_reports(page)
+        requests: list[str] = []
+        page.on("request", lambda request: requests.append(f"{request.method} {request.url}"))
+        page.goto(service.base_url + "/")
+        page.evaluate(f"localStorage.setItem('voxnerf.token', {json.dumps(TOKEN)})")
+        page.goto(f"{service.base_url}/static/job.html?id={job['id']}")
+        page.wait_for_function(RUNNING_PAGE_SHOWS_PROGRESS, timeout=TIMEOUT_S * 1000)
+        progress_seen = int(page.get_attribute("#summary [role=progressbar]", "aria-valuenow"))
+        page.wait_for_selector('body[data-state="succeeded"]', timeout=TIMEOUT_S * 1000)
+        assert page.inner_text("#job-state") == "succeeded" and progress_seen < 100
+        assert page.eval_on_selector_all("#stages tbody tr", "rows => rows.length") >= len(SET_UP_STAGES)
+    job_url = f"{service.base_url}/jobs/{job['id']}"
+    assert requests.count(f"GET {job_url}") == 1, [r for r in requests if "/jobs/" in r]  # no polling
+    assert requests.count(f"GET {job_url}/events") == 1  # one stream, from the first event to the final state
+    assert not csp, csp
 
 
 # ------------------------------------------------------------------------------------------------ no workers
