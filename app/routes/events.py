@@ -87,6 +87,10 @@ async def _stream(settings: Settings, job_id: str, after: int) -> AsyncIterator[
             last_sent = time.monotonic()
             continue  # a full batch may have more behind it: read again at once
         if time.monotonic() - last_sent >= settings.event_keepalive_s:
+            # an ended (or deleted) job with nothing after ``after``: its final event is behind the client already
+            job = await run_in_threadpool(JOBS.get, settings, job_id)
+            if job is None or job.state in events.FINAL_STATES:
+                return
             yield KEEPALIVE
             last_sent = time.monotonic()
         await asyncio.sleep(settings.event_poll_s)

@@ -23,7 +23,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from browser_fixtures import browser_page, csp_reports
-from service_fixtures import start_service, upload_scene, wait_for
+from service_fixtures import start_redis, start_service, upload_scene, wait_for
 
 from app.webhooks import CallbackRefused, checked_addresses, signature
 
@@ -219,14 +219,13 @@ def test_the_job_page_follows_a_running_job_from_its_events_without_polling(serv
 # ------------------------------------------------------------------------------------------------ no workers
 
 
+IDLE_SETTINGS = {"VOXNERF_MAX_EVENT_STREAMS": "1", "VOXNERF_EVENT_KEEPALIVE_S": "0.5", "VOXNERF_EVENT_POLL_S": "0.1"}
+
+
 @pytest.fixture(scope="module")
 def idle_service(tmp_path_factory):
     """An API without workers (its jobs stay queued) and without the allow-private setting."""
-    svc = start_service(tmp_path_factory.mktemp("events_idle"), token=TOKEN, workers=False, settings={
-        "VOXNERF_MAX_EVENT_STREAMS": "1",
-        "VOXNERF_EVENT_KEEPALIVE_S": "0.5",
-        "VOXNERF_EVENT_POLL_S": "0.1",
-    })
+    svc = start_service(tmp_path_factory.mktemp("events_idle"), token=TOKEN, workers=False, settings=IDLE_SETTINGS)
     try:
         yield svc
     finally:
@@ -234,7 +233,26 @@ def idle_service(tmp_path_factory):
 
 
 def test_a_queued_jobs_stream_keeps_alive_is_bounded_and_ends_when_it_is_cancelled(idle_service, small_room):
-    with idle_service.client(timeout_s=60) as client:
+    check_a_queued_jobs_stream(idle_service, small_room)
+
+
+def test_the_stream_is_the_same_with_the_redis_broker(tmp_path, small_room):
+    redis = start_redis(tmp_path / "redis")
+    try:
+        service = start_service(tmp_path / "svc", broker_url=redis.url, token=TOKEN, workers=False,
+                                settings=IDLE_SETTINGS)
+        try:
+            check_a_queued_jobs_stream(service, small_room)
+        finally:
+            service.stop()
+    finally:
+        redis.stop()
+
+
+def check_a_queued_jobs_stream(service, small_room) -> None:
+    """A job no worker takes: its stream sends its queued state, then keep-alives; a second stream is refused
+    (the limit is 1); a cancel ends the first with the cancelled state; the slot is given back."""
+    with service.client(timeout_s=60) as client:
         scene = upload_scene(client, small_room)
         job = client.post(f"/scenes/{scene['id']}/jobs", json=JOB).json()
         path = f"/jobs/{job['id']}/events"

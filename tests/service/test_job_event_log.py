@@ -123,3 +123,13 @@ def test_a_job_with_a_callback_url_gets_one_delivery_per_state_event(settings):
     assert (first.outcome, first.attempts, first.log[0]["status"]) == ("pending", 1, 500)
     assert (second.outcome, third.outcome) == ("delivered", "abandoned")
     assert [d.id for d in events.take_due_deliveries(settings, lease_s=30.0)] == [first.id]
+
+
+def test_a_job_that_ended_before_its_log_existed_gets_its_final_state_event(settings):
+    job = jobstore.create_job(settings, SCENE, {"max_iters": 5})
+    with session_scope(settings) as session:  # as a database of an earlier version holds it: no events
+        session.query(JobEventRow).filter_by(job_id=job.id).delete()
+        session.get(jobstore.JobRow, job.id).state = "failed"
+    events.complete_log(settings, job.id)
+    events.complete_log(settings, job.id)  # once only
+    assert _log(settings, job.id) == [(1, "state", "failed")]
