@@ -10,6 +10,7 @@ from fastapi import Depends, HTTPException, Path, Request
 
 from app.core.jobstore import ID_RE
 from app.core.settings import Settings
+from app.core.tokens import LEGACY_ADMIN, TOKENLESS
 
 
 def app_settings(request: Request) -> Settings:
@@ -48,3 +49,12 @@ def require_token(request: Request, settings: SettingsDep) -> None:
             detail="missing or wrong bearer token: send 'Authorization: Bearer <VOXNERF_API_TOKEN>'",
             headers={"WWW-Authenticate": "Bearer"},
         )
+
+
+def principal_name(request: Request, settings: Settings) -> str:
+    """The name of who makes the request (recorded on what it creates; its webhook secret signs the deliveries):
+    the authenticated principal's, else ``admin`` (the API token's holder) or ``local`` (no token set)."""
+    principal = getattr(request.state, "principal", None)
+    if principal is not None:
+        return principal.name
+    return LEGACY_ADMIN if settings.api_token is not None else TOKENLESS

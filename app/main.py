@@ -34,9 +34,10 @@ from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import health, imports, jobs, outputs, render, scenes, uploads, viewer
+from app.routes import events, health, imports, jobs, outputs, render, scenes, uploads, viewer
 from app.uploads import sessions as upload_sessions
 from app.uploads.rules import UploadError
+from app.webhooks import deliver_due
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
@@ -62,6 +63,16 @@ async def _sweep_forever(app: FastAPI) -> None:
         await asyncio.sleep(app.state.settings.sweep_interval_s)
 
 
+async def _deliver_webhooks_forever(app: FastAPI) -> None:
+    """Send the webhook deliveries that are due, every ``webhook_poll_s`` (:func:`app.webhooks.deliver_due`)."""
+    while True:
+        try:
+            await deliver_due(app.state.settings)
+        except Exception:  # database down: keep serving, try again next round
+            log.exception("webhook delivery round failed")
+        await asyncio.sleep(app.state.settings.webhook_poll_s)
+
+
 @contextlib.asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
@@ -72,12 +83,14 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     install_log_masking()  # credentials in URLs never reach a log line
     await run_in_threadpool(clean_leftovers, settings)  # staging and half-made scenes a crash left
     sweeper = asyncio.create_task(_sweep_forever(app))  # its first round is the startup recovery
+    deliverer = asyncio.create_task(_deliver_webhooks_forever(app))
     try:
         yield
     finally:
-        sweeper.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await sweeper
+        for task in (sweeper, deliverer):
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
 
 
 async def _upload_error(request: Request, err: UploadError) -> JSONResponse:
@@ -117,6 +130,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.celery = create_celery(settings)
     app.state.render_slots = render.RenderSlots(settings.max_concurrent_renders)
+    app.state.event_streams = render.RenderSlots(settings.max_event_streams)  # open GET /jobs/{id}/events
     app.add_middleware(
         BodyLimitMiddleware,
         limit_for=lambda method, path: (
@@ -132,7 +146,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, uploads, imports, jobs, outputs, render, viewer):
+    for module in (scenes, uploads, imports, jobs, events, outputs, render, viewer):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
 

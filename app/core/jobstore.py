@@ -19,6 +19,7 @@ from typing import Any
 
 from sqlalchemy import delete, select
 
+from app.core import events
 from app.core.celery_app import TRAIN_TASK
 from app.core.db import session_scope
 from app.core.lease import WorkKind
@@ -132,16 +133,20 @@ JOBS = WorkKind(
     claimed=lambda job, now: {"started_at": job.started_at or now, "stage": "starting"},
     progress=_progress,
     staged=True,
+    journal=events.journal,  # every change of a job is in its event log (GET /jobs/{id}/events, webhooks)
 )
 """Training jobs' lease lifecycle (:class:`app.core.lease.WorkKind`): ``JOBS.get``, ``claim``,
 ``record_progress(settings, job_id, attempt, event)``, ``finish``, ``request_cancel``..."""
 
 
-def create_job(settings: Settings, scene_id: str, options: dict) -> JobRow | None:
-    """A new queued job on ``scene_id``; None when the scene does not exist. Raises
-    :class:`app.core.lease.QueueFull` when ``settings.max_queued_jobs`` jobs are queued already
+def create_job(settings: Settings, scene_id: str, options: dict, callback_url: str | None = None,
+               created_by: str | None = None) -> JobRow | None:
+    """A new queued job on ``scene_id`` (its first event, ``queued``, journalled with it), made by principal
+    ``created_by``, whose state changes are posted to ``callback_url`` when given; None when the scene does not
+    exist. Raises :class:`app.core.lease.QueueFull` when ``settings.max_queued_jobs`` jobs are queued already
     (:meth:`app.core.lease.WorkKind.refuse_beyond`: the limit per client; nothing is written then)."""
-    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, **initial_values())
+    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, callback_url=callback_url,
+                       created_by=created_by, **initial_values())
     with session_scope(settings) as session:
         session.add(row)
         session.flush()
@@ -149,6 +154,7 @@ def create_job(settings: Settings, scene_id: str, options: dict) -> JobRow | Non
             session.rollback()
             return None
         JOBS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs")
+        events.journal(session, row.id, "state")
     return row
 
 
@@ -173,6 +179,7 @@ def delete_job(settings: Settings, job_id: str) -> list[str] | None:
             raise JobActive(f"{what}; cancel it and wait for it to stop first")
         output_ids = list(session.scalars(select(OutputRow.id).where(OutputRow.job_id == job_id)))
         session.execute(delete(OutputRow).where(OutputRow.job_id == job_id))
+        events.forget(session, job_id)
         session.delete(job)
     return output_ids
 

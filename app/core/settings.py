@@ -258,6 +258,38 @@ class Settings(BaseSettings):
         "cache; the least recently used ones no task is using are removed past it (the store keeps them)",
     )
 
+    # Live events and webhooks (GET /jobs/{id}/events, a job's callback_url: app/routes/events.py, app/webhooks.py)
+    max_event_streams: int = Field(
+        default=64, ge=1, le=10_000,
+        description="GET /jobs/{id}/events streams one API process keeps open at once; more are answered 429 "
+        "with Retry-After",
+    )
+    event_poll_s: float = Field(
+        default=0.5, gt=0, le=10, description="how often an open event stream reads its job's new events"
+    )
+    event_keepalive_s: float = Field(
+        default=15.0, gt=0, le=300, description="an event stream with nothing to say sends a comment this often"
+    )
+    webhook_allow_private: bool = Field(
+        default=False,
+        description="callback_url may name a host whose addresses are private, loopback, link-local or reserved "
+        "(a receiver on this machine or network); off, such a URL is refused at job creation (422) and at "
+        "delivery",
+    )
+    webhook_timeout_s: float = Field(
+        default=5.0, gt=0, le=60, description="how long one webhook delivery attempt waits for its receiver"
+    )
+    webhook_max_attempts: int = Field(
+        default=8, ge=1, le=100, description="attempts of one webhook delivery before it is abandoned"
+    )
+    webhook_retry_s: float = Field(
+        default=5.0, gt=0, le=3600,
+        description="wait before a failed webhook delivery's second attempt; it doubles after each further one",
+    )
+    webhook_poll_s: float = Field(
+        default=1.0, gt=0, le=60, description="how often the API looks for webhook deliveries that are due"
+    )
+
     @field_validator("allowed_hosts", "trusted_proxies", mode="before")
     @classmethod
     def _comma_separated(cls, value: Any) -> Any:

@@ -14,6 +14,7 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
+from app import webhooks
 from app.core import jobstore, storage
 from app.core.disk_space import require_room
 from app.core.imports import IMPORTS
@@ -22,7 +23,7 @@ from app.core.lease import QueueFull
 from app.core.models import ImportRow
 from app.core.scene_store import StoredScene
 from app.core.settings import Settings
-from app.deps import CeleryDep, SceneId, SettingsDep
+from app.deps import CeleryDep, SceneId, SettingsDep, principal_name
 from app.routes import work
 from app.routes.render import RenderSlots
 from app.schemas import ImportOut, JobOptions, JobOut, SceneOut
@@ -232,16 +233,26 @@ def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
     summary="Start training a scene",
 )
 def create_job(
-    scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response
+    scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response,
+    request: Request,
 ) -> JobOut:
-    values = options.model_dump(exclude_none=True)
+    """Queue a training job; ``callback_url`` (optional) receives its state changes (see docs/service.md,
+    "Live events and webhooks"): a URL whose host resolves to a private or loopback address is refused with 422
+    unless VOXNERF_WEBHOOK_ALLOW_PRIVATE is set."""
+    values = options.model_dump(exclude_none=True, exclude={"callback_url"})
+    if options.callback_url is not None:
+        try:
+            webhooks.checked_addresses(options.callback_url, settings.webhook_allow_private)
+        except webhooks.CallbackRefused as refused:
+            raise HTTPException(422, str(refused)) from None
     try:  # TrainConfig's own cross-field rules; the worker adds device and checkpoint_every_s the same way
         TrainConfig(**values, device=settings.device, checkpoint_every_s=settings.checkpoint_every_s)
     except ValidationError as err:
         raise HTTPException(422, f"invalid training options: {err}") from None
     _scene_or_404(settings, scene_id)
     try:
-        job = jobstore.create_job(settings, scene_id, values)
+        job = jobstore.create_job(settings, scene_id, values, callback_url=options.callback_url,
+                                  created_by=principal_name(request, settings))
     except QueueFull as full:
         raise HTTPException(429, str(full)) from None
     if job is None:
