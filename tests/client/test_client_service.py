@@ -75,6 +75,9 @@ def test_round_trip_upload_train_wait_render_download(service, small_room, tmp_p
         events = []
         job = client.wait(queued.id, on_event=events.append, timeout_s=JOB_TIMEOUT_S)
         assert job.state == "succeeded", f"{job.error}\n{service.logs()}"
+        assert events[-1].event == "state" and events[-1].data["state"] == "succeeded"  # followed the stream
+        ids = [event.id for event in events]
+        assert ids == sorted(set(ids))
         assert client.job(job.id).state == "succeeded" and job.id in {j.id for j in client.jobs(scene.id)}
 
         frame = _test_frame(small_room)
