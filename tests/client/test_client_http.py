@@ -9,12 +9,11 @@ import threading
 import time
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from types import SimpleNamespace
 
 import pytest
 from service_fixtures import free_port
 
-from app.core import progress
+from app.core.models import JobRow
 from app.schemas import JobOut
 from voxnerf.client import ApiError, Client
 
@@ -68,10 +67,9 @@ def _reply(handler: BaseHTTPRequestHandler, status: int, body: object, headers: 
 
 
 def _job(state: str) -> dict:
-    row = SimpleNamespace(id=JOB_ID, scene_id=SCENE_ID, state=state, metrics=None, error=None,
-                          cancel_requested=False, options={"max_iters": 2}, attempt=1, requeues=0,
-                          created_at=1.0e9, started_at=None, finished_at=None,
-                          **{name: None for name in progress.PROGRESS_FIELDS})
+    """A job as GET /jobs/{id} answers it, made from a (never stored) row of the jobs table."""
+    row = JobRow(id=JOB_ID, scene_id=SCENE_ID, state=state, cancel_requested=False, options={"max_iters": 2},
+                 attempt=1, requeues=0, created_at=1.0e9)
     return JobOut.from_row(row).model_dump(mode="json")
 
 
