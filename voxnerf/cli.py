@@ -718,7 +718,10 @@ def _add_worker_command(sub: argparse._SubParsersAction) -> None:
 def _remote(args: argparse.Namespace) -> int:
     from voxnerf.client.commands import run_remote
 
-    return run_remote(args, job_option_values(args) if args.remote_command == "train" else None)
+    options = None
+    if args.remote_command == "train":
+        options = job_option_values(args) | ({"callback_url": args.callback_url} if args.callback_url else {})
+    return run_remote(args, options)
 
 
 def _add_remote_command(sub: argparse._SubParsersAction) -> None:
@@ -748,6 +751,8 @@ def _add_remote_work(commands: argparse._SubParsersAction, common: argparse.Argu
     q.add_argument("scene", help="the scene's id")
     q.add_argument("--wait", action="store_true",
                    help="follow the job until it ends: exit 0 when it succeeded, 1 when it failed or was cancelled")
+    q.add_argument("--callback-url", metavar="URL", help="where the service posts the job's state changes, signed "
+                   "(webhooks: docs/service.md)")
     _add_job_options(q)
     q = commands.add_parser("status", parents=[common], help="a job's state and progress, or the latest jobs")
     q.add_argument("job", nargs="?", help="a job id (default: list the latest jobs)")

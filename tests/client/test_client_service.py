@@ -183,6 +183,9 @@ def test_remote_refusals_are_one_line(service, small_room, tmp_path):
     assert unknown.returncode == 2 and unknown.stderr == f"voxnerf: error: no job {'0' * 32} (HTTP 404)\n"
     no_token = _remote(service, "status", token=None, timeout_s=60)
     assert no_token.returncode == 2 and len(no_token.stderr.splitlines()) == 1 and "(HTTP 401)" in no_token.stderr
+    private = _remote(service, "train", "0" * 32, "--max-iters", "2", "--callback-url", "http://127.0.0.1:9/hook",
+                      timeout_s=60)  # the option reaches the service, which refuses a loopback target
+    assert private.returncode == 2 and "(HTTP 422)" in private.stderr and len(private.stderr.splitlines()) == 1
     bad_option = _remote(service, "train", "0" * 32, "--max-iters", "2", "--set", "device=cuda", timeout_s=60)
     assert bad_option.returncode == 2 and len(bad_option.stderr.splitlines()) == 1, bad_option.stderr
     assert "device" in bad_option.stderr
