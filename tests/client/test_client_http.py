@@ -207,3 +207,22 @@ def test_wait_asks_for_the_job_where_the_service_has_no_event_stream(servers):
     with Client(f"http://127.0.0.1:{server.server_port}") as client:
         assert client.wait(JOB_ID).state == "failed"
     assert [path for _, path, _ in seen.requests] == [f"/jobs/{JOB_ID}/events"] + [f"/jobs/{JOB_ID}"] * 2
+
+
+def _drop(handler) -> None:
+    """Close the connection without answering (the request arrived; its answer is lost)."""
+    handler.close_connection = True
+    handler.connection.shutdown(2)
+
+
+def test_a_lost_answer_is_asked_again_for_a_get_but_never_for_a_new_job(servers):
+    server, seen = servers(lambda handler, n: _drop(handler) if n == 0 else _reply(handler, 200, []))
+    with Client(f"http://127.0.0.1:{server.server_port}", backoff_s=0.01) as client:
+        assert client.scenes() == []
+    assert len(seen.requests) == 2
+
+    server, seen = servers(lambda handler, n: _drop(handler))
+    with Client(f"http://127.0.0.1:{server.server_port}", backoff_s=0.01) as client, \
+            pytest.raises(ApiError, match="the connection failed"):
+        client.train(SCENE_ID, max_iters=2)
+    assert len(seen.requests) == 1  # the job may exist: sending it again could train it twice

@@ -12,8 +12,9 @@ runs.
 Answers are the API's own pydantic models (:mod:`app.schemas`: ``SceneOut``, ``JobOut``, ``OutputOut``,
 ``ImportOut``), and requests are checked by the models the API checks them with (``JobOptions``,
 ``RenderRequest``, ``VideoRequest``) before anything is sent. Every request is retried with exponential back-off
-on 429 and 503 (honouring ``Retry-After``) and on connection errors (a request whose body may have arrived is
-retried only where that is harmless: GET, PUT, DELETE, and uploads, which the server keeps apart). Files past
+on 429 and 503 (honouring ``Retry-After``) and on connection errors; a request whose body may have arrived is
+sent again only where a repeat is harmless (GET, PUT, DELETE, cancel, render) or costs little (an upload: at worst
+a second copy of the scene, or an upload session left to expire), never a new training or output job. Files past
 ``session_threshold`` go in an upload session (``/uploads``), part by part, each part resent after a dropped
 connection; smaller ones in one streamed ``POST /scenes``. Downloads stream to a temporary file renamed into place.
 A refusal raises :class:`ApiError`, one line: the server's ``detail``.
@@ -335,7 +336,7 @@ class Client:
         """Start training ``scene_id`` with the job options (``max_seconds``, ``max_iters``, ``preset``...: those
         of ``POST /scenes/{id}/jobs``, checked by its model ``JobOptions`` first: a pydantic ValidationError)."""
         body = JobOptions(**options).model_dump(mode="json", exclude_unset=True)
-        return JobOut.model_validate(self._json("POST", f"/scenes/{scene_id}/jobs", json=body, resend=True))
+        return JobOut.model_validate(self._json("POST", f"/scenes/{scene_id}/jobs", json=body, resend=False))
 
     def job(self, job_id: str) -> JobOut:
         return JobOut.model_validate(self._json("GET", f"/jobs/{job_id}"))
@@ -441,7 +442,7 @@ class Client:
         and ``frames``, or ``camera_path``...). With ``wait``, wait for it (``GET /outputs/{id}``) and, when it
         succeeded and ``out`` is given, download the MP4 there."""
         body = VideoRequest(**request).model_dump(mode="json", exclude_none=True)
-        output = OutputOut.model_validate(self._json("POST", f"/jobs/{job_id}/videos", json=body, resend=True))
+        output = OutputOut.model_validate(self._json("POST", f"/jobs/{job_id}/videos", json=body, resend=False))
         if not wait:
             return output
         output = self.wait_output(output.id)
