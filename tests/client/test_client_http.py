@@ -13,9 +13,10 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 from service_fixtures import free_port
 
-from app.core.models import JobRow
-from app.schemas import JobOut
+from app.core.models import ImportRow, JobRow
+from app.schemas import ImportOut, JobOut
 from voxnerf.client import ApiError, Client
+from voxnerf.errors import VoxNeRFError
 
 JOB_ID = "ab" * 16
 SCENE_ID = "cd" * 16
@@ -226,3 +227,51 @@ def test_a_lost_answer_is_asked_again_for_a_get_but_never_for_a_new_job(servers)
             pytest.raises(ApiError, match="the connection failed"):
         client.train(SCENE_ID, max_iters=2)
     assert len(seen.requests) == 1  # the job may exist: sending it again could train it twice
+
+
+IMPORT_ID = "ef" * 16
+
+
+def _import(state: str, error: str | None = None) -> dict:
+    """A capture import as GET /imports/{id} answers it, made from a (never stored) row of the imports table."""
+    row = ImportRow(id=IMPORT_ID, name="walk", layout="video", state=state, stage=None, params={}, size_bytes=10,
+                    progress=1.0 if state == "succeeded" else 0.0, scene_id=SCENE_ID if state == "succeeded" else None,
+                    error=error, cancel_requested=False, attempt=1, requeues=0, created_at=1.0e9)
+    return ImportOut.from_row(row).model_dump(mode="json")
+
+
+SCENE = {"id": SCENE_ID, "name": "walk", "created_at": "2026-01-01T00:00:00Z", "size_bytes": 1,
+         "summary": {"frames": 3, "splits": {"train": 3}, "image_size": [4, 3], "prior": None, "depth": False}}
+
+
+def _capture_service(final: dict):
+    """Answers of a service that queues the import of an uploaded capture: 202, then the import running, then
+    ``final``, then the scene."""
+    def answer(handler, n):
+        if handler.command == "POST":
+            _reply(handler, 202, _import("queued"), {"Location": f"/imports/{IMPORT_ID}"})
+        elif handler.path == f"/imports/{IMPORT_ID}":
+            _reply(handler, 200, _import("running") if n < 2 else final)
+        else:
+            _reply(handler, 200, SCENE)
+
+    return answer
+
+
+def test_an_uploaded_capture_s_import_is_waited_for_and_its_failure_is_one_line(servers, tmp_path):
+    capture = tmp_path / "walk.mp4"
+    capture.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(100))
+    server, seen = servers(_capture_service(_import("succeeded")))
+    with Client(f"http://127.0.0.1:{server.server_port}") as client:
+        scene = client.upload(capture)
+        assert scene.id == SCENE_ID and scene.summary.frames == 3
+        assert [path for _, path, _ in seen.requests] == ["/scenes", *[f"/imports/{IMPORT_ID}"] * 2,
+                                                          f"/scenes/{SCENE_ID}"]
+        assert b'filename="walk.mp4"' in seen.bodies[0] and bytes(100) in seen.bodies[0]
+        queued = client.upload(capture, wait=False)
+        assert queued.id == IMPORT_ID and queued.state == "queued"
+
+    server, _ = servers(_capture_service(_import("failed", error="no frame sharp enough")))
+    with Client(f"http://127.0.0.1:{server.server_port}") as client, \
+            pytest.raises(VoxNeRFError, match=f"^import {IMPORT_ID} failed: no frame sharp enough$"):
+        client.upload(capture)
