@@ -31,6 +31,11 @@ def _utc(seconds: float | None) -> datetime | None:
 # ------------------------------------------------------------------------------------------------ scenes
 
 
+CREATED_BY_DOC = ("who made it: a token's name, 'admin' (VOXNERF_API_TOKEN) or 'local' (a tokenless service); null "
+                  "when made before tokens existed")
+CANCELLED_BY_DOC = "who asked to cancel it (as created_by); null when no one did"
+
+
 class PriorSummary(BaseModel):
     model_config = ConfigDict(extra="allow")
 
@@ -93,6 +98,7 @@ class SceneOut(BaseModel):
         None, description="for an imported upload (COLMAP, ScanNet, Record3D, Polycam), what its importer wrote; "
         "null for a scene directory"
     )
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> SceneOut:
@@ -105,6 +111,7 @@ class SceneOut(BaseModel):
             size_bytes=row.size_bytes,
             summary=SceneSummary.model_validate(summary),
             imported=ImportSummary.model_validate(imported) if imported is not None else None,
+            created_by=row.created_by,
         )
 
 
@@ -130,11 +137,24 @@ REST_LIMITS: dict[str, Any] = {
 }
 
 
+CALLBACK_URL_MAX_CHARS = 2048
+
+
 class _JobOptionsRules(BaseModel):
     """Training options, named as TrainConfig's fields (the CLI's ``voxnerf train`` flags). Defaults, limits and
-    descriptions are TrainConfig's, with a few tighter REST limits. At least one bound is required."""
+    descriptions are TrainConfig's, with a few tighter REST limits. At least one bound is required. Besides them,
+    ``callback_url``: where the job's state changes are posted (webhooks)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    callback_url: str | None = Field(
+        None,
+        max_length=CALLBACK_URL_MAX_CHARS,
+        description="http(s) URL the job's state changes (queued, running, succeeded, failed, cancelled) are POSTed "
+        "to, signed with the creating token's webhook secret (X-VoxNeRF-Signature); its host must not resolve to a "
+        "private, loopback, link-local or reserved address unless VOXNERF_WEBHOOK_ALLOW_PRIVATE is set",
+        examples=["https://ci.example.org/hooks/voxnerf"],
+    )
 
     @model_validator(mode="after")
     def _bounded(self) -> _JobOptionsRules:
@@ -198,11 +218,14 @@ class _JobOutBase(BaseModel):
     error: str | None
     cancel_requested: bool
     options: dict
+    callback_url: str | None = Field(None, description="where the job's state changes are posted, when set")
     attempt: int = Field(description="how many times a worker has claimed the job")
     requeues: int = Field(description="how many times the job was requeued after its worker died")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
+    cancelled_by: str | None = Field(None, description=CANCELLED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> _JobOutBase:
@@ -214,11 +237,14 @@ class _JobOutBase(BaseModel):
             error=row.error,
             cancel_requested=row.cancel_requested,
             options=row.options,
+            callback_url=row.callback_url,
             attempt=row.attempt,
             requeues=row.requeues,
             created_at=_utc(row.created_at),
             started_at=_utc(row.started_at),
             finished_at=_utc(row.finished_at),
+            created_by=row.created_by,
+            cancelled_by=row.cancelled_by,
             **{name: _column(row, name) for name in progress.PROGRESS_FIELDS},
         )
 
@@ -234,6 +260,33 @@ JobOut = create_model(
     __doc__="A training job: its state, options, progress (the engine's progress event fields) and results.",
     **{name: _progress_field(name) for name in progress.PROGRESS_FIELDS},
 )
+
+
+class DeliveryAttempt(BaseModel):
+    attempt: int = Field(description="1 for the first attempt")
+    at: datetime
+    status: int | None = Field(description="the receiver's HTTP status; null when no answer came")
+    error: str | None = Field(description="why the attempt failed; null when the receiver answered 2xx")
+
+
+class WebhookDeliveryOut(BaseModel):
+    """The delivery of one state change of a job to its ``callback_url``, with every attempt so far."""
+
+    event_id: int = Field(description="the id of the job's state event (as in GET /jobs/{id}/events)")
+    state: JobState
+    outcome: Literal["pending", "delivered", "abandoned"]
+    attempts: list[DeliveryAttempt]
+    next_attempt_at: datetime | None = Field(description="when a pending delivery is tried next")
+
+    @classmethod
+    def from_row(cls, row) -> WebhookDeliveryOut:
+        return cls(
+            event_id=row.event_seq,
+            state=row.state,
+            outcome=row.outcome,
+            attempts=[DeliveryAttempt(**{**entry, "at": _utc(entry["at"])}) for entry in row.log or []],
+            next_attempt_at=_utc(row.next_at) if row.outcome == "pending" else None,
+        )
 
 
 class EvalRender(BaseModel):
@@ -328,6 +381,8 @@ class OutputOut(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
+    cancelled_by: str | None = Field(None, description=CANCELLED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> OutputOut:
@@ -342,6 +397,7 @@ class OutputOut(BaseModel):
             file_url=f"/outputs/{row.id}/file" if succeeded else None, error=row.error,
             cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,
             created_at=_utc(row.created_at), started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
+            created_by=row.created_by, cancelled_by=row.cancelled_by,
         )
 
 
@@ -358,6 +414,8 @@ class ImportOut(BaseModel):
     state: JobState
     stage: str | None = Field(description="queued, starting, importing, checking, storing, then done, failed or "
                               "cancelled")
+    step: str | None = Field(description="what the importer is doing within its stage, for photos and video "
+                             "(structure from motion): decoding, extracting features, matching, registering images")
     progress: float
     eta_s: float | None
     size_bytes: int = Field(description="of the raw capture as uploaded")
@@ -372,15 +430,19 @@ class ImportOut(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
+    cancelled_by: str | None = Field(None, description=CANCELLED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> ImportOut:
         return cls(
-            id=row.id, name=row.name, layout=row.layout, state=row.state, stage=row.stage, progress=row.progress,
+            id=row.id, name=row.name, layout=row.layout, state=row.state, stage=row.stage, step=row.step,
+            progress=row.progress,
             eta_s=row.eta_s, size_bytes=row.size_bytes, params=row.params, scene_id=row.scene_id,
             scene_url=f"/scenes/{row.scene_id}" if row.scene_id else None, summary=row.summary, error=row.error,
             cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,
             created_at=_utc(row.created_at), started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
+            created_by=row.created_by, cancelled_by=row.cancelled_by,
         )
 
 
@@ -492,3 +554,49 @@ class CameraPathOut(BaseModel):
     fps: float
     frames: list[PathFrame]
     camera_path: dict
+
+
+# ------------------------------------------------------------------------------------------------ tokens
+
+
+class TokenCreate(BaseModel):
+    """A named token to make (``POST /tokens``, scope admin)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=64, description="a slug: lowercase letters, digits, '-' and '_'; "
+                      "never reused, since work is recorded under it; not 'admin' or 'local'")
+    scope: Literal["read", "write", "admin"] = Field(
+        description="read: GET only; write: also upload, train, render, outputs, imports, and cancel or delete its "
+        "own work; admin: everything, tokens included")
+    max_queued: int | None = Field(
+        None, ge=1, description="queued rows of each kind it may have; default VOXNERF_MAX_QUEUED_PER_TOKEN")
+
+
+class TokenOut(BaseModel):
+    """A named token as listed: never the token itself (only its hash is kept)."""
+
+    name: str
+    scope: Literal["read", "write", "admin"]
+    max_queued: int | None
+    created_at: datetime
+    last_used_at: datetime | None = Field(description="to the minute: written at most once a minute")
+    revoked_at: datetime | None
+
+    @classmethod
+    def from_row(cls, row) -> TokenOut:
+        return cls(name=row.name, scope=row.scope, max_queued=row.max_queued, created_at=_utc(row.created_at),
+                   last_used_at=_utc(row.last_used_at), revoked_at=_utc(row.revoked_at))
+
+
+class TokenCreated(TokenOut):
+    """A token just made: ``token`` and ``webhook_secret`` are shown here once and never again."""
+
+    token: str = Field(description="send as 'Authorization: Bearer <token>'; shown only now")
+    webhook_secret: str = Field(description="hex key of the HMAC-SHA256 signatures of its work's webhooks")
+
+    @classmethod
+    def from_new(cls, made) -> TokenCreated:
+        """From :class:`app.core.tokens.NewToken`."""
+        return cls(name=made.name, scope=made.scope, max_queued=made.max_queued, created_at=_utc(made.created_at),
+                   last_used_at=None, revoked_at=None, token=made.token, webhook_secret=made.webhook_secret)

@@ -17,7 +17,9 @@ waiting in the broker: one queued for ``resend_queued_after_s`` or longer may ha
 a duplicate is harmless because claims are fenced.
 
 What differs between kinds are a :class:`WorkKind`'s parameters: its table, the Celery task that runs it, the
-columns a claim sets, how its progress is written, and whether its rows have a ``stage`` column.
+columns a claim sets, how its progress is written, whether its rows have a ``stage`` column, and the journal its
+changes are recorded in (training jobs: :func:`app.core.events.journal`), which each move below calls in its own
+transaction.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import socket
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import func, select, update
 
@@ -35,6 +37,9 @@ from app.core.db import session_scope
 from app.core.models import ACTIVE_STATES
 from app.core.progress import json_safe
 from app.core.settings import Settings
+
+if TYPE_CHECKING:
+    from app.core.tokens import QueueQuota
 
 WORKER_DIED = "the worker died"  # how a recorded worker death starts (:meth:`WorkKind.record_worker_death`)
 CLAIM_TRIES = 3  # a claim re-reads the row when another writer changed it between its read and its update
@@ -83,7 +88,10 @@ class WorkKind:
     created_at started_at finished_at error eta_s``); ``task``: the Celery task that runs it (its message's
     one argument is the row's id); ``claimed(row, now)``: the further columns a claim sets;
     ``progress(settings, row_id, *report)``: the columns a progress report writes; ``staged``: the rows have a
-    ``stage`` column, which the lifecycle's moves name (``requeued``, ``done``, ``failed``, ``cancelled``).
+    ``stage`` column, which the lifecycle's moves name (``requeued``, ``done``, ``failed``, ``cancelled``);
+    ``journal(session, row_id, change)``, when set, records each change in the transaction that writes it
+    (``change``: ``state`` when the row moved in its lifecycle, ``progress`` when its progress or cancel flag
+    changed).
     """
 
     name: str
@@ -93,9 +101,15 @@ class WorkKind:
     claimed: Callable[[Any, float], dict]
     progress: Callable[..., dict]
     staged: bool = False
+    journal: Callable[[Any, str, str], None] | None = None
 
     def _stage(self, stage: str) -> dict:
         return {"stage": stage} if self.staged else {}
+
+    def _changed(self, session: Any, row_id: str, change: str) -> None:
+        """Journal a change just written to row ``row_id`` in ``session`` (when the kind has a journal)."""
+        if self.journal is not None:
+            self.journal(session, row_id, change)
 
     # -------------------------------------------------------------------------------------------- the API's
 
@@ -105,15 +119,22 @@ class WorkKind:
         return self.table(id=row_id, state="queued", created_at=now, heartbeat_at=now, cancel_requested=False,
                           attempt=0, requeues=0, **columns)
 
-    def refuse_beyond(self, session: Any, limit: int, setting: str) -> None:
-        """Raise QueueFull (naming ``setting``) when more than ``limit`` rows of this kind are queued, counting the
-        one ``session`` has just added: the API has one client (whoever holds its token, or everyone without
-        one), so this is the limit per client. The caller adds its row first and counts in the same
-        transaction, which the exception rolls back, so concurrent requests cannot both slip under the limit."""
+    def refuse_beyond(self, session: Any, limit: int, setting: str, quota: QueueQuota | None = None) -> None:
+        """Raise QueueFull when more than ``quota.limit`` rows of this kind made by ``quota.principal`` are queued
+        (naming whose limit it is), or more than ``limit`` rows of all clients together (naming ``setting``),
+        counting the one ``session`` has just added. The caller adds its row first and counts in the same
+        transaction, which the exception rolls back, so concurrent requests cannot both slip under a limit."""
+        if quota is not None:
+            own = session.scalar(select(func.count()).select_from(self.table).where(
+                self.table.state == "queued", self.table.created_by == quota.principal))
+            if own > quota.limit:
+                raise QueueFull(f"{own - 1} {self.name}s of token {quota.principal!r} are queued already (its limit "
+                                f"is {quota.limit}: {quota.source}); wait for some to start, or cancel some")
         queued = session.scalar(select(func.count()).select_from(self.table).where(self.table.state == "queued"))
         if queued > limit:
             raise QueueFull(f"{queued - 1} {self.name}s are queued already (the limit is {limit}, "
-                            f"VOXNERF_{setting.upper()}); wait for some to start, or cancel some")
+                            f"VOXNERF_{setting.upper()}, for all clients together); wait for some to start, or "
+                            "cancel some")
 
     def get(self, settings: Settings, row_id: str) -> Any | None:
         with session_scope(settings) as session:
@@ -132,28 +153,33 @@ class WorkKind:
         """Fail a queued or running row whoever holds it: one that never reached a worker (the broker refused
         its message)."""
         with session_scope(settings) as session:
-            session.execute(
+            if session.execute(
                 update(self.table)
                 .where(self.table.id == row_id, self.table.state.in_(ACTIVE_STATES))
                 .values(state="failed", error=error, finished_at=time.time(), eta_s=None)
-            )
+            ).rowcount:
+                self._changed(session, row_id, "state")
 
-    def request_cancel(self, settings: Settings, row_id: str) -> Any | None:
+    def request_cancel(self, settings: Settings, row_id: str, by: str | None = None) -> Any | None:
         """Cancel a row: a queued one at once, a running one when its worker next reads the flag (through its
-        lease); the row as it is now."""
+        lease); the row as it is now. ``by``: the principal asking, recorded as ``cancelled_by`` (by the first
+        request only; a finished row is left as it is)."""
         with session_scope(settings) as session:
             cancelled = session.execute(
                 update(self.table)
                 .where(self.table.id == row_id, self.table.state == "queued")
-                .values(state="cancelled", cancel_requested=True, finished_at=time.time(),
+                .values(state="cancelled", cancel_requested=True, finished_at=time.time(), cancelled_by=by,
                         **self._stage("cancelled"))
             ).rowcount
-            if not cancelled:
-                session.execute(
-                    update(self.table)
-                    .where(self.table.id == row_id, self.table.state == "running")
-                    .values(cancel_requested=True)
-                )
+            if cancelled:
+                self._changed(session, row_id, "state")
+            elif session.execute(
+                update(self.table)
+                .where(self.table.id == row_id, self.table.state == "running",
+                       self.table.cancel_requested.is_(False))
+                .values(cancel_requested=True, cancelled_by=by)
+            ).rowcount:
+                self._changed(session, row_id, "progress")
         return self.get(settings, row_id)
 
     # -------------------------------------------------------------------------------------------- the worker's
@@ -188,22 +214,28 @@ class WorkKind:
                         **self.claimed(row, now),
                     )
                 ).rowcount
+                if claimed:
+                    self._changed(session, row_id, "state")
             if claimed:
                 return self.get(settings, row_id)
         return None
 
-    def write_running(self, settings: Settings, row_id: str, attempt: int, values: dict) -> bool:
-        """Update a running row (and renew its lease) while it still carries ``attempt``; False when it does
-        not."""
+    def write_running(self, settings: Settings, row_id: str, attempt: int, values: dict,
+                      change: str | None = None) -> bool:
+        """Update a running row (and renew its lease) while it still carries ``attempt``, journalling ``change``
+        (none for a lease renewal); False when it does not."""
         table = self.table
         with session_scope(settings) as session:
-            return bool(
+            written = bool(
                 session.execute(
                     update(table)
                     .where(table.id == row_id, table.attempt == attempt, table.state == "running")
                     .values(heartbeat_at=time.time(), **{k: json_safe(v) for k, v in values.items()})
                 ).rowcount
             )
+            if written and change is not None:
+                self._changed(session, row_id, change)
+            return written
 
     def renew_lease(self, settings: Settings, row_id: str, attempt: int) -> LeaseStatus:
         """Refresh a claimed row's heartbeat and read its cancel flag (the lease of ``worker.lease.Lease``)."""
@@ -220,7 +252,7 @@ class WorkKind:
     def record_progress(self, settings: Settings, row_id: str, attempt: int, *report: Any) -> bool:
         """Write a progress report (the kind's ``progress`` makes its columns) of a claimed row; False when no
         longer owned."""
-        return self.write_running(settings, row_id, attempt, self.progress(settings, row_id, *report))
+        return self.write_running(settings, row_id, attempt, self.progress(settings, row_id, *report), "progress")
 
     def finish(self, settings: Settings, row_id: str, attempt: int, state: str, values: dict) -> bool:
         """Move a claimed row to final ``state`` (succeeded, failed, cancelled) with its last fields (error,
@@ -228,7 +260,7 @@ class WorkKind:
         final = {"state": state, "finished_at": time.time(), "eta_s": None, **self._stage(FINAL_STAGES[state])}
         if state == "succeeded":
             final["progress"] = 1.0
-        return self.write_running(settings, row_id, attempt, {**final, **values})
+        return self.write_running(settings, row_id, attempt, {**final, **values}, "state")
 
     def record_worker_death(self, settings: Settings, row_id: str, why: str) -> None:
         """Note on an active row that its worker process died (``why``: e.g. Celery's "Worker exited
@@ -253,11 +285,12 @@ class WorkKind:
         error = f"{WORKER_DIED} {deaths} times while running this {self.noun} (last: {last}); not retried again"
         table = self.table
         with session_scope(settings) as session:
-            session.execute(
+            if session.execute(
                 update(table)
                 .where(table.id == row.id, table.attempt == row.attempt, table.state == "running")
                 .values(state="failed", error=error, finished_at=time.time(), eta_s=None, **self._stage("failed"))
-            )
+            ).rowcount:
+                self._changed(session, row.id, "state")
         return True
 
     def stale(self, settings: Settings) -> list:
@@ -281,6 +314,7 @@ class WorkKind:
                             eta_s=None, **self._stage("requeued"))
                 ).rowcount
                 if done:
+                    self._changed(session, row.id, "state")
                     moved.append(row.id)
         return moved
 
