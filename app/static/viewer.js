@@ -1,8 +1,8 @@
 // VoxNeRF viewer: look around a trained job. The server renders (POST /render); this page moves the camera,
 // draws the scene's cameras over the render and a sparse sample of its prior while the frame of the current view
 // is on its way (the stale frame fades), and manages keyframes. A job still training renders from its latest
-// checkpoint: the page shows which one ("iteration N, training"), looks at the job every few seconds, and renders
-// the view again when a newer checkpoint has been written.
+// checkpoint: the page shows which one ("iteration N, training"), follows the job's live events (GET
+// /jobs/{id}/events), and renders the view again when a newer checkpoint has been written.
 // No framework and no build step; API access (the token) comes from /static/api.js.
 //
 // Poses are camera-to-world 4x4 row-major arrays, OpenGL axes (the camera looks along -Z, +Y up), scene units,
@@ -12,8 +12,7 @@
 const SMALL_FACTOR = 4;  // the frame rendered while the camera moves is 1/4 of the full size per side
 const REST_MS = 200;  // the camera is at rest this long after its last move: render the full frame
 const RETRY_MS = 1000, MAX_RETRIES = 3;  // a refused render is asked again after a second, at most 3 times
-const JOB_POLL_MS = 3000;  // while the job trains: how often the page asks whether a newer checkpoint was written
-const ACTIVE = ["queued", "running"];
+const RETRY_JOB_MS = 3000;  // the job could not be read: try again after this
 const ROTATE_RAD_PER_PX = 0.005;
 const FLY_SPEED = 0.35;  // of the scene's extent per second
 const MAX_PITCH_COS = 0.985;  // orbiting stops short of looking straight along the scene's up
@@ -98,7 +97,7 @@ const frames = {  // progressive rendering: at most one request in flight
   outdated: false,  // a newer checkpoint than the shown frame's was written: render the view again
   outdatedAfter: 0,  // ... by a request sent after this one (seq): one already in flight may show the older one
 };
-const job = { state: null, checkpointIteration: null, refreshedFor: null, pollTimer: 0 };  // from GET /jobs/{id}
+const job = { state: null, checkpointIteration: null, refreshedFor: null, events: null };  // GET /jobs/{id}, events
 const path = { keyframes: [], frames: null, cameraPath: null, playing: 0 };
 const currentKey = () => `${view.mode}|${poseKey(view.pose)}|${JSON.stringify(view.camera)}`;  // what a frame shows
 window.viewerState = { view, frames, path, job, currentKey };  // read by the browser test and benchmarks/viewer_latency.py
@@ -223,31 +222,39 @@ function showCheckpoint(source) {
 
 // ------------------------------------------------------------------------------------------- a job in training
 
-// Look at the job while it trains: when its row names a checkpoint newer than the shown frame's (or its first),
-// render the current view again; stop once the job has ended, after rendering its last checkpoint.
+// Follow the job while it trains: the job once, then its live events (api.js followJobEvents; each progress and
+// state event carries the whole job) until its final state. When the job names a checkpoint newer than the shown
+// frame's (or its first), render the current view again: so the job's last checkpoint is shown once it has ended.
 async function watchJob() {
-  clearTimeout(job.pollTimer);
+  if (job.events) job.events.stop();
+  job.events = null;
   let row;
   try {
     row = await (await api(`/jobs/${jobId}`)).json();
   } catch (err) {
-    job.pollTimer = setTimeout(watchJob, JOB_POLL_MS * 3);
+    setTimeout(watchJob, RETRY_JOB_MS);
     return;
   }
+  jobChanged(row);
+  if (FINAL_STATES.includes(row.state)) return;
+  job.events = followJobEvents(jobId, (type, data) => {
+    if (type === "progress" || type === "state") jobChanged(data);
+  });
+}
+
+function jobChanged(row) {
   job.state = row.state;
   job.checkpointIteration = row.checkpoint_iteration;
   $("job-label").textContent = `job ${jobId.slice(0, 8)} · ${row.state}`;
   const newer = viewable(row) && (row.checkpoint_iteration !== job.refreshedFor || frames.renderError)
     && (frames.shownIteration === null || row.checkpoint_iteration > frames.shownIteration);
-  if (newer && view.pose) {
-    job.refreshedFor = row.checkpoint_iteration;  // once per checkpoint (unless its render failed), whatever
-    // iteration the worker answers (with an object store a render worker may hold an older upload for a while)
-    frames.outdated = true;
-    frames.outdatedAfter = frames.seq;
-    frames.failures = 0;
-    pump();
-  }
-  if (ACTIVE.includes(row.state)) job.pollTimer = setTimeout(watchJob, JOB_POLL_MS);
+  if (!newer || !view.pose) return;
+  job.refreshedFor = row.checkpoint_iteration;  // once per checkpoint (unless its render failed), whatever
+  // iteration the worker answers (with an object store a render worker may hold an older upload for a while)
+  frames.outdated = true;
+  frames.outdatedAfter = frames.seq;
+  frames.failures = 0;
+  pump();
 }
 
 // ------------------------------------------------------------------------------------------- depth and colour
