@@ -21,6 +21,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from app.api_reference import install_api_reference
 from app.body_limit import BodyLimitMiddleware
 from app.core import db, storage
 from app.core.celery_app import create_celery
@@ -105,7 +106,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="0.1.0",
         summary="Upload indoor scans, train prior-guided radiance fields, render any pose.",
         lifespan=_lifespan,
-        docs_url=None,  # Swagger UI and ReDoc would load scripts from a CDN; /openapi.json stays
+        openapi_url=None,  # app.api_reference serves the schema (behind the token), /docs and /redoc
+        docs_url=None,
         redoc_url=None,
     )
     app.state.settings = settings
@@ -127,6 +129,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (scenes, imports, jobs, outputs, render, viewer):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
+    install_api_reference(app)
 
     @app.get("/", include_in_schema=False)
     def dashboard() -> FileResponse:

@@ -134,7 +134,8 @@ class _JobOptionsRules(BaseModel):
     """Training options, named as TrainConfig's fields (the CLI's ``voxnerf train`` flags). Defaults, limits and
     descriptions are TrainConfig's, with a few tighter REST limits. At least one bound is required."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"max_seconds": 300, "eval_every_s": 30.0}, {"max_iters": 2000, "seed": 1}]})
 
     @model_validator(mode="after")
     def _bounded(self) -> _JobOptionsRules:
@@ -256,7 +257,9 @@ class VideoRequest(BaseModel):
     (one turn around their centre), with ``frames``, ``fps`` and optionally ``width``/``height`` (default:
     the scene's size), ``radius`` and ``height_above`` (scene units; orbit only). Sizes must be even."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"path": "orbit", "frames": 120, "fps": 30, "width": 640, "height": 480},
+        {"path": "interpolate", "frames": 90}]})
 
     camera_path: dict | None = Field(None, description="nerfstudio camera-path JSON object")
     dataparser_transforms: dict | None = Field(
@@ -293,7 +296,8 @@ class ExportRequest(BaseModel):
     """Geometry of a trained job: a triangle ``mesh`` or a coloured ``pointcloud``, as binary PLY in scene
     units (:func:`voxnerf.inference.export.export_geometry`)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"kind": "mesh", "min_opacity": 0.5}, {"kind": "pointcloud", "max_views": 50}]})
 
     kind: Literal["mesh", "pointcloud"]
     voxel_size: float | None = Field(None, gt=0, description="scene units; default the engine's for the scene")
@@ -451,7 +455,10 @@ class CameraPathRequest(BaseModel):
     (:func:`voxnerf.cameras.paths.interpolate_path`, as videos through training cameras do), or a nerfstudio
     ``camera_path`` (with its ``dataparser_transforms`` when needed) to read back in scene units."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"keyframes": [[[1, 0, 0, 0.5], [0, 1, 0, 0.2], [0, 0, 1, 2.0], [0, 0, 0, 1]],
+                       [[0, 0, 1, 2.0], [0, 1, 0, 0.2], [-1, 0, 0, 0.5], [0, 0, 0, 1]]],
+         "frames": 60, "fps": 30, "width": 640, "height": 480, "fl_x": 525, "fl_y": 525, "cx": 320, "cy": 240}]})
 
     keyframes: list[Matrix4] | None = Field(None, min_length=2, max_length=1000)
     frames: int | None = Field(None, ge=2)

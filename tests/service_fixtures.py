@@ -203,8 +203,10 @@ class Service:
         stop_process(self.procs.pop(name), kill=True)
 
     def answers(self) -> bool:
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}  # the schema is behind the token
         try:
-            return httpx.get(f"{self.base_url}/openapi.json", timeout=5, trust_env=False).status_code == 200
+            return httpx.get(f"{self.base_url}/openapi.json", headers=headers, timeout=5,
+                             trust_env=False).status_code == 200
         except httpx.HTTPError:
             return False
 

@@ -18,6 +18,7 @@ from fastapi.concurrency import run_in_threadpool
 from kombu.exceptions import KombuError
 from redis import RedisError
 
+from app.api_reference import NOT_RENDERABLE_EXAMPLE, error_responses
 from app.core import jobstore
 from app.core.dispatch import send_render
 from app.core.jobstore import JOBS
@@ -104,16 +105,22 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
             "content": {media: {} for media in MEDIA_TYPES.values()},
             "description": f"the image; header {PARTIAL_HEADER}: true when the job was cancelled (its checkpoint)",
         },
-        409: {"description": "the job has neither succeeded nor been cancelled with a checkpoint"},
-        429: {"description": "max_concurrent_renders renders are in progress; retry after Retry-After"},
-        503: {"description": "the broker is unreachable"},
-        504: {"description": "no render worker answered in time"},
+        **error_responses(
+            404, 409, 422, 429, 500, 503, 504, e409=NOT_RENDERABLE_EXAMPLE,
+            e422="1920x1440 exceeds the limit of 2073600 pixels",
+            e429="8 renders are already in progress on this API process (VOXNERF_MAX_CONCURRENT_RENDERS); retry "
+            "in 1 s",
+            e503="the render queue is unavailable (Connection refused); try again later"),
     },
     summary="Render a camera pose of a succeeded (or cancelled, checkpointed) job to PNG or EXR",
 )
 async def render(
     body: RenderRequest, request: Request, settings: SettingsDep, celery: CeleryDep
 ) -> Response:
+    """Render one view of a trained job on a render worker and answer the image: PNG (one of rgb, depth,
+    opacity) or EXR (any of them as float channels). Missing intrinsics are the scene's first training camera's;
+    ``camera_model`` renders through a lens. 429 with ``Retry-After`` beyond ``VOXNERF_MAX_CONCURRENT_RENDERS``
+    renders in progress on this API process."""
     slots: RenderSlots = request.app.state.render_slots
     if not slots.try_acquire():
         raise HTTPException(
