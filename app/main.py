@@ -22,23 +22,30 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api_reference import install_api_reference
-from app.body_limit import BodyLimitMiddleware
+from app.body_limit import BodyCountMiddleware, BodyLimitMiddleware
 from app.core import db, storage
 from app.core.celery_app import create_celery
 from app.core.cleanup import clean_leftovers
 from app.core.disk_space import InsufficientStorage
 from app.core.dispatch import sweep_jobs
+from app.core.log_format import configure_logging
+from app.core.metrics import ApiMetrics
 from app.core.progress import json_safe
 from app.core.redact import install_log_masking, public_error
 from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import health, imports, jobs, outputs, render, scenes, viewer
+from app.routes import health, imports, jobs, metrics, outputs, render, scenes, viewer
 from app.uploads.rules import UploadError
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
+
+
+def is_upload(method: str, path: str) -> bool:
+    """Whether a request is an upload: its body may reach ``max_upload_bytes`` and counts as upload bytes."""
+    return (method, path) == ("POST", "/scenes")
 
 
 def sweep_once(app: FastAPI) -> None:
@@ -101,6 +108,8 @@ async def _validation_error(_request: Request, err: RequestValidationError) -> J
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The API for ``settings`` (default: from ``VOXNERF_*`` environment variables)."""
     settings = settings or get_settings()
+    if settings.log_format == "json":  # uvicorn has set its logging up by now (it calls this factory after)
+        configure_logging("json")
     app = FastAPI(
         title="VoxNeRF",
         version="0.1.0",
@@ -113,10 +122,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.celery = create_celery(settings)
     app.state.render_slots = render.RenderSlots(settings.max_concurrent_renders)
+    app.state.metrics = ApiMetrics()
+    app.add_middleware(BodyCountMiddleware, counts=is_upload, count=app.state.metrics.upload_bytes.inc)
     app.add_middleware(
         BodyLimitMiddleware,
         limit_for=lambda method, path: (
-            settings.max_upload_bytes if (method, path) == ("POST", "/scenes") else settings.max_request_bytes
+            settings.max_upload_bytes if is_upload(method, path) else settings.max_request_bytes
         ),
     )
     app.add_middleware(RequestGuardMiddleware, settings=settings)  # added last: runs first
@@ -126,7 +137,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, imports, jobs, outputs, render, viewer):
+    for module in (scenes, imports, jobs, outputs, render, viewer, metrics):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
     install_api_reference(app)

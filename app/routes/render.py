@@ -11,6 +11,7 @@ instead of queueing threads that each wait up to ``render_timeout_s`` for a rend
 from __future__ import annotations
 
 import logging
+import time
 
 from celery import Celery
 from fastapi import APIRouter, HTTPException, Request, Response
@@ -129,7 +130,14 @@ async def render(
             f"(VOXNERF_MAX_CONCURRENT_RENDERS); retry in {RETRY_AFTER_S} s",
             headers={"Retry-After": str(RETRY_AFTER_S)},
         )
+    started, status = time.perf_counter(), 500
     try:
-        return await run_in_threadpool(_render, body, settings, celery)
+        response = await run_in_threadpool(_render, body, settings, celery)
+        status = response.status_code
+        return response
+    except HTTPException as err:
+        status = err.status_code
+        raise
     finally:
         slots.release()
+        request.app.state.metrics.render_seconds.labels(status=str(status)).observe(time.perf_counter() - started)
