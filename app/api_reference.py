@@ -17,11 +17,12 @@ required, 413 where a body is read, the validation 422's example), so no route r
 from __future__ import annotations
 
 import secrets
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import fastapi_offline
-from fastapi import Depends, FastAPI, Request
+from fastapi import FastAPI, Request, params
 from fastapi.dependencies.models import Dependant
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
@@ -29,7 +30,6 @@ from fastapi.routing import APIRoute, iter_route_contexts
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
-from app.deps import require_token
 from app.origin_guard import CONTENT_SECURITY_POLICY
 
 STATIC_DIR = Path(__file__).parent / "static"
@@ -116,14 +116,16 @@ def error_responses(*statuses: int, **details: Any) -> dict[int | str, dict[str,
     return {status: error_response(status, details.get(f"e{status}")) for status in statuses}
 
 
-def _needs_token(dependant: Dependant) -> bool:
-    return any(dep.call is require_token or _needs_token(dep) for dep in dependant.dependencies)
+def _uses(dependant: Dependant, checks: set[Callable[..., Any]]) -> bool:
+    """Whether ``dependant`` depends, at any depth, on one of ``checks``."""
+    return any(dep.call in checks or _uses(dep, checks) for dep in dependant.dependencies)
 
 
-def reference_schema(app: FastAPI) -> dict[str, Any]:
-    """The app's OpenAPI schema, built once: FastAPI's, plus the bearer scheme on every operation that needs the
-    token and the statuses every operation can meet (:data:`GUARD_STATUSES`, 401, 413 with a body, 422's
-    example) documented with examples."""
+def reference_schema(app: FastAPI, token_checks: Sequence[params.Depends]) -> dict[str, Any]:
+    """The app's OpenAPI schema, built once: FastAPI's, plus the bearer scheme on every operation that depends on
+    one of ``token_checks`` (the dependencies the app's protected routes carry) and the statuses every operation
+    can meet (:data:`GUARD_STATUSES`, 401 where the token is needed, 413 with a body, 422's example) documented
+    with examples."""
     if app.openapi_schema is not None:
         return app.openapi_schema
     schema = get_openapi(title=app.title, version=app.version, summary=app.summary, description=app.description,
@@ -134,8 +136,9 @@ def reference_schema(app: FastAPI) -> dict[str, Any]:
                         "description": "VOXNERF_API_TOKEN; needed only when the service sets one"}}
     error_schema = ErrorOut.model_json_schema(ref_template="#/components/schemas/{model}")
     schema["components"]["schemas"]["ErrorOut"] = error_schema
+    checks = {check.dependency for check in token_checks}
     protected = {(route.path, method.lower()) for route in iter_route_contexts(app.routes)
-                 if isinstance(route.original_route, APIRoute) and _needs_token(route.dependant)
+                 if isinstance(route.original_route, APIRoute) and _uses(route.dependant, checks)
                  for method in route.methods}
     for path, operations in schema["paths"].items():
         for method, operation in operations.items():
@@ -165,12 +168,12 @@ def reference_schema(app: FastAPI) -> dict[str, Any]:
     return schema
 
 
-def install_api_reference(app: FastAPI) -> None:
-    """Add ``/openapi.json`` (behind the token), ``/docs``, ``/redoc`` and their assets to ``app`` (built with
-    ``openapi_url=None, docs_url=None, redoc_url=None``)."""
-    app.openapi = lambda: reference_schema(app)
+def install_api_reference(app: FastAPI, token_checks: Sequence[params.Depends]) -> None:
+    """Add ``/openapi.json`` (behind ``token_checks``, the dependencies of the app's protected routes), ``/docs``,
+    ``/redoc`` and their assets to ``app`` (built with ``openapi_url=None, docs_url=None, redoc_url=None``)."""
+    app.openapi = lambda: reference_schema(app, token_checks)
 
-    @app.get("/openapi.json", include_in_schema=False, dependencies=[Depends(require_token)])
+    @app.get("/openapi.json", include_in_schema=False, dependencies=list(token_checks))
     def openapi_schema(request: Request) -> JSONResponse:
         """The OpenAPI schema of this service (what /docs and /redoc show)."""
         return JSONResponse(request.app.openapi())

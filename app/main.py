@@ -140,7 +140,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (scenes, imports, jobs, outputs, render, viewer, metrics):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
-    install_api_reference(app)
+    install_api_reference(app, protected)
 
     @app.get("/", include_in_schema=False)
     def dashboard() -> FileResponse:

@@ -23,6 +23,7 @@ from celery import Celery
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.registry import Collector
+from prometheus_client.utils import floatToGoString
 from sqlalchemy import func, select
 
 from app.core.celery_app import DEVICE_REPORT, QUEUES
@@ -61,9 +62,8 @@ def _histogram(name: str, documentation: str, labels: Sequence[str], buckets: Se
     """A histogram family of ``samples`` (label values -> observed values), cumulative over ``buckets``."""
     family = HistogramMetricFamily(name, documentation, labels=list(labels))
     for label_values, values in sorted(samples.items()):
-        counts = [sum(1 for v in values if v <= bound) for bound in buckets]
-        family.add_metric(list(label_values), [*zip(map(str, buckets), counts, strict=True), ("+Inf", len(values))],
-                          sum_value=math.fsum(values))
+        cumulative = [(floatToGoString(float(bound)), sum(1 for v in values if v <= bound)) for bound in buckets]
+        family.add_metric(list(label_values), [*cumulative, ("+Inf", len(values))], sum_value=math.fsum(values))
     return family
 
 
