@@ -57,6 +57,11 @@ class ApiMetrics:
             registry=self.registry)
 
 
+def _finite(value: Any) -> bool:
+    """Whether ``value`` is a finite number (a stage record's seconds may be null, or NaN from an old run)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def _histogram(name: str, documentation: str, labels: Sequence[str], buckets: Sequence[float],
                samples: dict[tuple[str, ...], list[float]]) -> HistogramMetricFamily:
     """A histogram family of ``samples`` (label values -> observed values), cumulative over ``buckets``."""
@@ -67,10 +72,14 @@ def _histogram(name: str, documentation: str, labels: Sequence[str], buckets: Se
     return family
 
 
+# The tables of work, and the kind their rows are counted as: a fixed one, or (None) the row's own ``kind`` column.
+WORK_TABLES = ((JobRow, "train"), (OutputRow, None), (ImportRow, "import"))
+
+
 class StoreCollector(Collector):
     """Work by kind and state, durations of finished work, and seconds per training stage, read from the job store
-    at each scrape (three grouped counts and one read of the finished rows' times and stage records: the cost
-    grows with the rows kept, about a millisecond per thousand on SQLite)."""
+    at each scrape: one grouped count per table and one read of the finished rows' times and of the finished
+    jobs' stage records (the cost grows with the rows kept)."""
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
@@ -80,21 +89,20 @@ class StoreCollector(Collector):
         durations: dict[tuple[str, str], list[float]] = {}
         stages: dict[tuple[str], list[float]] = {}
         with session_scope(self.settings) as session:
-            for table, kind in ((JobRow, "train"), (OutputRow, OutputRow.kind), (ImportRow, "import")):
-                columns = [kind] if not isinstance(kind, str) else []  # outputs: their own kind column
-                label = (lambda row: row[0]) if columns else (lambda _row, kind=kind: kind)
-                query = select(*columns, table.state, func.count()).group_by(*columns, table.state)
-                for row in session.execute(query):
-                    counts[(label(row), row[-2])] = row[-1]
-                finished = select(*columns, table.state, table.started_at, table.finished_at).where(
+            for table, fixed_kind in WORK_TABLES:
+                kind_columns = [] if fixed_kind else [table.kind]
+                grouped = select(*kind_columns, table.state, func.count().label("n"))
+                for row in session.execute(grouped.group_by(*kind_columns, table.state)):
+                    counts[(fixed_kind or row.kind, row.state)] = row.n
+                finished = select(*kind_columns, table.state, table.started_at, table.finished_at).where(
                     table.state.in_(FINAL_STATES), table.started_at.is_not(None), table.finished_at.is_not(None))
                 for row in session.execute(finished):
-                    durations.setdefault((label(row), row[-3]), []).append(max(0.0, row[-1] - row[-2]))
+                    seconds = max(0.0, row.finished_at - row.started_at)
+                    durations.setdefault((fixed_kind or row.kind, row.state), []).append(seconds)
             for (records,) in session.execute(select(JobRow.stages).where(JobRow.state.in_(FINAL_STATES))):
                 for record in records or []:
-                    seconds = record.get("seconds") if isinstance(record, dict) else None
-                    if record.get("ran") and isinstance(seconds, int | float) and math.isfinite(seconds):
-                        stages.setdefault((str(record.get("name")),), []).append(max(0.0, float(seconds)))
+                    if isinstance(record, dict) and record.get("ran") and _finite(record.get("seconds")):
+                        stages.setdefault((str(record.get("name")),), []).append(max(0.0, float(record["seconds"])))
 
         work = GaugeMetricFamily(f"{PREFIX}jobs", "work in the job store by kind (train, video, mesh, pointcloud, "
                                  "import) and state", labels=["kind", "state"])
