@@ -71,9 +71,9 @@ ERRORS: dict[int, tuple[str, Any]] = {
           "VOXNERF_ALLOWED_HOSTS"),
     401: ("the service has an API token and the request does not carry it",
           "missing or wrong bearer token: send 'Authorization: Bearer <VOXNERF_API_TOKEN>'"),
-    403: ("a remote client of a service without a token, or a cross-site state change",
-          "cross-site request refused: Origin 'http://evil.example' is not this service's (127.0.0.1:8000) "
-          "(state-changing requests must come from this origin)"),
+    403: ("a token whose scope does not allow this (or acting on another token's work), a remote client of a "
+          "service without a token, or a cross-site state change",
+          "POST /scenes needs scope write; token 'dashboards' has scope read"),
     404: ("no such scene, job, output, import or file", f"no job {EXAMPLE_ID}"),
     409: ("the resource is not in a state that allows this",
           f"job {EXAMPLE_ID} is running: its checkpoint is still being written"),

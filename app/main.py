@@ -36,7 +36,7 @@ from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import health, imports, jobs, metrics, outputs, render, scenes, viewer
+from app.routes import health, imports, jobs, metrics, outputs, render, scenes, tokens, viewer
 from app.uploads.rules import UploadError
 
 log = logging.getLogger(__name__)
@@ -137,7 +137,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, imports, jobs, outputs, render, viewer, metrics):
+    for module in (scenes, imports, jobs, outputs, render, viewer, tokens, metrics):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
     install_api_reference(app, protected)

@@ -19,7 +19,8 @@ from app.core.lease import QueueFull
 from app.core.models import ImportRow
 from app.core.scene_store import StoredScene
 from app.core.settings import Settings
-from app.deps import CeleryDep, SceneId, SettingsDep
+from app.core.tokens import Principal
+from app.deps import CeleryDep, PrincipalDep, SceneId, SettingsDep, require_owner
 from app.routes import work
 from app.routes.render import RenderSlots
 from app.schemas import ImportOut, JobOptions, JobOut, SceneOut
@@ -94,7 +95,9 @@ def _split_rule(value: object, is_zip: bool):
     summary="Upload a scene (zip in field 'file', or its files in fields 'files'); COLMAP, ScanNet, Record3D and "
     "Polycam zips are imported; videos, photos, ROS bags and Stray recordings are queued for import",
 )
-async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDep) -> SceneOut | JSONResponse:
+async def create_scene(
+    request: Request, settings: SettingsDep, celery: CeleryDep, principal: PrincipalDep
+) -> SceneOut | JSONResponse:
     """A multipart form: a .zip in field ``file`` (a scene directory, or a COLMAP, ScanNet, Record3D or Polycam
     export, imported at once), a capture in ``file`` (a video, photos, a ROS bag or a Stray recording: its import
     is queued, answered 202 with the import), or the scene's files in fields ``files``. The upload is unpacked and
@@ -112,7 +115,7 @@ async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDe
     try:
         declared = _declared_length(request)  # the body is not read yet: a refused upload writes nothing
         await run_in_threadpool(require_room, settings, declared, what=f"an upload of {declared} bytes")
-        stored = await _receive_scene(request, settings)
+        stored = await _receive_scene(request, settings, principal)
     finally:
         slots.release()
     if isinstance(stored, ImportRow):
@@ -137,9 +140,9 @@ def _upload_slots(request: Request, settings: Settings) -> RenderSlots:
     return state.upload_slots
 
 
-async def _receive_scene(request: Request, settings: Settings) -> StoredScene | ImportRow:
+async def _receive_scene(request: Request, settings: Settings, principal: Principal) -> StoredScene | ImportRow:
     """Read the form (file parts spooled to disk), then stage, validate and store the scene in a thread (or queue
-    the import of a capture)."""
+    the import of a capture), made by ``principal``."""
     async with read_form(request, settings) as form:
         archive = form.get("file")
         parts = [p for p in form.getlist("files") if isinstance(p, UploadFile)]
@@ -154,12 +157,13 @@ async def _receive_scene(request: Request, settings: Settings) -> StoredScene | 
             name = _display_name(form.get("name"), stem)
             capture = await run_in_threadpool(staging.capture_kind, archive.file)
             if capture is not None:
-                return await run_in_threadpool(staging.store_capture, settings, name, archive.file, capture, splits)
-            stored = await run_in_threadpool(staging.store_zip, settings, name, archive.file, splits)
+                return await run_in_threadpool(staging.store_capture, settings, name, archive.file, capture, splits,
+                                               principal)
+            stored = await run_in_threadpool(staging.store_zip, settings, name, archive.file, splits, principal)
         elif parts:
             named = [(p.filename or "", p.file) for p in parts]
             stored = await run_in_threadpool(
-                staging.store_parts, settings, _display_name(form.get("name"), "scene"), named
+                staging.store_parts, settings, _display_name(form.get("name"), "scene"), named, principal
             )
         else:
             raise HTTPException(
@@ -194,15 +198,17 @@ def get_scene(scene_id: SceneId, settings: SettingsDep) -> SceneOut:
                responses=error_responses(404, 409, e404=f"no scene {EXAMPLE_ID}",
                                          e409=f"scene {EXAMPLE_ID} is used by 1 active job(s): {EXAMPLE_ID}; "
                                          "cancel or wait for them first"))
-def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
-    """Delete the scene's row and files (here and in the object store). Its finished jobs stay; 409 while a
-    queued or running job uses it."""
+def delete_scene(scene_id: SceneId, settings: SettingsDep, principal: PrincipalDep) -> Response:
+    """Delete the scene's row and files (here and in the object store; its finished jobs stay); 409 while a queued
+    or running job uses it, 403 for another token's scene (scope write)."""
+    require_owner(principal, f"scene {scene_id}", _scene_or_404(settings, scene_id).created_by)
     try:
         deleted = jobstore.delete_scene(settings, scene_id)
     except jobstore.SceneBusy as busy:
         raise HTTPException(409, f"scene {scene_id} is {busy}; cancel or wait for them first") from None
     if not deleted:
         raise HTTPException(404, f"no scene {scene_id}")
+    log.info("scene %s deleted by %r", scene_id, principal.name)
     staging.remove_scene_files(settings, scene_id)
     try:
         storage.delete_scene(settings, scene_id)
@@ -221,7 +227,8 @@ def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
                               "wait for some to start, or cancel some"),
 )
 def create_job(
-    scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response
+    scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response,
+    principal: PrincipalDep,
 ) -> JobOut:
     """Queue a training job on the scene with the given options (the ``voxnerf train`` flags; at least one of
     ``max_seconds`` and ``max_iters``): 202 with the job, ``Location: /jobs/{id}``. Follow it at
@@ -233,7 +240,7 @@ def create_job(
         raise HTTPException(422, f"invalid training options: {err}") from None
     _scene_or_404(settings, scene_id)
     try:
-        job = jobstore.create_job(settings, scene_id, values)
+        job = jobstore.create_job(settings, scene_id, values, principal)
     except QueueFull as full:
         raise HTTPException(429, str(full)) from None
     if job is None:
