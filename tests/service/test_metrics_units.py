@@ -1,7 +1,7 @@
 """The parts of ``GET /metrics`` and of the JSON logs on their own: the job store's metrics from rows of known
 times and stage records (bucket counts, NaN stage seconds left out), the broker's queue depth on the embedded
-broker, a GPU worker's report from ``nvidia-smi``'s output, and the JSON formatter (one object per line, work ids,
-credentials masked in messages and tracebacks)."""
+broker and on a real redis-server, a GPU worker's report from ``nvidia-smi``'s output, and the JSON formatter
+(one object per line, work ids, credentials masked in messages and tracebacks)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import math
 import stat
 
 from prometheus_client.parser import text_string_to_metric_families
+from service_fixtures import start_redis
 
 from app.core.celery_app import create_celery
 from app.core.db import session_scope
@@ -86,6 +87,21 @@ def test_queue_depth_counts_the_messages_the_embedded_broker_holds(tmp_path):
     samples = _samples(QueueCollector(settings, celery))
     assert samples == {("voxnerf_queue_messages", (("queue", q),)): n for q, n in
                        (("train", 0), ("render", 0), ("outputs", 3))}
+
+
+def test_queue_depth_counts_the_messages_redis_holds(tmp_path):
+    redis = start_redis(tmp_path / "redis")
+    try:
+        settings = Settings(data_dir=tmp_path / "data", device="cpu", broker_url=redis.url)
+        celery = create_celery(settings)
+        for queue_task, n in (("voxnerf.train", 2), ("voxnerf.output", 1)):
+            for _ in range(n):
+                celery.send_task(queue_task, args=["d" * 32])
+        samples = _samples(QueueCollector(settings, celery))
+    finally:
+        redis.stop()
+    assert samples == {("voxnerf_queue_messages", (("queue", q),)): n for q, n in
+                       (("train", 2), ("render", 0), ("outputs", 1))}
 
 
 def test_the_exposition_parses_and_has_no_device_memory_without_reports(tmp_path):
