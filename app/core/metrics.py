@@ -156,8 +156,9 @@ class WorkersCollector(Collector):
         yield up
         workers = GaugeMetricFamily(f"{PREFIX}workers", "live workers consuming a queue (answered the last health "
                                     "check)", labels=["queue"])
-        for queue, names in sorted((self.health.workers or {}).items()):
-            workers.add_metric([queue], len(names))
+        found = self.health.workers or {}
+        for queue in sorted(set(QUEUES) | set(found)):  # every queue, 0 where no worker answered
+            workers.add_metric([queue], len(found.get(queue, [])))
         yield workers
         used = GaugeMetricFamily(f"{PREFIX}device_memory_used_bytes", "memory in use on a worker's GPU (every "
                                  "process on it, as its driver reports)", labels=["worker", "device"])

@@ -100,6 +100,7 @@ def test_metrics_count_the_job_the_renders_the_upload_the_queue_and_the_workers(
     assert samples[("voxnerf_queue_messages", _labels(queue="train"))] == 0
     assert samples[("voxnerf_workers", _labels(queue="train"))] == 1
     assert samples[("voxnerf_workers", _labels(queue="render"))] == 1
+    assert samples[("voxnerf_workers", _labels(queue="outputs"))] == 0
     assert samples[("voxnerf_up", _labels(component="database"))] == 1
     assert samples[("voxnerf_up", _labels(component="broker"))] == 1
     # CPU workers: no device memory at all
