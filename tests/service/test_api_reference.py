@@ -10,6 +10,7 @@ asked here).
 
 from __future__ import annotations
 
+import json
 import re
 import threading
 from collections.abc import Iterator
@@ -95,6 +96,12 @@ def test_every_operation_has_a_summary_a_description_and_examples(app):
                 lacking.append(f"{where}: error {status} has no JSON example")
     assert not lacking, "\n".join(lacking)
     assert len(list(_operations(schema))) >= 28
+
+
+def test_every_reference_in_the_schema_resolves(app):
+    schema = app.openapi()
+    refs = set(re.findall(r'"\$ref": "#/components/schemas/([^"]+)"', json.dumps(schema)))
+    assert refs and not refs - set(schema["components"]["schemas"]), refs - set(schema["components"]["schemas"])
 
 
 def test_every_operation_documents_the_guards_and_the_protected_ones_the_token(app):
