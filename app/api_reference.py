@@ -77,6 +77,9 @@ ERRORS: dict[int, tuple[str, Any]] = {
     404: ("no such scene, job, output, import or file", f"no job {EXAMPLE_ID}"),
     409: ("the resource is not in a state that allows this",
           f"job {EXAMPLE_ID} is running: its checkpoint is still being written"),
+    410: ("the upload session expired: no part arrived for VOXNERF_UPLOAD_SESSION_EXPIRY_S",
+          f"upload session {EXAMPLE_ID} expired: no part arrived for 86400 s "
+          "(VOXNERF_UPLOAD_SESSION_EXPIRY_S); start a new one"),
     413: ("the request body (or an upload's unpacked scene) is larger than its limit",
           "request body larger than 1048576 bytes"),
     415: ("an uploaded file is of no type a scene holds",

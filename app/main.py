@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import re
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -36,23 +37,30 @@ from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import health, imports, jobs, metrics, outputs, render, scenes, tokens, viewer
+from app.routes import events, health, imports, jobs, metrics, outputs, render, scenes, tokens, uploads, viewer
+from app.uploads import sessions as upload_sessions
 from app.uploads.rules import UploadError
+from app.webhooks import deliver_due
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
+UPLOAD_PART_PATH = re.compile(r"^/uploads/[^/]+/parts/[^/]+$")  # PUT: one part of an upload session
 
 
 def is_upload(method: str, path: str) -> bool:
-    """Whether a request is an upload: its body may reach ``max_upload_bytes`` and counts as upload bytes."""
-    return (method, path) == ("POST", "/scenes")
+    """Whether a request's body is upload bytes (the metrics count them): ``POST /scenes``, or a ``PUT`` of one
+    part of an upload session."""
+    return (method, path) == ("POST", "/scenes") or (method == "PUT" and bool(UPLOAD_PART_PATH.match(path)))
 
 
 def sweep_once(app: FastAPI) -> None:
-    """Requeue jobs and output jobs whose worker died, re-send lost messages, drop uncollected render results."""
+    """Requeue jobs and output jobs whose worker died, re-send lost messages, drop uncollected render results,
+    remove expired upload sessions."""
     settings: Settings = app.state.settings
     sweep_jobs(settings, app.state.celery)
     remove_old_outcomes(settings.render_results_dir, 2 * settings.render_timeout_s)
+    for session_id in upload_sessions.remove_expired(settings):
+        log.info("upload session %s expired; removed with its parts", session_id)
 
 
 async def _sweep_forever(app: FastAPI) -> None:
@@ -62,6 +70,16 @@ async def _sweep_forever(app: FastAPI) -> None:
         except Exception:  # broker or database down: keep serving, try again next round
             log.exception("stale-job sweep failed")
         await asyncio.sleep(app.state.settings.sweep_interval_s)
+
+
+async def _deliver_webhooks_forever(app: FastAPI) -> None:
+    """Send the webhook deliveries that are due, every ``webhook_poll_s`` (:func:`app.webhooks.deliver_due`)."""
+    while True:
+        try:
+            await deliver_due(app.state.settings)
+        except Exception:  # database down: keep serving, try again next round
+            log.exception("webhook delivery round failed")
+        await asyncio.sleep(app.state.settings.webhook_poll_s)
 
 
 @contextlib.asynccontextmanager
@@ -74,12 +92,14 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     install_log_masking()  # credentials in URLs never reach a log line
     await run_in_threadpool(clean_leftovers, settings)  # staging and half-made scenes a crash left
     sweeper = asyncio.create_task(_sweep_forever(app))  # its first round is the startup recovery
+    deliverer = asyncio.create_task(_deliver_webhooks_forever(app))
     try:
         yield
     finally:
-        sweeper.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await sweeper
+        for task in (sweeper, deliverer):
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
 
 
 async def _upload_error(request: Request, err: UploadError) -> JSONResponse:
@@ -122,12 +142,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.celery = create_celery(settings)
     app.state.render_slots = render.RenderSlots(settings.max_concurrent_renders)
+    app.state.event_streams = render.RenderSlots(settings.max_event_streams)  # open GET /jobs/{id}/events
     app.state.metrics = ApiMetrics()
     app.add_middleware(BodyCountMiddleware, counts=is_upload, count=app.state.metrics.upload_bytes.inc)
     app.add_middleware(
         BodyLimitMiddleware,
         limit_for=lambda method, path: (
-            settings.max_upload_bytes if is_upload(method, path) else settings.max_request_bytes
+            settings.max_upload_bytes if (method, path) == ("POST", "/scenes")
+            else settings.max_upload_part_bytes if method == "PUT" and UPLOAD_PART_PATH.match(path)
+            else settings.max_request_bytes
         ),
     )
     app.add_middleware(RequestGuardMiddleware, settings=settings)  # added last: runs first
@@ -137,7 +160,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, imports, jobs, outputs, render, viewer, tokens, metrics):
+    for module in (scenes, uploads, imports, jobs, events, outputs, render, viewer, tokens, metrics):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
     install_api_reference(app, protected)

@@ -137,12 +137,25 @@ REST_LIMITS: dict[str, Any] = {
 }
 
 
+CALLBACK_URL_MAX_CHARS = 2048
+
+
 class _JobOptionsRules(BaseModel):
     """Training options, named as TrainConfig's fields (the CLI's ``voxnerf train`` flags). Defaults, limits and
-    descriptions are TrainConfig's, with a few tighter REST limits. At least one bound is required."""
+    descriptions are TrainConfig's, with a few tighter REST limits. At least one bound is required. Besides them,
+    ``callback_url``: where the job's state changes are posted (webhooks)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
         {"max_seconds": 300, "eval_every_s": 30.0}, {"max_iters": 2000, "seed": 1}]})
+
+    callback_url: str | None = Field(
+        None,
+        max_length=CALLBACK_URL_MAX_CHARS,
+        description="http(s) URL the job's state changes (queued, running, succeeded, failed, cancelled) are POSTed "
+        "to, signed with the creating token's webhook secret (X-VoxNeRF-Signature); its host must not resolve to a "
+        "private, loopback, link-local or reserved address unless VOXNERF_WEBHOOK_ALLOW_PRIVATE is set",
+        examples=["https://ci.example.org/hooks/voxnerf"],
+    )
 
     @model_validator(mode="after")
     def _bounded(self) -> _JobOptionsRules:
@@ -206,6 +219,7 @@ class _JobOutBase(BaseModel):
     error: str | None
     cancel_requested: bool
     options: dict
+    callback_url: str | None = Field(None, description="where the job's state changes are posted, when set")
     attempt: int = Field(description="how many times a worker has claimed the job")
     requeues: int = Field(description="how many times the job was requeued after its worker died")
     created_at: datetime
@@ -224,6 +238,7 @@ class _JobOutBase(BaseModel):
             error=row.error,
             cancel_requested=row.cancel_requested,
             options=row.options,
+            callback_url=row.callback_url,
             attempt=row.attempt,
             requeues=row.requeues,
             created_at=_utc(row.created_at),
@@ -246,6 +261,33 @@ JobOut = create_model(
     __doc__="A training job: its state, options, progress (the engine's progress event fields) and results.",
     **{name: _progress_field(name) for name in progress.PROGRESS_FIELDS},
 )
+
+
+class DeliveryAttempt(BaseModel):
+    attempt: int = Field(description="1 for the first attempt")
+    at: datetime
+    status: int | None = Field(description="the receiver's HTTP status; null when no answer came")
+    error: str | None = Field(description="why the attempt failed; null when the receiver answered 2xx")
+
+
+class WebhookDeliveryOut(BaseModel):
+    """The delivery of one state change of a job to its ``callback_url``, with every attempt so far."""
+
+    event_id: int = Field(description="the id of the job's state event (as in GET /jobs/{id}/events)")
+    state: JobState
+    outcome: Literal["pending", "delivered", "abandoned"]
+    attempts: list[DeliveryAttempt]
+    next_attempt_at: datetime | None = Field(description="when a pending delivery is tried next")
+
+    @classmethod
+    def from_row(cls, row) -> WebhookDeliveryOut:
+        return cls(
+            event_id=row.event_seq,
+            state=row.state,
+            outcome=row.outcome,
+            attempts=[DeliveryAttempt(**{**entry, "at": _utc(entry["at"])}) for entry in row.log or []],
+            next_attempt_at=_utc(row.next_at) if row.outcome == "pending" else None,
+        )
 
 
 class EvalRender(BaseModel):

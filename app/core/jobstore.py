@@ -19,7 +19,7 @@ from typing import Any
 
 from sqlalchemy import delete, select
 
-from app.core import tokens
+from app.core import events, tokens
 from app.core.celery_app import TRAIN_TASK
 from app.core.db import session_scope
 from app.core.lease import WorkKind
@@ -137,18 +137,21 @@ JOBS = WorkKind(
     claimed=lambda job, now: {"started_at": job.started_at or now, "stage": "starting"},
     progress=_progress,
     staged=True,
+    journal=events.journal,  # every change of a job is in its event log (GET /jobs/{id}/events, webhooks)
 )
 """Training jobs' lease lifecycle (:class:`app.core.lease.WorkKind`): ``JOBS.get``, ``claim``,
 ``record_progress(settings, job_id, attempt, event)``, ``finish``, ``request_cancel``..."""
 
 
-def create_job(settings: Settings, scene_id: str, options: dict, principal: Principal | None = None) -> JobRow | None:
-    """A new queued job on ``scene_id`` made by ``principal`` (None: outside the API, by no one); None when the
+def create_job(settings: Settings, scene_id: str, options: dict, principal: Principal | None = None,
+               callback_url: str | None = None) -> JobRow | None:
+    """A new queued job on ``scene_id`` made by ``principal`` (None: outside the API, by no one), its first event,
+    ``queued``, journalled with it, whose state changes are posted to ``callback_url`` when given; None when the
     scene does not exist. Raises :class:`app.core.lease.QueueFull` when ``settings.max_queued_jobs`` jobs are queued
     already, or as many as the principal's own limit allows (:meth:`app.core.lease.WorkKind.refuse_beyond`; nothing
     is written then)."""
-    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, created_by=principal and principal.name,
-                       **initial_values())
+    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, callback_url=callback_url,
+                       created_by=principal and principal.name, **initial_values())
     with session_scope(settings) as session:
         session.add(row)
         session.flush()
@@ -157,6 +160,7 @@ def create_job(settings: Settings, scene_id: str, options: dict, principal: Prin
             return None
         JOBS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs",
                            principal and tokens.queue_quota(settings, principal))
+        events.journal(session, row.id, "state")
     return row
 
 
@@ -181,6 +185,7 @@ def delete_job(settings: Settings, job_id: str) -> list[str] | None:
             raise JobActive(f"{what}; cancel it and wait for it to stop first")
         output_ids = list(session.scalars(select(OutputRow.id).where(OutputRow.job_id == job_id)))
         session.execute(delete(OutputRow).where(OutputRow.job_id == job_id))
+        events.forget(session, job_id)
         session.delete(job)
     return output_ids
 

@@ -17,7 +17,9 @@ waiting in the broker: one queued for ``resend_queued_after_s`` or longer may ha
 a duplicate is harmless because claims are fenced.
 
 What differs between kinds are a :class:`WorkKind`'s parameters: its table, the Celery task that runs it, the
-columns a claim sets, how its progress is written, and whether its rows have a ``stage`` column.
+columns a claim sets, how its progress is written, whether its rows have a ``stage`` column, and the journal its
+changes are recorded in (training jobs: :func:`app.core.events.journal`), which each move below calls in its own
+transaction.
 """
 
 from __future__ import annotations
@@ -86,7 +88,10 @@ class WorkKind:
     created_at started_at finished_at error eta_s``); ``task``: the Celery task that runs it (its message's
     one argument is the row's id); ``claimed(row, now)``: the further columns a claim sets;
     ``progress(settings, row_id, *report)``: the columns a progress report writes; ``staged``: the rows have a
-    ``stage`` column, which the lifecycle's moves name (``requeued``, ``done``, ``failed``, ``cancelled``).
+    ``stage`` column, which the lifecycle's moves name (``requeued``, ``done``, ``failed``, ``cancelled``);
+    ``journal(session, row_id, change)``, when set, records each change in the transaction that writes it
+    (``change``: ``state`` when the row moved in its lifecycle, ``progress`` when its progress or cancel flag
+    changed).
     """
 
     name: str
@@ -96,9 +101,15 @@ class WorkKind:
     claimed: Callable[[Any, float], dict]
     progress: Callable[..., dict]
     staged: bool = False
+    journal: Callable[[Any, str, str], None] | None = None
 
     def _stage(self, stage: str) -> dict:
         return {"stage": stage} if self.staged else {}
+
+    def _changed(self, session: Any, row_id: str, change: str) -> None:
+        """Journal a change just written to row ``row_id`` in ``session`` (when the kind has a journal)."""
+        if self.journal is not None:
+            self.journal(session, row_id, change)
 
     # -------------------------------------------------------------------------------------------- the API's
 
@@ -142,11 +153,12 @@ class WorkKind:
         """Fail a queued or running row whoever holds it: one that never reached a worker (the broker refused
         its message)."""
         with session_scope(settings) as session:
-            session.execute(
+            if session.execute(
                 update(self.table)
                 .where(self.table.id == row_id, self.table.state.in_(ACTIVE_STATES))
                 .values(state="failed", error=error, finished_at=time.time(), eta_s=None)
-            )
+            ).rowcount:
+                self._changed(session, row_id, "state")
 
     def request_cancel(self, settings: Settings, row_id: str, by: str | None = None) -> Any | None:
         """Cancel a row: a queued one at once, a running one when its worker next reads the flag (through its
@@ -159,13 +171,15 @@ class WorkKind:
                 .values(state="cancelled", cancel_requested=True, finished_at=time.time(), cancelled_by=by,
                         **self._stage("cancelled"))
             ).rowcount
-            if not cancelled:
-                session.execute(
-                    update(self.table)
-                    .where(self.table.id == row_id, self.table.state == "running",
-                           self.table.cancel_requested.is_(False))
-                    .values(cancel_requested=True, cancelled_by=by)
-                )
+            if cancelled:
+                self._changed(session, row_id, "state")
+            elif session.execute(
+                update(self.table)
+                .where(self.table.id == row_id, self.table.state == "running",
+                       self.table.cancel_requested.is_(False))
+                .values(cancel_requested=True, cancelled_by=by)
+            ).rowcount:
+                self._changed(session, row_id, "progress")
         return self.get(settings, row_id)
 
     # -------------------------------------------------------------------------------------------- the worker's
@@ -200,22 +214,28 @@ class WorkKind:
                         **self.claimed(row, now),
                     )
                 ).rowcount
+                if claimed:
+                    self._changed(session, row_id, "state")
             if claimed:
                 return self.get(settings, row_id)
         return None
 
-    def write_running(self, settings: Settings, row_id: str, attempt: int, values: dict) -> bool:
-        """Update a running row (and renew its lease) while it still carries ``attempt``; False when it does
-        not."""
+    def write_running(self, settings: Settings, row_id: str, attempt: int, values: dict,
+                      change: str | None = None) -> bool:
+        """Update a running row (and renew its lease) while it still carries ``attempt``, journalling ``change``
+        (none for a lease renewal); False when it does not."""
         table = self.table
         with session_scope(settings) as session:
-            return bool(
+            written = bool(
                 session.execute(
                     update(table)
                     .where(table.id == row_id, table.attempt == attempt, table.state == "running")
                     .values(heartbeat_at=time.time(), **{k: json_safe(v) for k, v in values.items()})
                 ).rowcount
             )
+            if written and change is not None:
+                self._changed(session, row_id, change)
+            return written
 
     def renew_lease(self, settings: Settings, row_id: str, attempt: int) -> LeaseStatus:
         """Refresh a claimed row's heartbeat and read its cancel flag (the lease of ``worker.lease.Lease``)."""
@@ -232,7 +252,7 @@ class WorkKind:
     def record_progress(self, settings: Settings, row_id: str, attempt: int, *report: Any) -> bool:
         """Write a progress report (the kind's ``progress`` makes its columns) of a claimed row; False when no
         longer owned."""
-        return self.write_running(settings, row_id, attempt, self.progress(settings, row_id, *report))
+        return self.write_running(settings, row_id, attempt, self.progress(settings, row_id, *report), "progress")
 
     def finish(self, settings: Settings, row_id: str, attempt: int, state: str, values: dict) -> bool:
         """Move a claimed row to final ``state`` (succeeded, failed, cancelled) with its last fields (error,
@@ -240,7 +260,7 @@ class WorkKind:
         final = {"state": state, "finished_at": time.time(), "eta_s": None, **self._stage(FINAL_STAGES[state])}
         if state == "succeeded":
             final["progress"] = 1.0
-        return self.write_running(settings, row_id, attempt, {**final, **values})
+        return self.write_running(settings, row_id, attempt, {**final, **values}, "state")
 
     def record_worker_death(self, settings: Settings, row_id: str, why: str) -> None:
         """Note on an active row that its worker process died (``why``: e.g. Celery's "Worker exited
@@ -265,11 +285,12 @@ class WorkKind:
         error = f"{WORKER_DIED} {deaths} times while running this {self.noun} (last: {last}); not retried again"
         table = self.table
         with session_scope(settings) as session:
-            session.execute(
+            if session.execute(
                 update(table)
                 .where(table.id == row.id, table.attempt == row.attempt, table.state == "running")
                 .values(state="failed", error=error, finished_at=time.time(), eta_s=None, **self._stage("failed"))
-            )
+            ).rowcount:
+                self._changed(session, row.id, "state")
         return True
 
     def stale(self, settings: Settings) -> list:
@@ -293,6 +314,7 @@ class WorkKind:
                             eta_s=None, **self._stage("requeued"))
                 ).rowcount
                 if done:
+                    self._changed(session, row.id, "state")
                     moved.append(row.id)
         return moved
 

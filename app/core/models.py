@@ -9,7 +9,7 @@ built from the engine's ``ProgressEvent`` by :func:`app.core.progress.progress_c
 
 from __future__ import annotations
 
-from sqlalchemy import JSON, Boolean, Float, Integer, String, Text
+from sqlalchemy import JSON, Boolean, Float, Integer, String, Text, UniqueConstraint
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from app.core.progress import progress_columns
@@ -73,6 +73,47 @@ class JobRow(ProgressColumns, LeaseColumns, Base):
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    callback_url: Mapped[str | None] = mapped_column(Text, nullable=True)  # webhooks: app/core/events.py
+    created_by: Mapped[str | None] = mapped_column(String(255), nullable=True)  # the principal's name
+
+
+EVENT_KINDS = ("progress", "stage", "evaluation", "state")
+
+
+class JobEventRow(Base):
+    """One event of a training job's log (:mod:`app.core.events`), written in the transaction that changed the
+    job: ``seq`` numbers the job's events from 1 and only grows; ``kind`` is one of :data:`EVENT_KINDS`;
+    ``data`` the job's columns (``progress``, ``state``), the stage record (``stage``) or the history point
+    (``evaluation``)."""
+
+    __tablename__ = "job_events"
+    __table_args__ = (UniqueConstraint("job_id", "seq"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(String(32), index=True)
+    seq: Mapped[int] = mapped_column(Integer)
+    kind: Mapped[str] = mapped_column(String(16))
+    data: Mapped[dict] = mapped_column(JSON)
+    created_at: Mapped[float] = mapped_column(Float)
+
+
+class WebhookDeliveryRow(Base):
+    """The delivery of one ``state`` event of a job to its ``callback_url`` (:mod:`app.core.events`): ``attempts``
+    made so far and their ``log`` (``[{attempt, at, status, error}]``); ``outcome`` is ``pending`` until it is
+    ``delivered`` or ``abandoned`` (the attempts ran out); ``next_at``: when a pending one is next due (also the
+    lease of the API process sending it)."""
+
+    __tablename__ = "webhook_deliveries"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(String(32), index=True)
+    event_seq: Mapped[int] = mapped_column(Integer)
+    state: Mapped[str] = mapped_column(String(16))
+    outcome: Mapped[str] = mapped_column(String(16), index=True)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_at: Mapped[float] = mapped_column(Float)
+    log: Mapped[list] = mapped_column(JSON, default=list)
+    created_at: Mapped[float] = mapped_column(Float)
 
 
 OUTPUT_KINDS = ("video", "mesh", "pointcloud")

@@ -96,6 +96,27 @@ class Settings(BaseSettings):
         description="POST /scenes requests one API process takes at once; more are answered 429 with "
         "Retry-After (each holds a worker thread, staging disk and a validation process)",
     )
+    max_upload_session_bytes: int = Field(
+        default=65536 * MiB, gt=0,
+        description="the whole file of one upload session (POST /uploads), sent in parts; larger than "
+        "max_upload_bytes, the limit of a one-request upload",
+    )
+    upload_part_bytes: int = Field(
+        default=64 * MiB, ge=64 * 1024, le=1024 * MiB,
+        description="size of the parts of an upload session (the last one is shorter); a file of more than "
+        "max_upload_parts such parts gets larger parts, so that it needs no more",
+    )
+    max_upload_parts: int = Field(default=10_000, ge=1, le=100_000, description="parts of one upload session")
+    max_upload_sessions: int = Field(
+        default=16, ge=1, le=1000,
+        description="upload sessions open at once (created, not yet completed, deleted or expired); one more "
+        "is answered 429",
+    )
+    upload_session_expiry_s: float = Field(
+        default=86_400.0, gt=0,
+        description="an upload session no part was sent to for this long expires: the API's sweeper removes it "
+        "and its parts",
+    )
     upload_validation_memory_bytes: int = Field(
         default=4096 * MiB,
         gt=0,
@@ -250,6 +271,38 @@ class Settings(BaseSettings):
         "cache; the least recently used ones no task is using are removed past it (the store keeps them)",
     )
 
+    # Live events and webhooks (GET /jobs/{id}/events, a job's callback_url: app/routes/events.py, app/webhooks.py)
+    max_event_streams: int = Field(
+        default=64, ge=1, le=10_000,
+        description="GET /jobs/{id}/events streams one API process keeps open at once; more are answered 429 "
+        "with Retry-After",
+    )
+    event_poll_s: float = Field(
+        default=0.5, gt=0, le=10, description="how often an open event stream reads its job's new events"
+    )
+    event_keepalive_s: float = Field(
+        default=15.0, gt=0, le=300, description="an event stream with nothing to say sends a comment this often"
+    )
+    webhook_allow_private: bool = Field(
+        default=False,
+        description="callback_url may name a host whose addresses are private, loopback, link-local or reserved "
+        "(a receiver on this machine or network); off, such a URL is refused at job creation (422) and at "
+        "delivery",
+    )
+    webhook_timeout_s: float = Field(
+        default=5.0, gt=0, le=60, description="how long one webhook delivery attempt waits for its receiver"
+    )
+    webhook_max_attempts: int = Field(
+        default=8, ge=1, le=100, description="attempts of one webhook delivery before it is abandoned"
+    )
+    webhook_retry_s: float = Field(
+        default=5.0, gt=0, le=3600,
+        description="wait before a failed webhook delivery's second attempt; it doubles after each further one",
+    )
+    webhook_poll_s: float = Field(
+        default=1.0, gt=0, le=60, description="how often the API looks for webhook deliveries that are due"
+    )
+
     @field_validator("allowed_hosts", "trusted_proxies", mode="before")
     @classmethod
     def _comma_separated(cls, value: Any) -> Any:
@@ -306,6 +359,17 @@ class Settings(BaseSettings):
         return self.data_dir / "imports"
 
     @property
+    def upload_sessions_dir(self) -> Path:
+        """Upload sessions: each one's description and the parts received so far (:mod:`app.uploads.sessions`)."""
+        return self.data_dir / "upload-sessions"
+
+    @property
+    def max_upload_part_bytes(self) -> int:
+        """The largest part any upload session can have: ``upload_part_bytes``, or the part of a session of
+        ``max_upload_session_bytes`` split into ``max_upload_parts`` parts when that is larger."""
+        return max(self.upload_part_bytes, -(-self.max_upload_session_bytes // self.max_upload_parts))
+
+    @property
     def staging_dir(self) -> Path:
         """Uploads are unpacked and validated here, then renamed into ``scenes_dir`` (same filesystem)."""
         return self.data_dir / "staging"
@@ -321,7 +385,8 @@ class Settings(BaseSettings):
 
     def make_dirs(self) -> None:
         """Create every directory the service writes to (idempotent)."""
-        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.imports_dir, self.render_results_dir):
+        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.imports_dir, self.render_results_dir,
+                     self.upload_sessions_dir):
             path.mkdir(parents=True, exist_ok=True)
         if self.embedded_broker:
             (self.broker_dir / "queue").mkdir(parents=True, exist_ok=True)

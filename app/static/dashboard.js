@@ -1,8 +1,12 @@
-// VoxNeRF dashboard: polls the REST API and draws jobs, progress, PSNR plots, evaluation renders and renders.
-// No framework and no build step. Every request carries the API token saved in localStorage (if any).
+// VoxNeRF dashboard: draws jobs, progress, PSNR plots, evaluation renders and renders from the REST API. Queued and
+// running jobs update live from their events (GET /jobs/{id}/events); the job list itself is read again only every
+// JOB_LIST_MS, for jobs made elsewhere (another tab, a script). No framework and no build step. Every request
+// carries the API token saved in localStorage (if any).
 "use strict";
 
-const POLL_MS = 1000;
+const POLL_MS = 1000;  // imports and running outputs (they have no event stream)
+const JOB_LIST_MS = 15000;  // the job list: new jobs made elsewhere appear within this; live jobs update from events
+const MAX_FOLLOWED = 4;  // jobs followed live at once: each stream holds one of the browser's 6 connections per host
 const HEALTH_MS = 5000;
 const MAX_THUMBS = 12;
 const SPLIT_COLOURS = ["#2f6fdb", "#d9822b", "#1f8a4c", "#9b59b6", "#c23b30", "#16a2b8"];
@@ -10,6 +14,7 @@ const SVG_NS = "http://www.w3.org/2000/svg";
 
 const $ = (id) => document.getElementById(id);
 const thumbsLoaded = new Set();  // job ids whose evaluation renders were fetched
+const followed = new Map();  // job id -> its live event stream (followJobEvents)
 const outputMedia = new Map();  // output id -> blob URL of its downloaded video or file
 const OUTPUT_BUTTONS = [  // [data-output, label, endpoint, body builder]
   ["orbit", "Video (orbit)", "videos", () => videoBody("orbit")],
@@ -220,6 +225,7 @@ function outputButtons(job) {
           method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body()),
         })).json();
         showMessage(`${label} of job ${job.id.slice(0, 8)} queued (output ${output.id.slice(0, 8)}).`, "info");
+        refreshOutputs(job, button.closest("td").querySelector(".outputs"));
       } catch (err) {
         showMessage(`${label} refused: ${err.message}`);
       }
@@ -291,7 +297,33 @@ function fillSelect(select, items, label) {
   if (items.some((item) => item.id === previous)) select.value = previous;
 }
 
-// ------------------------------------------------------------------------------------------- polling
+// ------------------------------------------------------------------------------------------- live jobs
+
+// Follow a queued or running job's events (at most MAX_FOLLOWED at once; the others update with the job list):
+// each progress and state event carries the whole job and redraws its row; at its final state the list is read
+// again (the render form lists succeeded jobs).
+function follow(job) {
+  if (followed.has(job.id) || followed.size >= MAX_FOLLOWED || !(job.state === "queued" || job.state === "running")) return;
+  followed.set(job.id, followJobEvents(job.id, (type, data) => {
+    if (type !== "progress" && type !== "state") return;
+    updateRow(jobRow(data), data);
+    if (FINAL_STATES.includes(data.state)) {
+      followed.delete(data.id);
+      refreshJobs();
+    }
+  }, (message) => showMessage(`Live events of job ${job.id.slice(0, 8)}: ${message} (reconnecting)`)));
+}
+
+// Refresh the outputs of the rows that have one queued or running (they have no event stream).
+function refreshActiveOutputs() {
+  for (const row of document.querySelectorAll("#jobs tr[data-job-id]")) {
+    if (row.querySelector('li.output[data-state="queued"], li.output[data-state="running"]')) {
+      refreshOutputs({ id: row.dataset.jobId }, row.querySelector(".outputs"));
+    }
+  }
+}
+
+// ------------------------------------------------------------------------------------------- job list
 
 async function refreshJobs() {
   try {
@@ -299,7 +331,8 @@ async function refreshJobs() {
     const body = $("jobs").tBodies[0];
     const rows = jobs.map((job) => {
       const row = jobRow(job);
-      updateRow(row, job);
+      if (!followed.has(job.id)) updateRow(row, job);  // a followed job's events are newer than this list
+      follow(job);
       return row;
     });
     body.replaceChildren(...rows);
@@ -471,6 +504,7 @@ refreshHealth();
 refreshScenes();
 refreshJobs();
 refreshImports();
-setInterval(refreshJobs, POLL_MS);
+setInterval(refreshJobs, JOB_LIST_MS);
+setInterval(refreshActiveOutputs, POLL_MS);
 setInterval(refreshImports, POLL_MS);
 setInterval(refreshHealth, HEALTH_MS);

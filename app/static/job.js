@@ -1,11 +1,12 @@
-// VoxNeRF job page (/static/job.html?id=JOB): state, progress and ETA (polled live from GET /jobs/{id}), the
+// VoxNeRF job page (/static/job.html?id=JOB): state, progress and ETA (live from the job's events, GET
+// /jobs/{id}/events, after one GET /jobs/{id}), the
 // error against training time (PSNR per split from the job's history, the training loss from its loss_series),
 // the stages that ran and why, final metrics per split and per view (render beside ground truth), the config
 // and links to report.json, the checkpoint and the job's outputs. Uses api.js (token, fetch) and chart.js.
 "use strict";
 
-const ACTIVE_POLL_MS = 1000;  // while queued or running
-const IDLE_POLL_MS = 5000;  // once finished: only its outputs still change
+const OUTPUTS_POLL_MS = 5000;  // once finished: only its outputs still change (they have no event stream)
+const RETRY_MS = 3000;  // after a failed GET /jobs/{id}
 const IMAGE_LOADS_AT_ONCE = 4;
 const FINISHED = ["succeeded", "failed", "cancelled"];
 
@@ -245,7 +246,7 @@ async function loadViews(job) {
     }
   }
   $("views").tBodies[0].replaceChildren(...rows);
-  loadImages([...$("views").querySelectorAll("img[data-src]")]);  // in the background: polling goes on
+  loadImages([...$("views").querySelectorAll("img[data-src]")]);  // in the background: live updates go on
 }
 
 // ------------------------------------------------------------------------------------------- files
@@ -290,16 +291,12 @@ async function refreshOutputs() {
   }
 }
 
-// ------------------------------------------------------------------------------------------- polling
+// ------------------------------------------------------------------------------------------- live
 
-async function refresh() {
-  let job;
-  try {
-    job = await (await api(`/jobs/${jobId}`)).json();
-  } catch (err) {
-    showMessage(`Job ${jobId}: ${err.message}`);
-    return ACTIVE_POLL_MS * 3;
-  }
+let drawing = Promise.resolve();  // draws run one after another: an event never overtakes the one before
+let outputsPolled = false;
+
+async function draw(job) {
   showMessage("");
   $("scene-id").textContent = job.scene_id.slice(0, 8);
   $("scene-link").href = `/static/scene.html?id=${job.scene_id}`;
@@ -314,17 +311,37 @@ async function refresh() {
     drawMetrics(job);
     if (!loaded.views) await loadViews(job);
   }
-  if (finished) await refreshOutputs();
   document.body.dataset.state = job.state;
-  return finished ? IDLE_POLL_MS : ACTIVE_POLL_MS;
+  if (finished && !outputsPolled) {
+    outputsPolled = true;
+    await refreshOutputs();
+    setInterval(refreshOutputs, OUTPUTS_POLL_MS);
+  }
 }
 
-async function poll() {
-  const wait = await refresh();
-  setTimeout(poll, wait);
+function show(job) {
+  drawing = drawing.then(() => draw(job)).catch((err) => showMessage(`Job ${jobId}: ${err.message}`));
+}
+
+// The job once, then (while it is queued or running) its events: each progress and state event carries the whole
+// job, so the page redraws from it; the stream ends with the final state.
+async function start() {
+  let job;
+  try {
+    job = await (await api(`/jobs/${jobId}`)).json();
+  } catch (err) {
+    showMessage(`Job ${jobId}: ${err.message}`);
+    setTimeout(start, RETRY_MS);
+    return;
+  }
+  show(job);
+  if (FINISHED.includes(job.state)) return;
+  followJobEvents(jobId, (type, data) => {
+    if (type === "progress" || type === "state") show(data);
+  }, (message) => showMessage(`Live events of job ${jobId}: ${message} (reconnecting)`));
 }
 
 $("job-id").textContent = jobId.slice(0, 8);
 $("job-id").title = jobId;
 document.title = `VoxNeRF · job ${jobId.slice(0, 8)}`;
-if (/^[0-9a-f]{32}$/.test(jobId)) poll(); else showMessage("No job id: open this page from the dashboard's job list.");
+if (/^[0-9a-f]{32}$/.test(jobId)) start(); else showMessage("No job id: open this page from the dashboard's job list.");

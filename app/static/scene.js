@@ -1,11 +1,15 @@
 // VoxNeRF scene page (/static/scene.html?id=SCENE): the scene's summary (GET /scenes/{id}: frames per split,
 // image size, prior kind and sigma, depth) and its jobs (GET /jobs?scene_id=...), each linking to its job page.
-// Uses api.js (token, fetch).
+// Queued and running jobs update live from their events (GET /jobs/{id}/events); the list is read again every
+// LIST_MS, for jobs made meanwhile elsewhere. Uses api.js (token, fetch, followJobEvents).
 "use strict";
 
-const POLL_MS = 2000;
+const LIST_MS = 15000;
+const MAX_FOLLOWED = 4;  // jobs followed live at once: each stream holds one of the browser's 6 connections per host
 const $ = (id) => document.getElementById(id);
 const sceneId = new URLSearchParams(location.search).get("id") || "";
+let jobs = [];  // the scene's jobs as last drawn, newest first
+const followed = new Set();  // ids of the jobs whose events are followed
 
 function showMessage(text) {
   $("message").textContent = text;
@@ -67,7 +71,7 @@ function finalPsnr(job) {
   return Object.entries(job.metrics).map(([split, m]) => `${split} ${typeof m.psnr === "number" ? m.psnr.toFixed(2) : "–"}`).join(", ");
 }
 
-function drawJobs(jobs) {
+function drawJobs() {
   $("jobs").tBodies[0].replaceChildren(...jobs.map((job) => el("tr", { data: { jobId: job.id, state: job.state } },
     el("td", {}, el("a", { href: `/static/job.html?id=${job.id}`, title: job.id }, el("code", {}, job.id.slice(0, 8)))),
     el("td", {}, el("span", { className: `state state-${job.state}` }, job.state)),
@@ -78,14 +82,29 @@ function drawJobs(jobs) {
   $("no-jobs").hidden = jobs.length > 0;
 }
 
+// Follow a queued or running job's events: each progress and state event carries the whole job.
+function follow(job) {
+  if (followed.has(job.id) || followed.size >= MAX_FOLLOWED || !(job.state === "queued" || job.state === "running")) return;
+  followed.add(job.id);
+  followJobEvents(job.id, (type, data) => {
+    if (type !== "progress" && type !== "state") return;
+    jobs = jobs.map((known) => (known.id === data.id ? data : known));
+    drawJobs();
+    if (FINAL_STATES.includes(data.state)) followed.delete(data.id);
+  }, (message) => showMessage(`Live events of job ${job.id.slice(0, 8)}: ${message} (reconnecting)`));
+}
+
 async function refresh() {
   try {
-    const [scene, jobs] = await Promise.all([
+    const [scene, listed] = await Promise.all([
       api(`/scenes/${sceneId}`).then((r) => r.json()),
       api(`/jobs?scene_id=${sceneId}&limit=100`).then((r) => r.json()),
     ]);
     drawScene(scene);
-    drawJobs(jobs);
+    const current = new Map(jobs.map((job) => [job.id, job]));  // a followed job's events are newer than the list
+    jobs = listed.map((job) => (followed.has(job.id) && current.has(job.id) ? current.get(job.id) : job));
+    drawJobs();
+    jobs.forEach(follow);
     showMessage("");
   } catch (err) {
     showMessage(`Scene ${sceneId}: ${err.message}`);
@@ -96,7 +115,7 @@ $("scene-id").textContent = sceneId.slice(0, 8);
 $("scene-id").title = sceneId;
 if (/^[0-9a-f]{32}$/.test(sceneId)) {
   refresh();
-  setInterval(refresh, POLL_MS);
+  setInterval(refresh, LIST_MS);
 } else {
   showMessage("No scene id: open this page from the dashboard.");
 }
