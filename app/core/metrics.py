@@ -53,7 +53,8 @@ class ApiMetrics:
             f"{PREFIX}render_seconds", "POST /render: seconds from taking a render slot to the answer, by HTTP status",
             ["status"], buckets=RENDER_BUCKETS, registry=self.registry)
         self.upload_bytes = Counter(
-            f"{PREFIX}upload_bytes", "bytes of upload request bodies (POST /scenes) received by this API process",
+            f"{PREFIX}upload_bytes", "bytes of upload bodies (POST /scenes, upload session parts) received by this API "
+            "process",
             registry=self.registry)
 
 

@@ -165,3 +165,11 @@ def test_json_lines_name_the_work_and_mask_credentials():
 
         failed = line("upload failed", (), sys.exc_info())
     assert "RuntimeError" in failed["exception"] and "hunter2" not in json.dumps(failed)
+
+
+def test_upload_bytes_are_those_of_uploads_and_upload_session_parts():
+    from app.main import is_upload
+
+    assert is_upload("POST", "/scenes") and is_upload("PUT", f"/uploads/{'a' * 32}/parts/3")
+    assert not any(is_upload(m, p) for m, p in (("GET", "/scenes"), ("POST", "/uploads"), ("POST", "/render"),
+                                                 ("POST", f"/uploads/{'a' * 32}/complete")))
