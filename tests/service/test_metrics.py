@@ -14,10 +14,22 @@ from __future__ import annotations
 import json
 import os
 import stat
+import subprocess
+import sys
 
+import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from service_fixtures import first_pose, start_service, wait_for, wait_until_succeeded, zip_scene
+from service_fixtures import (
+    REPO,
+    first_pose,
+    free_port,
+    start_service,
+    stop_process,
+    wait_for,
+    wait_until_succeeded,
+    zip_scene,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -151,3 +163,31 @@ def test_json_logs_are_one_object_per_line(service, worked):
     train = by_file["worker-train.log"]
     assert any(entry.get("job_id") == job_id for entry in train), train[-5:]
     assert any("ready" in entry["message"] for entry in train)  # Celery's own lines go through it too
+
+
+def test_the_api_served_by_app_serve_logs_json_uvicorn_included(tmp_path):
+    """``python -m app.serve --api-only`` (the API image's entry) with JSON logs: uvicorn's own lines (its start,
+    each request) are JSON objects like the app's, from start to a SIGTERM stop."""
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("VOXNERF_")}
+    env.update(VOXNERF_DATA_DIR=str(tmp_path / "data"), VOXNERF_DEVICE="cpu", VOXNERF_LOG_FORMAT="json",
+               PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1", NO_PROXY="127.0.0.1,localhost")
+    log_path = tmp_path / "serve.log"
+    with open(log_path, "wb") as log:
+        serve = subprocess.Popen([sys.executable, "-m", "app.serve", "--api-only", "--port", str(port)], cwd=REPO,
+                                 env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for(lambda: _answers(f"http://127.0.0.1:{port}/docs"), 60, "python -m app.serve to answer")
+    finally:
+        stop_process(serve)
+    entries = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    loggers = {entry["logger"] for entry in entries}
+    assert {"uvicorn.error", "uvicorn.access"} <= loggers, loggers
+    assert any("GET /docs" in entry["message"] for entry in entries if entry["logger"] == "uvicorn.access")
+
+
+def _answers(url: str) -> bool:
+    try:
+        return httpx.get(url, timeout=5, trust_env=False).status_code == 200
+    except httpx.HTTPError:
+        return False
