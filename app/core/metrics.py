@@ -119,13 +119,17 @@ class StoreCollector(Collector):
 
 class QueueCollector(Collector):
     """Messages waiting in each broker queue (the embedded broker's files, or Redis' lists); nothing for a broker
-    whose queues cannot be read, or when reading fails (logged)."""
+    whose queues cannot be read, one the health check found down (``broker_up`` false: a scrape does not wait for
+    its connection attempts), or when reading fails (logged)."""
 
-    def __init__(self, settings: Settings, celery: Celery) -> None:
+    def __init__(self, settings: Settings, celery: Celery, broker_up: bool = True) -> None:
         self.settings = settings
         self.celery = celery
+        self.broker_up = broker_up
 
     def collect(self) -> Iterator[Metric]:
+        if not self.broker_up:
+            return
         family = GaugeMetricFamily(f"{PREFIX}queue_messages", "messages waiting in a broker queue, not yet taken by "
                                    "a worker", labels=["queue"])
         for queue in QUEUES:
@@ -198,7 +202,8 @@ def scrape(settings: Settings, celery: Celery, api: ApiMetrics, health: Any, dev
     """The exposition of every metric: this process's (:class:`ApiMetrics`) and those read now (blocking: the job
     store and the broker's queues are read)."""
     registry = CollectorRegistry(auto_describe=False)
-    for collector in (api.registry, StoreCollector(settings), QueueCollector(settings, celery),
+    broker_up = health.broker is not None and health.broker.ok
+    for collector in (api.registry, StoreCollector(settings), QueueCollector(settings, celery, broker_up),
                       WorkersCollector(health, devices)):
         registry.register(collector)
     return generate_latest(registry)

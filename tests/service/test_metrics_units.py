@@ -173,3 +173,21 @@ def test_upload_bytes_are_those_of_uploads_and_upload_session_parts():
     assert is_upload("POST", "/scenes") and is_upload("PUT", f"/uploads/{'a' * 32}/parts/3")
     assert not any(is_upload(m, p) for m, p in (("GET", "/scenes"), ("POST", "/uploads"), ("POST", "/render"),
                                                  ("POST", f"/uploads/{'a' * 32}/complete")))
+
+
+def test_a_broker_the_health_check_found_down_is_not_read(tmp_path):
+    """Redis down (nothing listens on the port): the scrape answers at once, with voxnerf_up{component="broker"} 0
+    and no queue depth, instead of waiting for connection attempts per queue."""
+    import time
+
+    from service_fixtures import free_port
+
+    settings = Settings(data_dir=tmp_path / "data", device="cpu", health_timeout_s=0.2,
+                        broker_url=f"redis://127.0.0.1:{free_port()}/0")
+    settings.make_dirs()
+    celery = create_celery(settings)
+    health = check_health(settings, celery)
+    started = time.monotonic()
+    text = scrape(settings, celery, ApiMetrics(), health, devices={}).decode()
+    assert time.monotonic() - started < 5  # reading the three queues would try to connect for seconds each
+    assert 'voxnerf_up{component="broker"} 0.0' in text and "voxnerf_queue_messages" not in text
