@@ -86,6 +86,25 @@ class StoreCollector(Collector):
         self.settings = settings
 
     def collect(self) -> Iterator[Metric]:
+        try:
+            counts, durations, stages = self._read()
+        except Exception:  # the database is down: voxnerf_up says so; the rest of the scrape stands
+            log.warning("metrics: cannot read the job store", exc_info=True)
+            return
+
+        work = GaugeMetricFamily(f"{PREFIX}jobs", "work in the job store by kind (train, video, mesh, pointcloud, "
+                                 "import) and state", labels=["kind", "state"])
+        for kind in ("train", "video", "mesh", "pointcloud", "import"):
+            for state in JOB_STATES:
+                work.add_metric([kind, state], counts.get((kind, state), 0))
+        yield work
+        yield _histogram(f"{PREFIX}job_duration_seconds", "seconds from start to end of finished work (train jobs, "
+                         "outputs, imports), by kind and final state", ["kind", "state"], WORK_BUCKETS, durations)
+        yield _histogram(f"{PREFIX}stage_duration_seconds", "seconds of each stage that ran in finished training "
+                         "jobs (the stage records of their runs)", ["stage"], STAGE_BUCKETS, stages)
+
+    def _read(self) -> tuple[dict, dict, dict]:
+        """Counts by (kind, state), durations by (kind, state) and stage seconds by (stage,), from the store."""
         counts: dict[tuple[str, str], int] = {}
         durations: dict[tuple[str, str], list[float]] = {}
         stages: dict[tuple[str], list[float]] = {}
@@ -104,17 +123,7 @@ class StoreCollector(Collector):
                 for record in records or []:
                     if isinstance(record, dict) and record.get("ran") and _finite(record.get("seconds")):
                         stages.setdefault((str(record.get("name")),), []).append(max(0.0, float(record["seconds"])))
-
-        work = GaugeMetricFamily(f"{PREFIX}jobs", "work in the job store by kind (train, video, mesh, pointcloud, "
-                                 "import) and state", labels=["kind", "state"])
-        for kind in ("train", "video", "mesh", "pointcloud", "import"):
-            for state in JOB_STATES:
-                work.add_metric([kind, state], counts.get((kind, state), 0))
-        yield work
-        yield _histogram(f"{PREFIX}job_duration_seconds", "seconds from start to end of finished work (train jobs, "
-                         "outputs, imports), by kind and final state", ["kind", "state"], WORK_BUCKETS, durations)
-        yield _histogram(f"{PREFIX}stage_duration_seconds", "seconds of each stage that ran in finished training "
-                         "jobs (the stage records of their runs)", ["stage"], STAGE_BUCKETS, stages)
+        return counts, durations, stages
 
 
 class QueueCollector(Collector):

@@ -191,3 +191,9 @@ def test_a_broker_the_health_check_found_down_is_not_read(tmp_path):
     text = scrape(settings, celery, ApiMetrics(), health, devices={}).decode()
     assert time.monotonic() - started < 5  # reading the three queues would try to connect for seconds each
     assert 'voxnerf_up{component="broker"} 0.0' in text and "voxnerf_queue_messages" not in text
+
+
+def test_a_job_store_that_cannot_be_read_leaves_the_rest_of_the_scrape(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", device="cpu",
+                        database_url=f"sqlite:///{tmp_path}/no-such-directory/voxnerf.sqlite")
+    assert list(StoreCollector(settings).collect()) == []  # logged, not raised
