@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -23,7 +24,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from browser_fixtures import browser_page, csp_reports
-from service_fixtures import start_redis, start_service, upload_scene, wait_for
+from service_fixtures import start_redis, start_service, stop_process, upload_scene, wait_for
 
 from app.webhooks import CallbackRefused, checked_addresses, signature
 
@@ -273,6 +274,28 @@ def check_a_queued_jobs_stream(service, small_room) -> None:
         assert client.get(f"/jobs/{'0' * 32}/events").status_code == 404
         assert client.get(f"/jobs/{'0' * 32}/deliveries").status_code == 404
         assert client.get(f"/jobs/{job['id']}/deliveries").json() == []  # no callback_url, no deliveries
+
+
+def test_open_streams_end_when_the_server_stops(idle_service, small_room):
+    """uvicorn waits for every open response before it stops: a stream of a job that stays queued must end."""
+    with idle_service.client(timeout_s=60) as client:
+        scene = upload_scene(client, small_room)
+        job = client.post(f"/scenes/{scene['id']}/jobs", json=JOB).json()
+        with client.stream("GET", f"/jobs/{job['id']}/events") as response:
+            lines = response.iter_lines()
+            (queued,), _ = read_events(lines, stop=lambda e: True)
+            api = idle_service.procs.pop("api")
+            started = time.monotonic()
+            api.send_signal(signal.SIGTERM)
+            try:
+                api.wait(timeout=15)
+            finally:
+                stop_process(api)  # still running: the test fails, and nothing is left behind
+            rest, _ = read_events(lines)
+        stopped_in = time.monotonic() - started
+    idle_service.start_api()
+    wait_for(idle_service.answers, 60, "the API to answer again")
+    assert queued["data"]["state"] == "queued" and rest == [] and stopped_in < 10, (stopped_in, idle_service.logs())
 
 
 @pytest.mark.parametrize("url", [
