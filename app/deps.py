@@ -10,7 +10,7 @@ from fastapi import Depends, HTTPException, Path, Request
 
 from app.core.jobstore import ID_RE
 from app.core.settings import Settings
-from app.core.tokens import LEGACY_ADMIN, TOKENLESS
+from app.core.tokens import LEGACY_ADMIN, LOCAL
 
 
 def app_settings(request: Request) -> Settings:
@@ -57,4 +57,4 @@ def principal_name(request: Request, settings: Settings) -> str:
     principal = getattr(request.state, "principal", None)
     if principal is not None:
         return principal.name
-    return LEGACY_ADMIN if settings.api_token is not None else TOKENLESS
+    return LEGACY_ADMIN if settings.api_token is not None else LOCAL

@@ -2,53 +2,68 @@
 
 Only the principals that exist without named tokens are known here: ``admin`` (the holder of ``VOXNERF_API_TOKEN``,
 whose secret is derived from the token, so it changes when the token does) and ``local`` (a tokenless service's
-loopback clients, whose secret is a random file ``<data_dir>/webhook_secret`` made once, readable by its owner
+loopback clients, whose secret is 32 random bytes in ``<data_dir>/webhook_secret``, made once, readable by its owner
 only). Named tokens, each with a secret of its own, extend :func:`webhook_secret`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import hmac
 import os
 import secrets
+import tempfile
 
 from app.core.settings import Settings
+from voxnerf.errors import VoxNeRFError
 
 LEGACY_ADMIN = "admin"  # the principal of VOXNERF_API_TOKEN
-TOKENLESS = "local"  # the principal of a tokenless service's loopback clients
-SECRET_FILE = "webhook_secret"
+LOCAL = "local"  # the principal of every request to a tokenless service
+LEGACY_WEBHOOK_MESSAGE = b"voxnerf-webhook"
+LOCAL_WEBHOOK_SECRET_FILE = "webhook_secret"
 SECRET_BYTES = 32
 
 
-class UnknownPrincipal(LookupError):
-    """No webhook secret exists for the principal (its token was revoked, or the token setting changed)."""
+class TokenError(VoxNeRFError):
+    """No webhook secret exists for a principal, or its secret file is damaged; ``status``: the HTTP status."""
+
+    def __init__(self, message: str, status: int = 422) -> None:
+        super().__init__(message)
+        self.status = status
 
 
-def _tokenless_secret(settings: Settings) -> bytes:
-    """The random secret in ``<data_dir>/webhook_secret`` (hex), made with mode 0600 by whichever process needs it
-    first (an exclusive create, so concurrent processes agree on one)."""
-    path = settings.data_dir / SECRET_FILE
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        text = path.read_text().strip()
-        if len(text) != 2 * SECRET_BYTES:
-            raise UnknownPrincipal(f"{path} does not hold a webhook secret ({2 * SECRET_BYTES} hex digits)") from None
-        return bytes.fromhex(text)
-    secret = secrets.token_bytes(SECRET_BYTES)
-    with os.fdopen(fd, "w") as file:
-        file.write(secret.hex())
+def _local_webhook_secret(settings: Settings) -> bytes:
+    """``<data_dir>/webhook_secret``'s 32 bytes, made once: written whole to a private temporary file (0600) that is
+    then hard-linked into place, which fails when the file exists, so processes starting together agree on one and
+    none reads a half-written secret."""
+    path = settings.data_dir / LOCAL_WEBHOOK_SECRET_FILE
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    if not path.exists():
+        fd, temporary = tempfile.mkstemp(prefix=".webhook_secret-", dir=settings.data_dir)  # mode 0600
+        try:
+            with os.fdopen(fd, "wb") as out:
+                out.write(secrets.token_bytes(SECRET_BYTES))
+            with contextlib.suppress(FileExistsError):
+                os.link(temporary, path)
+        finally:
+            os.unlink(temporary)
+    secret = path.read_bytes()
+    if len(secret) != SECRET_BYTES:
+        raise TokenError(f"{path}: holds {len(secret)} bytes, not a {SECRET_BYTES}-byte webhook secret (remove it to "
+                         "make a new one)", status=500)
     return secret
 
 
 def webhook_secret(settings: Settings, principal_name: str) -> bytes:
-    """The key that signs the webhooks of jobs made by ``principal_name``: for ``admin`` (the API token's holder)
-    HMAC-SHA256(key=VOXNERF_API_TOKEN, msg=b"voxnerf-webhook"); for ``local`` (no token set) the random secret in
-    ``<data_dir>/webhook_secret``. Raises :class:`UnknownPrincipal` for any other name, or for ``admin`` while no
-    token is set."""
-    if principal_name == LEGACY_ADMIN and settings.api_token is not None:
-        return hmac.new(settings.api_token.get_secret_value().encode(), b"voxnerf-webhook", hashlib.sha256).digest()
-    if principal_name == TOKENLESS and settings.api_token is None:
-        return _tokenless_secret(settings)
-    raise UnknownPrincipal(f"no webhook secret for principal {principal_name!r}")
+    """The key that signs the webhooks of work made by ``principal_name``: for ``admin`` (``VOXNERF_API_TOKEN``)
+    HMAC-SHA256(key=the token, msg=b"voxnerf-webhook"); for ``local`` the random secret in
+    ``<data_dir>/webhook_secret``. :class:`TokenError` (404) for any other name, and for ``admin`` while no token
+    is set."""
+    if principal_name == LEGACY_ADMIN:
+        if settings.api_token is None:
+            raise TokenError("no VOXNERF_API_TOKEN is set, so principal 'admin' has no webhook secret", status=404)
+        return hmac.new(settings.api_token.get_secret_value().encode(), LEGACY_WEBHOOK_MESSAGE, hashlib.sha256).digest()
+    if principal_name == LOCAL:
+        return _local_webhook_secret(settings)
+    raise TokenError(f"no token named {principal_name!r}, so it has no webhook secret", status=404)

@@ -26,6 +26,8 @@ import pytest
 from browser_fixtures import browser_page, csp_reports
 from service_fixtures import start_redis, start_service, stop_process, upload_scene, wait_for
 
+from app.core.settings import Settings
+from app.core.tokens import TokenError, webhook_secret
 from app.webhooks import CallbackRefused, checked_addresses, signature
 
 pytestmark = pytest.mark.slow
@@ -327,3 +329,17 @@ def test_address_rules_and_the_signature():
             checked_addresses(url, allow_private=False)
     mac = hmac.new(b"k", b"1700000000.{}", hashlib.sha256).hexdigest()
     assert signature(b"k", "1700000000", b"{}") == f"sha256={mac}"
+
+
+def test_webhook_secrets_of_the_principals_without_named_tokens(tmp_path):
+    tokenless = Settings(data_dir=tmp_path / "data")
+    secret = webhook_secret(tokenless, "local")
+    path = tmp_path / "data" / "webhook_secret"
+    assert len(secret) == 32 and path.read_bytes() == secret and path.stat().st_mode & 0o777 == 0o600
+    assert webhook_secret(tokenless, "local") == secret  # made once
+    with pytest.raises(TokenError):
+        webhook_secret(tokenless, "admin")  # no VOXNERF_API_TOKEN
+    with_token = Settings(data_dir=tmp_path / "data", api_token=TOKEN)
+    assert webhook_secret(with_token, "admin") == hmac.new(TOKEN.encode(), b"voxnerf-webhook", hashlib.sha256).digest()
+    with pytest.raises(TokenError):
+        webhook_secret(with_token, "ci")
