@@ -43,6 +43,7 @@ router = APIRouter(tags=["jobs"])
 
 STREAM_RETRY_AFTER_S = 5  # what a client refused for too many open streams is told to wait
 KEEPALIVE = b": keep-alive\n\n"
+EVENTS_PER_READ = 500
 EVENT_EXAMPLE = (
     'id: 7\nevent: progress\ndata: {"id": "...", "state": "running", "progress": 0.42, ...}\n\n'
     'id: 8\nevent: stage\ndata: {"name": "prior", "ran": true, "why": "...", "seconds": 1.2}\n\n'
@@ -85,7 +86,7 @@ async def _stream(settings: Settings, job_id: str, after: int) -> AsyncIterator[
     """The job's events after ``after`` as they are written, up to and including its final state event."""
     last_sent = time.monotonic()
     while not server_stopping():
-        batch = await run_in_threadpool(events.events_after, settings, job_id, after)
+        batch = await run_in_threadpool(events.events_after, settings, job_id, after, EVENTS_PER_READ)
         if batch:
             after = batch[-1].seq
             chunk = b""
@@ -96,7 +97,8 @@ async def _stream(settings: Settings, job_id: str, after: int) -> AsyncIterator[
                     return
             yield chunk
             last_sent = time.monotonic()
-            continue  # a full batch may have more behind it: read again at once
+            if len(batch) == EVENTS_PER_READ:
+                continue  # more may be behind it: read again at once
         if time.monotonic() - last_sent >= settings.event_keepalive_s:
             # an ended (or deleted) job with nothing after ``after``: its final event is behind the client already
             job = await run_in_threadpool(JOBS.get, settings, job_id)
