@@ -1,16 +1,17 @@
-"""Dependencies shared by the routes: settings, the Celery client, bearer-token auth, id validation."""
+"""Dependencies shared by the routes: settings, the Celery client, the request's principal (bearer-token auth and
+the scope rule), ownership checks, id validation."""
 
 from __future__ import annotations
 
-import secrets
 from typing import Annotated
 
 from celery import Celery
 from fastapi import Depends, HTTPException, Path, Request
 
+from app.core import tokens
 from app.core.jobstore import ID_RE
 from app.core.settings import Settings
-from app.core.tokens import LEGACY_ADMIN, LOCAL
+from app.core.tokens import Principal
 
 
 def app_settings(request: Request) -> Settings:
@@ -31,30 +32,31 @@ SceneId = Annotated[str, Path(pattern=ID_RE.pattern, description=f"scene id, {ID
 JobId = Annotated[str, Path(pattern=ID_RE.pattern, description=f"job id, {ID_DOC}")]
 
 
-def has_valid_token(request: Request, settings: Settings) -> bool:
-    """Whether the request may act as the token holder: ``Authorization: Bearer <VOXNERF_API_TOKEN>``, or
-    any request when no token is set (the service then answers loopback clients only)."""
-    if settings.api_token is None:
-        return True
-    scheme, _, token = request.headers.get("authorization", "").partition(" ")
-    expected = settings.api_token.get_secret_value().encode()
-    return scheme.lower() == "bearer" and secrets.compare_digest(token.strip().encode(), expected)
-
-
-def require_token(request: Request, settings: SettingsDep) -> None:
-    """Refuse with 401 unless the request carries ``Authorization: Bearer <VOXNERF_API_TOKEN>`` (when set)."""
-    if not has_valid_token(request, settings):
+def require_token(request: Request, settings: SettingsDep) -> Principal:
+    """The one place a request's principal is resolved (:func:`app.core.tokens.resolve`) and its scope checked
+    (:func:`app.core.tokens.scope_refusal`); it is kept in ``request.state.principal``. 401 without a valid
+    token when the service has one (a revoked token included), 403 naming the scope needed when the token's
+    scope does not reach it."""
+    principal = tokens.resolve(settings, request.headers.get("authorization"))
+    if principal is None:
         raise HTTPException(
             status_code=401,
-            detail="missing or wrong bearer token: send 'Authorization: Bearer <VOXNERF_API_TOKEN>'",
+            detail="missing, unknown or revoked bearer token: send 'Authorization: Bearer <token>' "
+            "(VOXNERF_API_TOKEN, or a token made with voxnerf tokens create)",
             headers={"WWW-Authenticate": "Bearer"},
         )
+    route = request.scope.get("route")  # the matched route's template (/tokens/{name}), whatever the mount point
+    if why := tokens.scope_refusal(principal, request.method, getattr(route, "path", request.url.path)):
+        raise HTTPException(status_code=403, detail=why)
+    request.state.principal = principal
+    return principal
 
 
-def principal_name(request: Request, settings: Settings) -> str:
-    """The name of who makes the request (recorded on what it creates; its webhook secret signs the deliveries):
-    the authenticated principal's, else ``admin`` (the API token's holder) or ``local`` (no token set)."""
-    principal = getattr(request.state, "principal", None)
-    if principal is not None:
-        return principal.name
-    return LEGACY_ADMIN if settings.api_token is not None else LOCAL
+PrincipalDep = Annotated[Principal, Depends(require_token)]
+
+
+def require_owner(principal: Principal, what: str, created_by: str | None) -> None:
+    """403 unless ``principal`` may cancel or delete ``what`` (``"job <id>"``...), made by ``created_by``
+    (:func:`app.core.tokens.may_act_on`)."""
+    if not tokens.may_act_on(principal, created_by):
+        raise HTTPException(status_code=403, detail=tokens.ownership_refusal(principal, what, created_by))

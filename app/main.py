@@ -33,7 +33,7 @@ from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import events, health, imports, jobs, outputs, render, scenes, viewer
+from app.routes import events, health, imports, jobs, outputs, render, scenes, tokens, viewer
 from app.uploads.rules import UploadError
 from app.webhooks import deliver_due
 
@@ -138,7 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, imports, jobs, events, outputs, render, viewer):
+    for module in (scenes, imports, jobs, events, outputs, render, viewer, tokens):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
 

@@ -3,11 +3,13 @@ changes, safe headers.
 
 :class:`RequestGuardMiddleware` (pure ASGI, outermost) applies these rules to every HTTP request:
 
-1. **Closed by default**: with no ``VOXNERF_API_TOKEN`` (and no ``VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE``),
-   a client that is not on this machine gets 403, whatever way the app is served (``voxnerf serve``,
-   ``uvicorn --factory``, a container's published port). A request that carries ``Forwarded``, ``Via`` or any
-   ``X-Forwarded-*`` header came through a proxy and counts as remote, unless it comes from an address of
-   ``VOXNERF_TRUSTED_PROXIES``: then the client is the address that proxy names (:func:`request_is_local`).
+1. **Closed by default**: with no token (neither ``VOXNERF_API_TOKEN`` nor an active named token of
+   ``voxnerf tokens create``, :func:`app.core.tokens.service_has_token`) and no
+   ``VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE``, a client that is not on this machine gets 403, whatever way the app
+   is served (``voxnerf serve``, ``uvicorn --factory``, a container's published port). A request that carries
+   ``Forwarded``, ``Via`` or any ``X-Forwarded-*`` header came through a proxy and counts as remote, unless it
+   comes from an address of ``VOXNERF_TRUSTED_PROXIES``: then the client is the address that proxy names
+   (:func:`request_is_local`).
 2. **Its own host names only**: a ``Host`` header other than ``localhost``, a loopback address or a name of
    ``VOXNERF_ALLOWED_HOSTS`` gets 400, token or not. A web page on ``evil.example`` that re-resolves its name
    to 127.0.0.1 (DNS rebinding) is same-origin to the browser, so only the ``Host`` it sends tells it apart.
@@ -32,8 +34,10 @@ import logging
 from collections.abc import Iterable, Sequence
 from urllib.parse import urlsplit
 
+import anyio.to_thread
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app.core import tokens
 from app.core.settings import Settings
 from voxnerf.errors import VoxNeRFError
 
@@ -52,13 +56,15 @@ SECURITY_HEADERS = [
     (b"x-frame-options", b"DENY"),
 ]
 REMOTE_REFUSED = (
-    "no VOXNERF_API_TOKEN is set, so this service answers only loopback clients: set a token "
-    "(or VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE=1 to serve everyone without one)"
+    "no VOXNERF_API_TOKEN is set and no named token is active, so this service answers only loopback clients: "
+    "set a token or make one with voxnerf tokens create (or VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE=1 to serve "
+    "everyone without one)"
 )
 CROSS_SITE_REFUSED = "cross-site request refused: {why} (state-changing requests must come from this origin)"
 PROXIED_REFUSED = (
     "this request came through a proxy ({headers}) from {peer}, which VOXNERF_TRUSTED_PROXIES does not name, so "
-    "it counts as a remote client; no VOXNERF_API_TOKEN is set, so only loopback clients are answered"
+    "it counts as a remote client; no VOXNERF_API_TOKEN is set and no named token is active, so only loopback "
+    "clients are answered"
 )
 HOST_REFUSED = (
     "Host {host!r} is not a name this service answers to (a web page that re-resolves its own name to this "
@@ -178,26 +184,30 @@ def host_allowed(host: str | None, allowed_hosts: Sequence[str]) -> bool:
 
 
 def remote_allowed(settings: Settings) -> bool:
-    """Whether clients beyond loopback may be served: a token is set, or the opt-out is."""
-    return settings.api_token is not None or settings.allow_unauthenticated_remote
+    """Whether clients beyond loopback may be served: the opt-out is set, or the service has a token
+    (``VOXNERF_API_TOKEN`` or an active named token: the job store is read, so call it off the event loop)."""
+    return settings.allow_unauthenticated_remote or tokens.service_has_token(settings)
 
 
 def check_bind(host: str, settings: Settings) -> None:
-    """Refuse (:class:`UnsafeBindError`) to serve on a non-loopback ``host`` without a token unless the
-    opt-out is set; with the opt-out, log a WARNING. Call before anything starts."""
-    if is_loopback(host) or settings.api_token is not None:
+    """Refuse (:class:`UnsafeBindError`) to serve on a non-loopback ``host`` without a token (``VOXNERF_API_TOKEN``
+    or an active named token) unless the opt-out is set; with the opt-out, log a WARNING. Call before anything
+    starts."""
+    if is_loopback(host) or remote_allowed(settings):
         return
-    if not settings.allow_unauthenticated_remote:
-        raise UnsafeBindError(
-            f"refusing to serve on {host} without VOXNERF_API_TOKEN: set a token, bind 127.0.0.1, or set "
-            "VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE=1 to let anyone who reaches the port control the service"
-        )
+    raise UnsafeBindError(
+        f"refusing to serve on {host} without VOXNERF_API_TOKEN or a named token: set a token or make one with "
+        "voxnerf tokens create, bind 127.0.0.1, or set VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE=1 to let anyone who "
+        "reaches the port control the service"
+    )
 
 
 def log_exposure(settings: Settings) -> None:
     """At start-up: say who will be served; a loud WARNING when remote clients need no token."""
-    if settings.api_token is not None:
-        log.info("API token set: every endpoint but /healthz and the dashboard shell needs it")
+    has_token = tokens.service_has_token(settings)
+    if has_token:
+        log.info("a token is set (VOXNERF_API_TOKEN or a named token): every endpoint but /healthz and the "
+                 "dashboard shell needs one")
     elif settings.allow_unauthenticated_remote:
         log.warning(
             "SERVING WITHOUT AUTHENTICATION TO EVERY CLIENT (VOXNERF_ALLOW_UNAUTHENTICATED_REMOTE is set, no "
@@ -205,7 +215,7 @@ def log_exposure(settings: Settings) -> None:
         )
     else:
         log.info("no API token set: answering loopback clients only")
-    if settings.api_token is None and "*" in settings.allowed_hosts:
+    if not has_token and "*" in settings.allowed_hosts:
         log.warning("VOXNERF_ALLOWED_HOSTS holds '*' and no VOXNERF_API_TOKEN is set: any web page whose name "
                     "resolves to this machine (DNS rebinding) can use the service")
 
@@ -261,7 +271,9 @@ class RequestGuardMiddleware:
             await self.app(scope, receive, send)
             return
         client = scope.get("client")
-        if not remote_allowed(self.settings) and not request_is_local(client, scope["headers"], self.trusted_proxies):
+        if not request_is_local(client, scope["headers"], self.trusted_proxies) and not (
+            await anyio.to_thread.run_sync(remote_allowed, self.settings)
+        ):
             await _refuse(send, self._remote_refusal(client, scope["headers"]))
             return
         headers = {name.lower(): value for name, value in scope["headers"]}

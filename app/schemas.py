@@ -31,6 +31,11 @@ def _utc(seconds: float | None) -> datetime | None:
 # ------------------------------------------------------------------------------------------------ scenes
 
 
+CREATED_BY_DOC = ("who made it: a token's name, 'admin' (VOXNERF_API_TOKEN) or 'local' (a tokenless service); null "
+                  "when made before tokens existed")
+CANCELLED_BY_DOC = "who asked to cancel it (as created_by); null when no one did"
+
+
 class PriorSummary(BaseModel):
     model_config = ConfigDict(extra="allow")
 
@@ -93,6 +98,7 @@ class SceneOut(BaseModel):
         None, description="for an imported upload (COLMAP, ScanNet, Record3D, Polycam), what its importer wrote; "
         "null for a scene directory"
     )
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> SceneOut:
@@ -105,6 +111,7 @@ class SceneOut(BaseModel):
             size_bytes=row.size_bytes,
             summary=SceneSummary.model_validate(summary),
             imported=ImportSummary.model_validate(imported) if imported is not None else None,
+            created_by=row.created_by,
         )
 
 
@@ -217,6 +224,8 @@ class _JobOutBase(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
+    cancelled_by: str | None = Field(None, description=CANCELLED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> _JobOutBase:
@@ -234,6 +243,8 @@ class _JobOutBase(BaseModel):
             created_at=_utc(row.created_at),
             started_at=_utc(row.started_at),
             finished_at=_utc(row.finished_at),
+            created_by=row.created_by,
+            cancelled_by=row.cancelled_by,
             **{name: _column(row, name) for name in progress.PROGRESS_FIELDS},
         )
 
@@ -370,6 +381,8 @@ class OutputOut(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
+    cancelled_by: str | None = Field(None, description=CANCELLED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> OutputOut:
@@ -384,6 +397,7 @@ class OutputOut(BaseModel):
             file_url=f"/outputs/{row.id}/file" if succeeded else None, error=row.error,
             cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,
             created_at=_utc(row.created_at), started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
+            created_by=row.created_by, cancelled_by=row.cancelled_by,
         )
 
 
@@ -400,6 +414,8 @@ class ImportOut(BaseModel):
     state: JobState
     stage: str | None = Field(description="queued, starting, importing, checking, storing, then done, failed or "
                               "cancelled")
+    step: str | None = Field(description="what the importer is doing within its stage, for photos and video "
+                             "(structure from motion): decoding, extracting features, matching, registering images")
     progress: float
     eta_s: float | None
     size_bytes: int = Field(description="of the raw capture as uploaded")
@@ -414,15 +430,19 @@ class ImportOut(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    created_by: str | None = Field(None, description=CREATED_BY_DOC)
+    cancelled_by: str | None = Field(None, description=CANCELLED_BY_DOC)
 
     @classmethod
     def from_row(cls, row) -> ImportOut:
         return cls(
-            id=row.id, name=row.name, layout=row.layout, state=row.state, stage=row.stage, progress=row.progress,
+            id=row.id, name=row.name, layout=row.layout, state=row.state, stage=row.stage, step=row.step,
+            progress=row.progress,
             eta_s=row.eta_s, size_bytes=row.size_bytes, params=row.params, scene_id=row.scene_id,
             scene_url=f"/scenes/{row.scene_id}" if row.scene_id else None, summary=row.summary, error=row.error,
             cancel_requested=row.cancel_requested, attempt=row.attempt, requeues=row.requeues,
             created_at=_utc(row.created_at), started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
+            created_by=row.created_by, cancelled_by=row.cancelled_by,
         )
 
 
@@ -534,3 +554,49 @@ class CameraPathOut(BaseModel):
     fps: float
     frames: list[PathFrame]
     camera_path: dict
+
+
+# ------------------------------------------------------------------------------------------------ tokens
+
+
+class TokenCreate(BaseModel):
+    """A named token to make (``POST /tokens``, scope admin)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=64, description="a slug: lowercase letters, digits, '-' and '_'; "
+                      "never reused, since work is recorded under it; not 'admin' or 'local'")
+    scope: Literal["read", "write", "admin"] = Field(
+        description="read: GET only; write: also upload, train, render, outputs, imports, and cancel or delete its "
+        "own work; admin: everything, tokens included")
+    max_queued: int | None = Field(
+        None, ge=1, description="queued rows of each kind it may have; default VOXNERF_MAX_QUEUED_PER_TOKEN")
+
+
+class TokenOut(BaseModel):
+    """A named token as listed: never the token itself (only its hash is kept)."""
+
+    name: str
+    scope: Literal["read", "write", "admin"]
+    max_queued: int | None
+    created_at: datetime
+    last_used_at: datetime | None = Field(description="to the minute: written at most once a minute")
+    revoked_at: datetime | None
+
+    @classmethod
+    def from_row(cls, row) -> TokenOut:
+        return cls(name=row.name, scope=row.scope, max_queued=row.max_queued, created_at=_utc(row.created_at),
+                   last_used_at=_utc(row.last_used_at), revoked_at=_utc(row.revoked_at))
+
+
+class TokenCreated(TokenOut):
+    """A token just made: ``token`` and ``webhook_secret`` are shown here once and never again."""
+
+    token: str = Field(description="send as 'Authorization: Bearer <token>'; shown only now")
+    webhook_secret: str = Field(description="hex key of the HMAC-SHA256 signatures of its work's webhooks")
+
+    @classmethod
+    def from_new(cls, made) -> TokenCreated:
+        """From :class:`app.core.tokens.NewToken`."""
+        return cls(name=made.name, scope=made.scope, max_queued=made.max_queued, created_at=_utc(made.created_at),
+                   last_used_at=None, revoked_at=None, token=made.token, webhook_secret=made.webhook_secret)

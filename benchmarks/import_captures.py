@@ -115,6 +115,20 @@ def given_subset(redkitchen: Path, imported: Path, source_name_of, out: Path) ->
     return out
 
 
+def source_by_pose(redkitchen: Path, imported: Path):
+    """``file_path -> source file_path`` for an imported scene whose poses are the source's own (phone apps, bags):
+    each imported frame is matched to the source frame with the nearest camera-to-world matrix."""
+    source = source_frames(redkitchen)
+    matrices = np.array([f["transform_matrix"] for f in source])
+    names = {}
+    for entry in json.loads((imported / "transforms.json").read_text())["frames"]:
+        gap = np.abs(matrices - np.asarray(entry["transform_matrix"])).reshape(len(source), -1).max(axis=1)
+        names[entry["file_path"]] = source[int(np.argmin(gap))]["file_path"]
+    if len(set(names.values())) != len(names):
+        raise SystemExit(f"{imported}: two imported frames match one source frame; poses are not the source's")
+    return names.__getitem__
+
+
 def train(scene: Path, run: Path, seconds: float, extra: list[str]) -> dict:
     cmd = [sys.executable, "-m", "voxnerf", "train", str(scene), "--out", str(run), "--max-seconds", str(seconds),
            "--restart", *extra]

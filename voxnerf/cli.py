@@ -1,4 +1,4 @@
-"""Command line: ``voxnerf train | eval | render | export | synth | import | serve | worker``.
+"""Command line: ``voxnerf train | eval | render | export | synth | import | serve | worker | tokens``.
 
 Errors the user can fix print one line (``voxnerf: error: <file>: <key>: <message>``) and exit with 2.
 """
@@ -432,6 +432,12 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tokens(args: argparse.Namespace) -> int:
+    from app.tokens_cli import run
+
+    return run(args)
+
+
 def _worker(args: argparse.Namespace) -> int:
     from worker.run import run_worker
 
@@ -706,6 +712,24 @@ def _add_worker_command(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_worker)
 
 
+def _add_tokens_command(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("tokens", help="named API tokens of the service (on the database voxnerf serve would use)")
+    actions = p.add_subparsers(dest="tokens_command", required=True)
+    q = actions.add_parser("create", help="make a token; prints it on the last line, once")
+    q.add_argument("name", help="a slug: lowercase letters, digits, '-' and '_'")
+    q.add_argument("--scope", required=True, choices=["read", "write", "admin"],
+                   help="read: GET only; write: upload, train, render, outputs, cancel and delete its own work; "
+                   "admin: everything, tokens included")
+    q.add_argument("--max-queued", type=_at_least_one, default=None,
+                   help="queued rows of each kind it may have (default VOXNERF_MAX_QUEUED_PER_TOKEN)")
+    actions.add_parser("list", help="every token, revoked ones included (never the token itself)")
+    q = actions.add_parser("revoke", help="revoke a token: refused from the service's next request")
+    q.add_argument("name")
+    q = actions.add_parser("show-secret", help="print a token's webhook secret (hex)")
+    q.add_argument("name")
+    p.set_defaults(func=_tokens)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="voxnerf", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -717,6 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_import_command(sub)
     _add_serve_command(sub)
     _add_worker_command(sub)
+    _add_tokens_command(sub)
     return parser
 
 

@@ -24,19 +24,22 @@ from app.core.models import ImportRow
 from app.core.redact import public_error
 from app.core.scene_store import PublishFailed, commit_scene, tree_size
 from app.core.settings import Settings, get_settings
-from voxnerf.data.importers import PaperSplitRule, run_import
+from voxnerf.data.importers import ImportCancelled, ImportMonitor, PaperSplitRule, run_import
 from voxnerf.data.scene import inspect_scene
 from voxnerf.errors import VoxNeRFError
+from worker.disk_full import disk_full_message
 from worker.lease import Lease, hold, leased_task
 
 log = logging.getLogger(__name__)
 SPLIT_RULES = {"paper": PaperSplitRule()}
 SCENE_DIR = "scene"  # in the import's staging directory: the scene the importer writes
 STAGE_PROGRESS = {"importing": 0.05, "checking": 0.8, "storing": 0.95}  # how far the import is when each begins
+STEP_WRITE_PERIOD_S = 1.0  # an importer's own progress is written at most this often
 
 
 class Stopped(Exception):
-    """The import was cancelled, or its lease lost, between two stages."""
+    """The import was cancelled, or its lease lost, between two stages (or inside an importer that watches for
+    it: ImportCancelled)."""
 
 
 def _capture(settings: Settings, row: ImportRow) -> Path:
@@ -63,6 +66,23 @@ class Stages:
         IMPORTS.record_progress(self.settings, self.row.id, self.row.attempt, stage, progress,
                                 elapsed_eta(self._started, progress))
 
+    def monitor(self) -> ImportMonitor:
+        """The importing stage's monitor: the importer's steps written (at most every STEP_WRITE_PERIOD_S) as
+        progress between the importing and checking stages, and the lease's stop request."""
+        low, high = STAGE_PROGRESS["importing"], STAGE_PROGRESS["checking"]
+        last_write = 0.0
+
+        def report(step: str, fraction: float) -> None:
+            nonlocal last_write
+            if time.monotonic() - last_write < STEP_WRITE_PERIOD_S:
+                return
+            last_write = time.monotonic()
+            progress = low + (high - low) * fraction
+            IMPORTS.record_progress(self.settings, self.row.id, self.row.attempt, "importing", progress,
+                                    elapsed_eta(self._started, progress), step)
+
+        return ImportMonitor(report=report, should_stop=self.lease.should_stop)
+
 
 def import_capture(settings: Settings, row: ImportRow, lease: Lease) -> dict:
     """Import a claimed capture; the final row values: ``state`` succeeded (``scene_id``, ``summary``),
@@ -73,22 +93,33 @@ def import_capture(settings: Settings, row: ImportRow, lease: Lease) -> dict:
     scene = staging / SCENE_DIR
     try:
         stages.enter("importing")
-        summary = run_import(row.layout, _capture(settings, row), scene, SPLIT_RULES.get(row.params.get("splits")))
+        summary = run_import(row.layout, _capture(settings, row), scene, SPLIT_RULES.get(row.params.get("splits")),
+                             stages.monitor())
         stages.enter("checking")
         checked = inspect_scene(scene)
         stages.enter("storing")
-        stored = commit_scene(settings, scene, row.name, {**checked, "imported": summary}, tree_size(scene))
-    except Stopped:
+        stored = commit_scene(settings, scene, row.name, {**checked, "imported": summary}, tree_size(scene),
+                              created_by=row.created_by)  # the scene is the import's maker's
+    except (Stopped, ImportCancelled):
         return {"state": "cancelled"}
-    except (VoxNeRFError, PublishFailed) as err:
-        log.warning("import %s failed: %s", row.id, err)
-        return {"state": "failed", "error": public_error(str(err), settings)}
     except Exception as err:
-        log.exception("import %s crashed", row.id)
-        return {"state": "failed", "error": public_error(f"internal error: {type(err).__name__}: {err}", settings)}
+        return {"state": "failed", "error": public_error(_why_failed(row, err), settings)}
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return {"state": "succeeded", "scene_id": stored.id, "summary": summary}
+
+
+def _why_failed(row: ImportRow, err: Exception) -> str:
+    """A failed import's error: a full disk said as such, a refusal (the importer's or the check's one line) as
+    it is, anything else an internal error (logged with its traceback)."""
+    if (full := disk_full_message(err, "the scene was written")) is not None:
+        log.warning("import %s failed: %s", row.id, full)
+        return f"{full}: nothing was stored and the capture is removed; free space and upload it again"
+    if isinstance(err, (VoxNeRFError, PublishFailed)):
+        log.warning("import %s failed: %s", row.id, err)
+        return str(err)
+    log.exception("import %s crashed", row.id)
+    return f"internal error: {type(err).__name__}: {err}"
 
 
 def _remove_capture(settings: Settings, row: ImportRow, state: str) -> None:

@@ -34,6 +34,7 @@ from voxnerf.errors import RunError, VoxNeRFError
 from voxnerf.inference.export import export_geometry
 from voxnerf.inference.render import TrainedModel, scene_as_trained
 from voxnerf.inference.video import render_path
+from worker.disk_full import disk_full_message
 from worker.lease import Lease, hold, leased_task
 from worker.model_cache import model_cache
 
@@ -141,13 +142,22 @@ def produce(settings: Settings, row: OutputRow, lease: Lease) -> dict:
             if summary is None:
                 return {"state": "cancelled"}
             outputs.publish_output(settings, row, outputs.output_dir(settings, row.job_id, row.id))
-    except (VoxNeRFError, CameraError) as err:
-        log.warning("output %s failed: %s", row.id, err)
-        return {"state": "failed", "error": public_error(f"{type(err).__name__}: {err}", settings)}
     except Exception as err:
-        log.exception("output %s crashed", row.id)
-        return {"state": "failed", "error": public_error(f"internal error: {type(err).__name__}: {err}", settings)}
+        return {"state": "failed", "error": public_error(_why_failed(row, err), settings)}
     return {"state": "succeeded", "summary": summary, "file_name": outputs.FILE_NAMES[row.kind]}
+
+
+def _why_failed(row: OutputRow, err: Exception) -> str:
+    """A failed output's error: a full disk said as such, the engine's own errors as they are, anything else an
+    internal error (logged with its traceback)."""
+    if (full := disk_full_message(err, f"the {row.kind} was written")) is not None:
+        log.warning("output %s failed: %s", row.id, full)
+        return f"{full}: nothing was kept; free space and ask for it again"
+    if isinstance(err, (VoxNeRFError, CameraError)):
+        log.warning("output %s failed: %s", row.id, err)
+        return f"{type(err).__name__}: {err}"
+    log.exception("output %s crashed", row.id)
+    return f"internal error: {type(err).__name__}: {err}"
 
 
 def _remove_unfinished(settings: Settings, row: OutputRow, state: str) -> None:

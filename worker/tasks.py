@@ -32,7 +32,6 @@ the contract with the trainer: ``on_progress`` receives :class:`ProgressEvent` o
 from __future__ import annotations
 
 import dataclasses
-import errno
 import logging
 import os
 import signal
@@ -61,6 +60,7 @@ from voxnerf.trainer import train
 from voxnerf.training.checkpoint import load_checkpoint
 from voxnerf.training.records import ProgressEvent
 from voxnerf.training.run import LeaseLost
+from worker.disk_full import DISK_FULL, disk_full_cause
 from worker.lease import Lease, hold, leased_task
 from worker.model_cache import model_cache
 
@@ -121,26 +121,11 @@ def _kill_if_poison_test(settings: Settings, scene_id: str) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
-
-
-def disk_full_cause(err: BaseException) -> OSError | None:
-    """The ``ENOSPC``/``EDQUOT`` OSError behind ``err`` (itself, or its cause or context, however deep), or None."""
-    seen: set[int] = set()
-    current: BaseException | None = err
-    while current is not None and id(current) not in seen:
-        if isinstance(current, OSError) and current.errno in DISK_FULL_ERRNOS:
-            return current
-        seen.add(id(current))
-        current = current.__cause__ or current.__context__
-    return None
-
-
 def disk_full_outcome(settings: Settings, job, cause: OSError, progress: float) -> dict:
     """The final columns of a job whose disk filled up: ``cancelled`` keeping the run's last complete checkpoint
     (it is read back here, so a job said to keep one can be rendered), or ``failed`` when it has none."""
     checkpoint = settings.runs_dir / job.id / CHECKPOINT
-    why = f"the disk filled up while the job was writing ({cause.strerror})"
+    why = f"{DISK_FULL} while the job was writing ({cause.strerror})"
     try:
         iteration = int(load_checkpoint(checkpoint)["iteration"]) if checkpoint.is_file() else None
     except (RunError, KeyError, TypeError, ValueError):

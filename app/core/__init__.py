@@ -1,7 +1,7 @@
 """The service core: what the API (``app``) and the workers (``worker``) share, and the only place they meet.
 
 - :mod:`app.core.settings`: every ``VOXNERF_*`` setting (:class:`Settings`, the one :func:`get_settings`);
-- :mod:`app.core.db`, :mod:`app.core.models`: database engine and sessions, the ``scenes`` and ``jobs`` tables;
+- :mod:`app.core.db`, :mod:`app.core.models`: database engine and sessions, the tables;
 - :mod:`app.core.progress`: which job columns carry training progress, derived from the engine's
   :class:`voxnerf.training.records.ProgressEvent`;
 - :mod:`app.core.lease`: the lease lifecycle every kind of queued work shares (claim with a fence, lease renewal,
@@ -15,7 +15,9 @@
   (requeueing rows whose worker died, re-sending lost messages);
 - :mod:`app.core.broker`: the embedded filesystem broker transport;
 - :mod:`app.core.render_results`: how a render's outcome travels from the render worker back to the API;
-- :mod:`app.core.render_request`: the render request both the API and the render task parse.
+- :mod:`app.core.render_request`: the render request both the API and the render task parse;
+- :mod:`app.core.tokens`: named API tokens, the principal of a request, the scope rule, per-token queue limits and
+  webhook secrets.
 
 Nothing here imports the API modules, the workers, or torch (tests/test_architecture.py).
 """

@@ -11,8 +11,9 @@ import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
-from sqlalchemy import Engine, create_engine, event, inspect, text
+from sqlalchemy import Engine, create_engine, event, inspect, make_url, text
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.models import Base
@@ -74,6 +75,15 @@ def add_missing_columns(engine: Engine) -> list[str]:
                 conn.execute(text(f'ALTER TABLE "{table.name}" ADD COLUMN "{column.name}" {kind}'))
             added.append(f"{table.name}.{column.name}")
     return added
+
+
+def may_hold_rows(settings: Settings) -> bool:
+    """False when the job store is a SQLite file that does not exist yet (nothing was ever written, and asking
+    it would create it); True otherwise (a server database must be asked)."""
+    url = make_url(settings.sqlalchemy_url)
+    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
+        return True
+    return Path(url.database).exists()
 
 
 def get_engine(settings: Settings) -> Engine:

@@ -15,6 +15,7 @@ import shutil
 import time
 from pathlib import Path
 
+from app.core import tokens
 from app.core.celery_app import IMPORT_TASK
 from app.core.db import session_scope
 from app.core.jobstore import new_id
@@ -22,13 +23,15 @@ from app.core.lease import WorkKind
 from app.core.models import ImportRow
 from app.core.scene_store import tree_size
 from app.core.settings import Settings
+from app.core.tokens import Principal
 from voxnerf.data.importers import QUEUED_LAYOUTS
 
 __all__ = ["IMPORTS", "QUEUED_LAYOUTS", "create_import", "raw_dir", "remove_raw"]
 
 
-def _progress(settings: Settings, import_id: str, stage: str, progress: float, eta_s: float | None) -> dict:
-    return {"stage": stage, "progress": min(max(float(progress), 0.0), 1.0), "eta_s": eta_s}
+def _progress(settings: Settings, import_id: str, stage: str, progress: float, eta_s: float | None,
+              step: str | None = None) -> dict:
+    return {"stage": stage, "progress": min(max(float(progress), 0.0), 1.0), "eta_s": eta_s, "step": step}
 
 
 IMPORTS = WorkKind(
@@ -42,7 +45,7 @@ IMPORTS = WorkKind(
     staged=True,
 )
 """Capture imports' lease lifecycle: ``IMPORTS.get``, ``claim``, ``record_progress(settings, id, attempt, stage,
-progress, eta_s)``, ``finish``, ``request_cancel``..."""
+progress, eta_s[, step])``, ``finish``, ``request_cancel``..."""
 
 
 def raw_dir(settings: Settings, import_id: str) -> Path:
@@ -54,20 +57,22 @@ def remove_raw(settings: Settings, import_id: str) -> None:
     shutil.rmtree(raw_dir(settings, import_id), ignore_errors=True)
 
 
-def create_import(settings: Settings, staged: Path, name: str, layout: str, params: dict) -> ImportRow:
+def create_import(settings: Settings, staged: Path, name: str, layout: str, params: dict,
+                  principal: Principal | None = None) -> ImportRow:
     """A queued import of the raw capture at ``staged`` (a file or folder on the data directory's filesystem,
-    moved into :func:`raw_dir`). Raises QueueFull when ``max_queued_jobs`` imports are queued already (the
-    limit per client, counted per kind of work), ValueError for a layout that is not imported in a queue."""
+    moved into :func:`raw_dir`), made by ``principal`` (None: outside the API). Raises QueueFull when
+    ``max_queued_jobs`` imports are queued already, or as many as the principal's own limit allows (counted per kind
+    of work), ValueError for a layout that is not imported in a queue."""
     if layout not in QUEUED_LAYOUTS:
         raise ValueError(f"layout {layout!r} is imported on upload, not queued")
     row = IMPORTS.new_row(new_id(), name=name, layout=layout, params=params, size_bytes=tree_size(staged),
-                          stage="queued",
-                          progress=0.0)
+                          stage="queued", progress=0.0, created_by=principal and principal.name)
     settings.imports_dir.mkdir(parents=True, exist_ok=True)
     with session_scope(settings) as session:
         session.add(row)
         session.flush()
-        IMPORTS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs")
+        IMPORTS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs",
+                              principal and tokens.queue_quota(settings, principal))
         target = raw_dir(settings, row.id)
         target.mkdir()
         staged.replace(target / staged.name)

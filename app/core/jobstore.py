@@ -19,13 +19,14 @@ from typing import Any
 
 from sqlalchemy import delete, select
 
-from app.core import events
+from app.core import events, tokens
 from app.core.celery_app import TRAIN_TASK
 from app.core.db import session_scope
 from app.core.lease import WorkKind
 from app.core.models import ACTIVE_STATES, JobRow, OutputRow, SceneRow
 from app.core.progress import initial_values, json_safe, progress_values
 from app.core.settings import Settings
+from app.core.tokens import Principal
 from voxnerf.training.records import ProgressEvent, TrainReport, thin_series
 
 ID_RE = re.compile(r"^[0-9a-f]{32}$")
@@ -54,9 +55,12 @@ class SceneBusy(Exception):
         super().__init__(f"used by {len(job_ids)} active job(s): {', '.join(job_ids)}")
 
 
-def add_scene(settings: Settings, scene_id: str, name: str, summary: dict, size_bytes: int) -> SceneRow:
+def add_scene(settings: Settings, scene_id: str, name: str, summary: dict, size_bytes: int,
+              created_by: str | None = None) -> SceneRow:
+    """Add scene ``scene_id``'s row, made by principal ``created_by`` (None: outside the API)."""
     row = SceneRow(
-        id=scene_id, name=name, created_at=time.time(), size_bytes=size_bytes, summary=json_safe(summary)
+        id=scene_id, name=name, created_at=time.time(), size_bytes=size_bytes, summary=json_safe(summary),
+        created_by=created_by,
     )
     with session_scope(settings) as session:
         session.add(row)
@@ -139,21 +143,23 @@ JOBS = WorkKind(
 ``record_progress(settings, job_id, attempt, event)``, ``finish``, ``request_cancel``..."""
 
 
-def create_job(settings: Settings, scene_id: str, options: dict, callback_url: str | None = None,
-               created_by: str | None = None) -> JobRow | None:
-    """A new queued job on ``scene_id`` (its first event, ``queued``, journalled with it), made by principal
-    ``created_by``, whose state changes are posted to ``callback_url`` when given; None when the scene does not
-    exist. Raises :class:`app.core.lease.QueueFull` when ``settings.max_queued_jobs`` jobs are queued already
-    (:meth:`app.core.lease.WorkKind.refuse_beyond`: the limit per client; nothing is written then)."""
-    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, callback_url=callback_url,
-                       created_by=created_by, **initial_values())
+def create_job(settings: Settings, scene_id: str, options: dict, principal: Principal | None = None,
+               callback_url: str | None = None) -> JobRow | None:
+    """A new queued job on ``scene_id`` made by ``principal`` (None: outside the API, by no one), its first event
+    (``queued``) journalled with it; its state changes are posted to ``callback_url`` when given. None when the
+    scene does not exist. Raises :class:`app.core.lease.QueueFull` when ``settings.max_queued_jobs`` jobs are queued
+    already, or as many as the principal's own limit allows (:meth:`app.core.lease.WorkKind.refuse_beyond`; nothing
+    is written then)."""
+    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, created_by=principal and principal.name,
+                       callback_url=callback_url, **initial_values())
     with session_scope(settings) as session:
         session.add(row)
         session.flush()
         if session.get(SceneRow, scene_id) is None:
             session.rollback()
             return None
-        JOBS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs")
+        JOBS.refuse_beyond(session, settings.max_queued_jobs, "max_queued_jobs",
+                           principal and tokens.queue_quota(settings, principal))
         events.journal(session, row.id, "state")
     return row
 

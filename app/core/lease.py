@@ -29,7 +29,7 @@ import socket
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import func, select, update
 
@@ -37,6 +37,9 @@ from app.core.db import session_scope
 from app.core.models import ACTIVE_STATES
 from app.core.progress import json_safe
 from app.core.settings import Settings
+
+if TYPE_CHECKING:
+    from app.core.tokens import QueueQuota
 
 WORKER_DIED = "the worker died"  # how a recorded worker death starts (:meth:`WorkKind.record_worker_death`)
 CLAIM_TRIES = 3  # a claim re-reads the row when another writer changed it between its read and its update
@@ -116,15 +119,22 @@ class WorkKind:
         return self.table(id=row_id, state="queued", created_at=now, heartbeat_at=now, cancel_requested=False,
                           attempt=0, requeues=0, **columns)
 
-    def refuse_beyond(self, session: Any, limit: int, setting: str) -> None:
-        """Raise QueueFull (naming ``setting``) when more than ``limit`` rows of this kind are queued, counting the
-        one ``session`` has just added: the API has one client (whoever holds its token, or everyone without
-        one), so this is the limit per client. The caller adds its row first and counts in the same
-        transaction, which the exception rolls back, so concurrent requests cannot both slip under the limit."""
+    def refuse_beyond(self, session: Any, limit: int, setting: str, quota: QueueQuota | None = None) -> None:
+        """Raise QueueFull when more than ``quota.limit`` rows of this kind made by ``quota.principal`` are queued
+        (naming whose limit it is), or more than ``limit`` rows of all clients together (naming ``setting``),
+        counting the one ``session`` has just added. The caller adds its row first and counts in the same
+        transaction, which the exception rolls back, so concurrent requests cannot both slip under a limit."""
+        if quota is not None:
+            own = session.scalar(select(func.count()).select_from(self.table).where(
+                self.table.state == "queued", self.table.created_by == quota.principal))
+            if own > quota.limit:
+                raise QueueFull(f"{own - 1} {self.name}s of token {quota.principal!r} are queued already (its limit "
+                                f"is {quota.limit}: {quota.source}); wait for some to start, or cancel some")
         queued = session.scalar(select(func.count()).select_from(self.table).where(self.table.state == "queued"))
         if queued > limit:
             raise QueueFull(f"{queued - 1} {self.name}s are queued already (the limit is {limit}, "
-                            f"VOXNERF_{setting.upper()}); wait for some to start, or cancel some")
+                            f"VOXNERF_{setting.upper()}, for all clients together); wait for some to start, or "
+                            "cancel some")
 
     def get(self, settings: Settings, row_id: str) -> Any | None:
         with session_scope(settings) as session:
@@ -150,14 +160,15 @@ class WorkKind:
             ).rowcount:
                 self._changed(session, row_id, "state")
 
-    def request_cancel(self, settings: Settings, row_id: str) -> Any | None:
+    def request_cancel(self, settings: Settings, row_id: str, by: str | None = None) -> Any | None:
         """Cancel a row: a queued one at once, a running one when its worker next reads the flag (through its
-        lease); the row as it is now."""
+        lease); the row as it is now. ``by``: the principal asking, recorded as ``cancelled_by`` (by the first
+        request only; a finished row is left as it is)."""
         with session_scope(settings) as session:
             cancelled = session.execute(
                 update(self.table)
                 .where(self.table.id == row_id, self.table.state == "queued")
-                .values(state="cancelled", cancel_requested=True, finished_at=time.time(),
+                .values(state="cancelled", cancel_requested=True, finished_at=time.time(), cancelled_by=by,
                         **self._stage("cancelled"))
             ).rowcount
             if cancelled:
@@ -166,7 +177,7 @@ class WorkKind:
                 update(self.table)
                 .where(self.table.id == row_id, self.table.state == "running",
                        self.table.cancel_requested.is_(False))
-                .values(cancel_requested=True)
+                .values(cancel_requested=True, cancelled_by=by)
             ).rowcount:
                 self._changed(session, row_id, "progress")
         return self.get(settings, row_id)

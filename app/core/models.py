@@ -1,5 +1,7 @@
-"""Job-store tables (SQLAlchemy ORM): scenes, training jobs, output jobs, capture imports. Times are UNIX seconds
-(float, UTC); JSON columns hold dicts/lists.
+"""Job-store tables (SQLAlchemy ORM): scenes, training jobs, output jobs, capture imports, and the API's named
+tokens. Times are UNIX seconds (float, UTC); JSON columns hold dicts/lists. ``created_by`` (and ``cancelled_by``)
+name the principal that made (cancelled) a row (:class:`app.core.tokens.Principal`); null on rows written before
+tokens existed.
 
 The job's progress columns (stage, iteration, progress, ETA, history, stages...) are not listed here: they are
 built from the engine's ``ProgressEvent`` by :func:`app.core.progress.progress_columns`.
@@ -30,18 +32,22 @@ class SceneRow(Base):
     created_at: Mapped[float] = mapped_column(Float)
     size_bytes: Mapped[int] = mapped_column(Integer)
     summary: Mapped[dict] = mapped_column(JSON)
+    created_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
 
 class LeaseColumns:
     """The columns of a row on the lease lifecycle (:mod:`app.core.lease`), copied into each table of queued work:
     the cancel flag, ``attempt`` (the fencing token), ``requeues``, the claiming worker and its lease's
-    ``heartbeat_at``."""
+    ``heartbeat_at``; who queued the row (``created_by``, which per-principal queue limits count) and who cancelled
+    it."""
 
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     attempt: Mapped[int] = mapped_column(Integer, default=0)
     requeues: Mapped[int] = mapped_column(Integer, default=0)
     worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
     heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    created_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    cancelled_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
 
 # A declarative mixin: its columns are copied into JobRow (one per stored ProgressEvent field).
@@ -68,7 +74,6 @@ class JobRow(ProgressColumns, LeaseColumns, Base):
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     callback_url: Mapped[str | None] = mapped_column(Text, nullable=True)  # webhooks: app/core/events.py
-    created_by: Mapped[str | None] = mapped_column(String(255), nullable=True)  # the principal's name
 
 
 EVENT_KINDS = ("progress", "stage", "evaluation", "state")
@@ -148,8 +153,10 @@ class ImportRow(LeaseColumns, Base):
 
     The raw capture lives in ``<data_dir>/imports/<id>`` until the import ends. ``layout``: the importer
     (:data:`voxnerf.data.importers.QUEUED_LAYOUTS`); ``params``: the upload's choices (``splits``); ``stage``
-    and ``progress``: where the importer is; ``summary``: the importer's summary once succeeded. ``attempt``
-    fences the claiming worker's writes as for training jobs (:class:`JobRow`).
+    and ``progress``: where the importer is; ``step``: what the importer is doing within its stage ("matching
+    features (sequential): 120 of 450 image pairs"), for the importers that say it; ``summary``: the importer's
+    summary once succeeded. ``attempt`` fences the claiming worker's writes as for training jobs
+    (:class:`JobRow`).
     """
 
     __tablename__ = "imports"
@@ -159,6 +166,7 @@ class ImportRow(LeaseColumns, Base):
     layout: Mapped[str] = mapped_column(String(32))
     state: Mapped[str] = mapped_column(String(16), index=True)
     stage: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    step: Mapped[str | None] = mapped_column(String(255), nullable=True)
     params: Mapped[dict] = mapped_column(JSON)
     size_bytes: Mapped[int] = mapped_column(Integer)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
@@ -169,3 +177,24 @@ class ImportRow(LeaseColumns, Base):
     created_at: Mapped[float] = mapped_column(Float)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+
+TOKEN_SCOPES = ("read", "write", "admin")
+
+
+class TokenRow(Base):
+    """A named API token (:mod:`app.core.tokens`). Only the SHA-256 of the token is kept; ``webhook_secret`` signs
+    the webhooks of the work made with it; ``max_queued`` replaces the service's per-token queue limit when set.
+    A revoked token keeps its row (its name stays recorded on the work it made and is never given again)."""
+
+    __tablename__ = "tokens"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    scope: Mapped[str] = mapped_column(String(8))
+    token_sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    webhook_secret: Mapped[str] = mapped_column(String(64))
+    max_queued: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    created_at: Mapped[float] = mapped_column(Float)
+    revoked_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    last_used_at: Mapped[float | None] = mapped_column(Float, nullable=True)

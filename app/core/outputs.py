@@ -23,7 +23,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from app.core import storage
+from app.core import storage, tokens
 from app.core.celery_app import OUTPUT_TASK
 from app.core.db import session_scope
 from app.core.jobstore import get_scene, new_id
@@ -31,6 +31,7 @@ from app.core.lease import WorkKind
 from app.core.models import JobRow, OutputRow
 from app.core.progress import json_safe
 from app.core.settings import Settings
+from app.core.tokens import Principal
 from voxnerf.cameras.paths import CameraPathError, check_frame_count, parse_nerfstudio
 from voxnerf.config import TrainConfig
 from voxnerf.files import CHECKPOINT
@@ -240,13 +241,15 @@ OUTPUTS = WorkKind(
 
 
 def create_output(settings: Settings, job_id: str, kind: str, params: dict, total: int | None,
-                  partial: bool) -> OutputRow:
-    """A new queued output job of trained job ``job_id``. Raises QueueFull when ``max_queued_outputs`` output jobs
-    are queued already (:meth:`app.core.lease.WorkKind.refuse_beyond`); nothing is written then."""
+                  partial: bool, principal: Principal | None = None) -> OutputRow:
+    """A new queued output job of trained job ``job_id`` made by ``principal`` (None: outside the API). Raises
+    QueueFull when ``max_queued_outputs`` output jobs are queued already, or as many as the principal's own limit
+    allows (:meth:`app.core.lease.WorkKind.refuse_beyond`); nothing is written then."""
     row = OUTPUTS.new_row(new_id(), job_id=job_id, kind=kind, params=json_safe(params), partial=partial,
-                          progress=0.0, done=0, total=total)
+                          progress=0.0, done=0, total=total, created_by=principal and principal.name)
     with session_scope(settings) as session:
         session.add(row)
         session.flush()
-        OUTPUTS.refuse_beyond(session, settings.max_queued_outputs, "max_queued_outputs")
+        OUTPUTS.refuse_beyond(session, settings.max_queued_outputs, "max_queued_outputs",
+                              principal and tokens.queue_quota(settings, principal))
     return row

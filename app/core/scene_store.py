@@ -33,10 +33,11 @@ class PublishFailed(Exception):
     """The object store refused the scene's copy (the API answers 503; an import fails naming it)."""
 
 
-def commit_scene(settings: Settings, root: Path, name: str, summary: dict, size: int) -> StoredScene:
+def commit_scene(settings: Settings, root: Path, name: str, summary: dict, size: int,
+                 created_by: str | None = None) -> StoredScene:
     """Move the validated scene at ``root`` (on the data directory's filesystem) into ``scenes_dir`` under a new
-    id, publish it to the object store and add its row; on any failure the moved scene is removed again.
-    Raises PublishFailed when the store refuses it."""
+    id, publish it to the object store and add its row (made by principal ``created_by``); on any failure the
+    moved scene is removed again. Raises PublishFailed when the store refuses it."""
     scene_id = jobstore.new_id()
     final = settings.scenes_dir / scene_id
     root.replace(final)
@@ -47,7 +48,7 @@ def commit_scene(settings: Settings, root: Path, name: str, summary: dict, size:
             log.error("scene %s: upload to the object store failed", scene_id, exc_info=True)
             raise PublishFailed(f"the scene could not be copied to the object store ({type(err).__name__}: "
                                 f"{err}); try again") from None
-        jobstore.add_scene(settings, scene_id, name, summary, size)
+        jobstore.add_scene(settings, scene_id, name, summary, size, created_by)
     except BaseException:
         shutil.rmtree(final, ignore_errors=True)
         raise

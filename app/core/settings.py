@@ -50,7 +50,8 @@ class Settings(BaseSettings):
     )
     api_token: SecretStr | None = Field(
         default=None,
-        description="when set, every endpoint but /healthz needs 'Authorization: Bearer <token>'",
+        description="when set, every endpoint but /healthz needs 'Authorization: Bearer <token>': this one (the "
+        "principal 'admin', scope admin) or a named token made with voxnerf tokens create",
     )
     allow_unauthenticated_remote: bool = Field(
         default=False,
@@ -120,8 +121,8 @@ class Settings(BaseSettings):
     )
     max_queued_outputs: int = Field(
         default=100, ge=1,
-        description="queued output jobs (videos, meshes, point clouds) per client, counted apart from training "
-        "jobs; POST /jobs/{id}/videos or /exports beyond it is answered 429",
+        description="queued output jobs (videos, meshes, point clouds) of all clients together, counted apart from "
+        "training jobs; POST /jobs/{id}/videos or /exports beyond it is answered 429",
     )
     max_concurrent_scene_reads: int = Field(
         default=2, ge=1, le=32,
@@ -188,8 +189,15 @@ class Settings(BaseSettings):
     )
     max_queued_jobs: int = Field(
         default=100, ge=1,
-        description="queued training jobs per client (the API token's holder; everyone without a token); "
+        description="queued training jobs (and, counted apart, capture imports) of all clients together; "
         "POST /scenes/{id}/jobs beyond it is answered 429",
+    )
+    max_queued_per_token: int | None = Field(
+        default=None, ge=1,
+        description="queued training jobs, imports and output jobs (each kind counted apart) one principal may "
+        "have: a named token, VOXNERF_API_TOKEN's holder, or everyone on a tokenless service; a token made with "
+        "--max-queued has its own. Beyond it the request is answered 429 naming whose limit it is. Unset: only "
+        "max_queued_jobs and max_queued_outputs apply",
     )
     kill_worker_on_scene: str | None = Field(
         default=None,

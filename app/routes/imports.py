@@ -9,7 +9,7 @@ from fastapi import APIRouter, Path, Query
 
 from app.core import jobstore
 from app.core.imports import IMPORTS, remove_raw
-from app.deps import ID_DOC, SettingsDep
+from app.deps import ID_DOC, PrincipalDep, SettingsDep
 from app.routes import work
 from app.schemas import ImportOut, JobState
 
@@ -32,11 +32,11 @@ def get_import(import_id: ImportId, settings: SettingsDep) -> ImportOut:
 
 
 @router.post("/imports/{import_id}/cancel", status_code=202, response_model=ImportOut, summary="Cancel an import")
-def cancel_import(import_id: ImportId, settings: SettingsDep) -> ImportOut:
+def cancel_import(import_id: ImportId, settings: SettingsDep, principal: PrincipalDep) -> ImportOut:
     """A queued import is cancelled at once; a running one when its worker next checks (between the importer's
-    stages). The raw capture of one cancelled while queued goes at once. 409 for one that has already
-    succeeded or failed."""
-    row = work.cancel(settings, IMPORTS, import_id)
+    stages). The raw capture of one cancelled while queued goes at once. 403 for another token's import (scope
+    write), 409 for one that has already succeeded or failed."""
+    row = work.cancel(settings, IMPORTS, import_id, principal)
     if row.state == "cancelled" and row.started_at is None:  # no worker ever held it: none will remove it
         remove_raw(settings, import_id)
     return ImportOut.from_row(row)

@@ -15,7 +15,7 @@ from app.core.jobstore import JOBS
 from app.core.models import JobRow
 from app.core.redact import public_error
 from app.core.settings import Settings
-from app.deps import JobId, SettingsDep
+from app.deps import JobId, PrincipalDep, SettingsDep, require_owner
 from app.routes import work
 from app.schemas import EvalRender, JobOut
 from voxnerf.files import CHECKPOINT, REPORT
@@ -46,22 +46,25 @@ def get_job(job_id: JobId, settings: SettingsDep) -> JobOut:
 
 
 @router.post("/jobs/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job")
-def cancel_job(job_id: JobId, settings: SettingsDep) -> JobOut:
-    """Cancel a queued job at once, a running one at its next iteration (its checkpoint is kept)."""
-    return JobOut.from_row(work.cancel(settings, JOBS, job_id))
+def cancel_job(job_id: JobId, settings: SettingsDep, principal: PrincipalDep) -> JobOut:
+    """Cancel a queued job at once, a running one at its next iteration (its checkpoint is kept); 403 for another
+    token's job (scope write)."""
+    return JobOut.from_row(work.cancel(settings, JOBS, job_id, principal))
 
 
 @router.delete("/jobs/{job_id}", status_code=204, summary="Delete a finished job, its run and its outputs")
-def delete_job(job_id: JobId, settings: SettingsDep) -> Response:
+def delete_job(job_id: JobId, settings: SettingsDep, principal: PrincipalDep) -> Response:
     """Delete a succeeded, failed or cancelled job: its row, its output jobs, its run directory (checkpoint,
     report, renders, outputs) here and in the object store. 409 while it or one of its outputs is queued or
-    running (cancel it first), 404 for an unknown job."""
+    running (cancel it first), 404 for an unknown job, 403 for another token's job (scope write)."""
+    require_owner(principal, f"job {job_id}", _job_or_404(settings, job_id).created_by)
     try:
         output_ids = jobstore.delete_job(settings, job_id)
     except jobstore.JobActive as busy:
         raise HTTPException(409, str(busy)) from None
     if output_ids is None:
         raise HTTPException(404, f"no job {job_id}")
+    log.info("job %s and its %d output(s) deleted by %r", job_id, len(output_ids), principal.name)
     shutil.rmtree(settings.runs_dir / job_id, ignore_errors=True)
     try:
         storage.delete_keys(settings, [f"{storage.RUNS}/{job_id}", *map(outputs.store_key, output_ids)])

@@ -23,7 +23,8 @@ from app.core.models import JobRow, OutputRow
 from app.core.outputs import OUTPUTS
 from app.core.redact import public_error
 from app.core.settings import Settings
-from app.deps import ID_DOC, CeleryDep, JobId, SettingsDep
+from app.core.tokens import Principal
+from app.deps import ID_DOC, CeleryDep, JobId, PrincipalDep, SettingsDep
 from app.routes import work
 from app.schemas import ExportRequest, OutputOut, VideoRequest
 from voxnerf.cameras.paths import CameraPathError
@@ -43,12 +44,13 @@ def _source_or_error(settings: Settings, job_id: str) -> tuple[JobRow, bool]:
 
 
 def _queue(settings: Settings, celery: Celery, job_id: str, kind: str, params: dict, total: int | None,
-           partial: bool) -> OutputOut:
-    """Add the output's row and publish its task; a broker that refuses it leaves the output failed (503). No
-    row is added when the data directory has no room for the file (507, :func:`app.core.disk_space.require_room`)."""
+           partial: bool, principal: Principal) -> OutputOut:
+    """Add the output's row (made by ``principal``, within its queue limit) and publish its task; a broker that
+    refuses it leaves the output failed (503). No row is added when the data directory has no room for the file
+    (507, :func:`app.core.disk_space.require_room`)."""
     require_room(settings, what=f"a {kind} output")
     try:
-        row = store.create_output(settings, job_id, kind, params, total, partial)
+        row = store.create_output(settings, job_id, kind, params, total, partial, principal)
     except QueueFull as full:
         raise HTTPException(429, str(full)) from None
     work.send_or_503(settings, celery, OUTPUTS, row.id)
@@ -61,26 +63,28 @@ def _output_or_404(settings: Settings, output_id: str) -> OutputRow:
 
 @router.post("/jobs/{job_id}/videos", status_code=202, response_model=OutputOut,
              summary="Render a fly-through video (MP4) of a trained job")
-def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celery: CeleryDep) -> OutputOut:
+def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celery: CeleryDep,
+                 principal: PrincipalDep) -> OutputOut:
     job, partial = _source_or_error(settings, job_id)
     try:
         params, frames = store.video_params(settings, body.model_dump())
         store.check_output_cost(settings, job, "video", params, frames)
     except (CameraPathError, store.OutputTooCostly) as err:
         raise HTTPException(422, str(err)) from None
-    return _queue(settings, celery, job_id, "video", params, frames, partial)
+    return _queue(settings, celery, job_id, "video", params, frames, partial, principal)
 
 
 @router.post("/jobs/{job_id}/exports", status_code=202, response_model=OutputOut,
              summary="Export a mesh or a point cloud (PLY) of a trained job")
-def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, celery: CeleryDep) -> OutputOut:
+def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, celery: CeleryDep,
+                  principal: PrincipalDep) -> OutputOut:
     job, partial = _source_or_error(settings, job_id)
     params = body.model_dump(exclude={"kind"})
     try:
         store.check_output_cost(settings, job, body.kind, params, None)
     except store.OutputTooCostly as err:
         raise HTTPException(422, str(err)) from None
-    return _queue(settings, celery, job_id, body.kind, params, None, partial)
+    return _queue(settings, celery, job_id, body.kind, params, None, partial, principal)
 
 
 @router.get("/jobs/{job_id}/outputs", response_model=list[OutputOut], summary="Output jobs of a job, newest first")
@@ -95,9 +99,10 @@ def get_output(output_id: OutputId, settings: SettingsDep) -> OutputOut:
 
 
 @router.post("/outputs/{output_id}/cancel", status_code=202, response_model=OutputOut, summary="Cancel an output")
-def cancel_output(output_id: OutputId, settings: SettingsDep) -> OutputOut:
-    """Cancel a queued output at once, a running one at its next frame or view (nothing is kept)."""
-    return OutputOut.from_row(work.cancel(settings, OUTPUTS, output_id))
+def cancel_output(output_id: OutputId, settings: SettingsDep, principal: PrincipalDep) -> OutputOut:
+    """Cancel a queued output at once, a running one at its next frame or view (nothing is kept); 403 for another
+    token's output (scope write)."""
+    return OutputOut.from_row(work.cancel(settings, OUTPUTS, output_id, principal))
 
 
 @router.get(

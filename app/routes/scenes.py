@@ -19,7 +19,8 @@ from app.core.lease import QueueFull
 from app.core.models import ImportRow
 from app.core.scene_store import StoredScene
 from app.core.settings import Settings
-from app.deps import CeleryDep, SceneId, SettingsDep, principal_name
+from app.core.tokens import Principal
+from app.deps import CeleryDep, PrincipalDep, SceneId, SettingsDep, require_owner
 from app.routes import work
 from app.routes.render import RenderSlots
 from app.schemas import ImportOut, JobOptions, JobOut, SceneOut
@@ -91,7 +92,9 @@ def _split_rule(value: object, is_zip: bool):
     summary="Upload a scene (zip in field 'file', or its files in fields 'files'); COLMAP, ScanNet, Record3D and "
     "Polycam zips are imported; videos, photos, ROS bags and Stray recordings are queued for import",
 )
-async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDep) -> SceneOut | JSONResponse:
+async def create_scene(
+    request: Request, settings: SettingsDep, celery: CeleryDep, principal: PrincipalDep
+) -> SceneOut | JSONResponse:
     slots = _upload_slots(request, settings)
     if not slots.try_acquire():  # before the body is read: a refused upload costs no disk and no thread
         raise HTTPException(
@@ -103,7 +106,7 @@ async def create_scene(request: Request, settings: SettingsDep, celery: CeleryDe
     try:
         declared = _declared_length(request)  # the body is not read yet: a refused upload writes nothing
         await run_in_threadpool(require_room, settings, declared, what=f"an upload of {declared} bytes")
-        stored = await _receive_scene(request, settings)
+        stored = await _receive_scene(request, settings, principal)
     finally:
         slots.release()
     if isinstance(stored, ImportRow):
@@ -128,9 +131,9 @@ def _upload_slots(request: Request, settings: Settings) -> RenderSlots:
     return state.upload_slots
 
 
-async def _receive_scene(request: Request, settings: Settings) -> StoredScene | ImportRow:
+async def _receive_scene(request: Request, settings: Settings, principal: Principal) -> StoredScene | ImportRow:
     """Read the form (file parts spooled to disk), then stage, validate and store the scene in a thread (or queue
-    the import of a capture)."""
+    the import of a capture), made by ``principal``."""
     async with read_form(request, settings) as form:
         archive = form.get("file")
         parts = [p for p in form.getlist("files") if isinstance(p, UploadFile)]
@@ -145,12 +148,13 @@ async def _receive_scene(request: Request, settings: Settings) -> StoredScene | 
             name = _display_name(form.get("name"), stem)
             capture = await run_in_threadpool(staging.capture_kind, archive.file)
             if capture is not None:
-                return await run_in_threadpool(staging.store_capture, settings, name, archive.file, capture, splits)
-            stored = await run_in_threadpool(staging.store_zip, settings, name, archive.file, splits)
+                return await run_in_threadpool(staging.store_capture, settings, name, archive.file, capture, splits,
+                                               principal)
+            stored = await run_in_threadpool(staging.store_zip, settings, name, archive.file, splits, principal)
         elif parts:
             named = [(p.filename or "", p.file) for p in parts]
             stored = await run_in_threadpool(
-                staging.store_parts, settings, _display_name(form.get("name"), "scene"), named
+                staging.store_parts, settings, _display_name(form.get("name"), "scene"), named, principal
             )
         else:
             raise HTTPException(
@@ -178,13 +182,17 @@ def get_scene(scene_id: SceneId, settings: SettingsDep) -> SceneOut:
 
 
 @router.delete("/scenes/{scene_id}", status_code=204, summary="Delete a scene (refused while a job uses it)")
-def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
+def delete_scene(scene_id: SceneId, settings: SettingsDep, principal: PrincipalDep) -> Response:
+    """Delete a scene and its files; 409 while a queued or running job uses it, 403 for another token's scene
+    (scope write)."""
+    require_owner(principal, f"scene {scene_id}", _scene_or_404(settings, scene_id).created_by)
     try:
         deleted = jobstore.delete_scene(settings, scene_id)
     except jobstore.SceneBusy as busy:
         raise HTTPException(409, f"scene {scene_id} is {busy}; cancel or wait for them first") from None
     if not deleted:
         raise HTTPException(404, f"no scene {scene_id}")
+    log.info("scene %s deleted by %r", scene_id, principal.name)
     staging.remove_scene_files(settings, scene_id)
     try:
         storage.delete_scene(settings, scene_id)
@@ -201,7 +209,7 @@ def delete_scene(scene_id: SceneId, settings: SettingsDep) -> Response:
 )
 def create_job(
     scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response,
-    request: Request,
+    principal: PrincipalDep,
 ) -> JobOut:
     """Queue a training job; ``callback_url`` (optional) receives its state changes (see docs/service.md,
     "Live events and webhooks"): a URL whose host resolves to a private or loopback address is refused with 422
@@ -218,8 +226,7 @@ def create_job(
         raise HTTPException(422, f"invalid training options: {err}") from None
     _scene_or_404(settings, scene_id)
     try:
-        job = jobstore.create_job(settings, scene_id, values, callback_url=options.callback_url,
-                                  created_by=principal_name(request, settings))
+        job = jobstore.create_job(settings, scene_id, values, principal, callback_url=options.callback_url)
     except QueueFull as full:
         raise HTTPException(429, str(full)) from None
     if job is None:

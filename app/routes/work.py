@@ -15,6 +15,8 @@ from app.core.dispatch import send
 from app.core.lease import WorkKind
 from app.core.redact import public_error
 from app.core.settings import Settings
+from app.core.tokens import Principal
+from app.deps import require_owner
 
 log = logging.getLogger(__name__)
 
@@ -39,12 +41,14 @@ def found(settings: Settings, kind: WorkKind, row_id: str) -> Any:
     return row
 
 
-def cancel(settings: Settings, kind: WorkKind, row_id: str) -> Any:
-    """Cancel row ``row_id`` of ``kind`` (a queued one at once, a running one when its worker next reads the
-    flag); the row as it is now. 404 for an unknown row, 409 for one that has already succeeded or failed (a
-    cancelled one is answered as it is)."""
-    found(settings, kind, row_id)
-    row = kind.request_cancel(settings, row_id)
+def cancel(settings: Settings, kind: WorkKind, row_id: str, principal: Principal) -> Any:
+    """Cancel row ``row_id`` of ``kind`` for ``principal`` (a queued one at once, a running one when its worker
+    next reads the flag); the row as it is now. 404 for an unknown row, 403 for another principal's row
+    (:func:`app.deps.require_owner`), 409 for one that has already succeeded or failed (a cancelled one is
+    answered as it is)."""
+    require_owner(principal, f"{kind.name} {row_id}", found(settings, kind, row_id).created_by)
+    row = kind.request_cancel(settings, row_id, by=principal.name)
+    log.info("%s %s: cancel requested by %r", kind.name, row_id, principal.name)
     if row.state in ("succeeded", "failed"):
         raise HTTPException(409, f"{kind.name} {row_id} already {row.state}")
     return row

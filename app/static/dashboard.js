@@ -153,7 +153,7 @@ function jobRow(job) {
   if (!row) {
     row = document.createElement("tr");
     row.dataset.jobId = job.id;
-    for (const name of ["id", "scene", "state", "progress", "eta", "plot", "thumbs", "actions", "outputs"]) {
+    for (const name of ["id", "scene", "by", "state", "progress", "eta", "plot", "thumbs", "actions", "outputs"]) {
       const cell = document.createElement("td");
       cell.className = `col-${name}`;
       row.appendChild(cell);
@@ -183,6 +183,7 @@ function updateRow(row, job) {
   const cell = (name) => row.querySelector(`.col-${name}`);
   cell("id").replaceChildren(pageLink(`/static/job.html?id=${job.id}`, job.id, "job-page"));
   cell("scene").replaceChildren(pageLink(`/static/scene.html?id=${job.scene_id}`, job.scene_id, "scene-page"));
+  cell("by").textContent = job.created_by || "";
   const state = Object.assign(document.createElement("span"), { className: `state state-${job.state}`, textContent: job.state });
   cell("state").replaceChildren(state);
   if (job.error) cell("state").appendChild(Object.assign(document.createElement("div"), { className: "error", textContent: job.error }));
@@ -355,7 +356,8 @@ function importRow(item) {
   const outcome = document.createElement("td");
   if (item.scene_id) outcome.textContent = `scene ${item.scene_id.slice(0, 8)} · ${item.summary.frames} frames`;
   else if (item.error) outcome.textContent = item.error;
-  const cells = [item.id.slice(0, 8), `${item.name} (${item.layout})`, item.state, item.stage || ""];
+  const stage = item.stage && item.step && item.state === "running" ? `${item.stage}: ${item.step}` : item.stage || "";
+  const cells = [item.id.slice(0, 8), `${item.name} (${item.layout})`, item.created_by || "", item.state, stage];
   row.append(...cells.map((text) => Object.assign(document.createElement("td"), { textContent: text })));
   const progressCell = document.createElement("td");
   progressCell.append(bar, ` ${percent}%`);

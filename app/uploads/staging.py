@@ -40,6 +40,7 @@ from app.core.lease import QueueFull
 from app.core.models import ImportRow
 from app.core.scene_store import PublishFailed, StoredScene, commit_scene
 from app.core.settings import Settings
+from app.core.tokens import Principal
 from app.uploads.rules import (
     StagedUpload,
     UploadError,
@@ -99,32 +100,35 @@ def _write_parts(parts: list[tuple[str, BinaryIO]], root: Path, settings: Settin
         total += copy_limited(source, root / path, settings.max_scene_bytes - total, str(path))
 
 
-def _commit(settings: Settings, root: Path, name: str, summary: dict, size: int) -> StoredScene:
+def _commit(settings: Settings, root: Path, name: str, summary: dict, size: int,
+            principal: Principal | None) -> StoredScene:
     """Move a validated scene into ``scenes_dir`` (:func:`app.core.scene_store.commit_scene`); 503 when the object
     store refuses its copy."""
     try:
-        return commit_scene(settings, root, name, summary, size)
+        return commit_scene(settings, root, name, summary, size, created_by=principal and principal.name)
     except PublishFailed as err:
         raise UploadError(503, str(err)) from None
 
 
 def _queue_import(settings: Settings, raw: Path, name: str, layout: str,
-                  splits: PaperSplitRule | None) -> ImportRow:
+                  splits: PaperSplitRule | None, principal: Principal | None) -> ImportRow:
     """Queue the import of the raw capture at ``raw`` (moved out of staging); 429 when the queue is full."""
     params = {"splits": next((key for key, rule in SPLIT_RULES.items() if rule == splits), None)}
     try:
-        return create_import(settings, raw, name, layout, params)
+        return create_import(settings, raw, name, layout, params, principal)
     except QueueFull as full:
         raise UploadError(429, str(full)) from None
 
 
-def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpload]) -> StoredScene | ImportRow:
+def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpload],
+                principal: Principal | None = None) -> StoredScene | ImportRow:
     """Stage an upload with ``stage(root) -> StagedUpload`` (``root``: an empty scene directory in a fresh
     staging directory, which ``stage`` may also write beside), validate it in a validation process, and move
     the scene into ``scenes_dir``.
 
     Returns the new scene (its row added to the job store), or the queued import of a capture whose import
-    takes long; raises UploadError leaving nothing stored.
+    takes long, each recorded as made by ``principal`` (None: outside the API); raises UploadError leaving nothing
+    stored.
     """
     settings.make_dirs()
     staging = Path(tempfile.mkdtemp(prefix="upload-", dir=settings.staging_dir))
@@ -136,8 +140,9 @@ def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpl
         archive_bytes = upload.archive.stat().st_size if upload.archive is not None else 0
         require_room(settings, counted_apart=archive_bytes, what=f"the scene ({validated.size_bytes} bytes unpacked)")
         if validated.queued_layout is not None:
-            return _queue_import(settings, staging / RAW_DIR, name, validated.queued_layout, upload.splits)
-        return _commit(settings, upload.root, name, validated.summary, validated.size_bytes)
+            return _queue_import(settings, staging / RAW_DIR, name, validated.queued_layout, upload.splits,
+                                 principal)
+        return _commit(settings, upload.root, name, validated.summary, validated.size_bytes, principal)
     except OSError as err:
         if err.errno in (errno.ENOSPC, errno.EDQUOT):
             raise InsufficientStorage(f"the server's disk filled up while the upload was stored ({err.strerror}); "
@@ -157,7 +162,7 @@ def capture_kind(source: BinaryIO) -> tuple[str, str] | None:
 
 
 def store_capture(settings: Settings, name: str, source: BinaryIO, kind: tuple[str, str],
-                  splits: PaperSplitRule | None = None) -> ImportRow:
+                  splits: PaperSplitRule | None = None, principal: Principal | None = None) -> ImportRow:
     """Queue the import of a capture sent as one file of ``kind`` (:func:`capture_kind`): copied as it is (at
     most ``max_upload_bytes``) and moved into the imports directory; nothing of it is parsed here."""
     layout, suffix = kind
@@ -167,13 +172,14 @@ def store_capture(settings: Settings, name: str, source: BinaryIO, kind: tuple[s
         capture = staging / f"capture{suffix}"
         source.seek(0)
         copy_limited(source, capture, settings.max_upload_bytes, "file")
-        return _queue_import(settings, capture, name, layout, splits)
+        return _queue_import(settings, capture, name, layout, splits, principal)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
 
 def store_zip(
-    settings: Settings, name: str, source: BinaryIO, splits: PaperSplitRule | None = None
+    settings: Settings, name: str, source: BinaryIO, splits: PaperSplitRule | None = None,
+    principal: Principal | None = None,
 ) -> StoredScene | ImportRow:
     """Store the scene in a zip archive (a binary file): a scene directory, or a COLMAP model or ScanNet export
     to import (with ``splits``, the paper's splits; see :func:`split_rule`), or a ROS 2 bag folder whose import
@@ -185,17 +191,18 @@ def store_zip(
         copy_limited(source, archive, settings.max_upload_bytes, "file")
         return StagedUpload(root, archive, splits)
 
-    return store_scene(settings, name, stage)
+    return store_scene(settings, name, stage, principal)
 
 
-def store_parts(settings: Settings, name: str, parts: list[tuple[str, BinaryIO]]) -> StoredScene:
+def store_parts(settings: Settings, name: str, parts: list[tuple[str, BinaryIO]],
+                principal: Principal | None = None) -> StoredScene:
     """Store a scene uploaded as files, each named by its path inside the scene (``images/0001.png``)."""
 
     def stage(root: Path) -> StagedUpload:
         _write_parts(parts, root, settings)
         return StagedUpload(root, None)
 
-    return store_scene(settings, name, stage)
+    return store_scene(settings, name, stage, principal)
 
 
 def remove_scene_files(settings: Settings, scene_id: str) -> None:

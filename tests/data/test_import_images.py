@@ -20,8 +20,17 @@ from capture_fixtures import (
 from PIL import Image
 
 from voxnerf.cli import main
-from voxnerf.data.importers import import_images
-from voxnerf.data.importers.sfm import EXHAUSTIVE_MAX_IMAGES, MATCHING_CHOICES, REASONS, StagedPhotos, stage_photo
+from voxnerf.data.importers import ImportCancelled, ImportMonitor, import_images
+from voxnerf.data.importers.sfm import (
+    EXHAUSTIVE_MAX_IMAGES,
+    MATCHING_CHOICES,
+    REASONS,
+    StagedPhotos,
+    run_sfm,
+    sequential_pairs,
+    stage_photo,
+    stage_photos,
+)
 from voxnerf.data.importers.video import DEFAULT_FRAMES
 from voxnerf.errors import SceneError
 
@@ -54,10 +63,15 @@ def kitchen_photos(tmp_path_factory) -> Path:
     return write_redkitchen_photos(tmp_path_factory.mktemp("kitchen") / "photos", KITCHEN_INDICES)
 
 
+KITCHEN_STEPS: list[tuple[str, float]] = []
+"""What the kitchen import reported as it ran: (step, fraction)."""
+
+
 @pytest.fixture(scope="module")
 def kitchen_scene(kitchen_photos, tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("kitchen_scene") / "scene"
-    return out, import_images(kitchen_photos, out)
+    monitor = ImportMonitor(report=lambda step, fraction: KITCHEN_STEPS.append((step, fraction)))
+    return out, import_images(kitchen_photos, out, monitor=monitor)
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +106,51 @@ def test_redkitchen_photos_are_posed_up_to_a_similarity(kitchen_scene):
     errors = scene_pose_errors(out, kitchen_pose)
     assert errors.rotation_deg_max < KITCHEN_ROTATION_DEG, errors
     assert errors.centre_max_fraction < KITCHEN_CENTRE_FRACTION, errors
+
+
+@needs_redkitchen
+def test_the_import_reports_each_phase_of_structure_from_motion_as_it_runs(kitchen_scene):
+    n = len(KITCHEN_INDICES)
+    steps = [step for step, _ in KITCHEN_STEPS]
+    fractions = [fraction for _, fraction in KITCHEN_STEPS]
+    assert fractions == sorted(fractions) and fractions[0] >= 0.0 and fractions[-1] <= 1.0
+    assert steps[0] == f"extracting features: 0 of {n} images"
+    pairs = n * (n - 1) // 2
+    assert f"matching features (exhaustive): 0 of {pairs} image pairs" in steps
+    assert f"matching features (exhaustive): {pairs} of {pairs} image pairs" in steps  # the count when it ended
+    registering = [step for step in steps if step.startswith("registering images: ")]
+    assert registering[:2] == [f"registering images: 0 of {n}", f"registering images: 2 of {n}"]  # the first pair
+    assert registering[-1] == f"registering images: {n} of {n}"
+    assert len(registering) >= n  # then each image COLMAP registered
+    assert steps[-1] == "writing the scene"
+    phases = [step.split(":")[0] for step in steps]
+    assert phases.index("registering images") > max(i for i, p in enumerate(phases) if p.startswith("matching"))
+
+
+@needs_redkitchen
+def test_sequential_matching_reports_against_the_pairs_it_really_compares(kitchen_photos, tmp_path):
+    """The progress total of sequential matching (:func:`sequential_pairs`) is the number of pairs COLMAP
+    compares: the count of two-view geometries in its database when matching ends reaches it exactly."""
+    staged = stage_photos(sorted(kitchen_photos.iterdir()), tmp_path)
+    seen: list[str] = []
+    run_sfm(staged, tmp_path, "sequential", kitchen_photos, ImportMonitor(report=lambda step, _f: seen.append(step)))
+    n = len(staged.names)
+    assert f"extracting features: {n} of {n} images" in seen
+    assert [step for step in seen if step.startswith("matching")][-1] == (
+        f"matching features (sequential): {sequential_pairs(n)} of {sequential_pairs(n)} image pairs")
+
+
+@needs_redkitchen
+@pytest.mark.parametrize("phase", ["extracting features", "matching features", "registering images: 3"])
+def test_a_stop_request_cancels_structure_from_motion_in_each_phase_and_leaves_nothing(kitchen_photos, tmp_path,
+                                                                                        phase):
+    seen: list[str] = []
+    monitor = ImportMonitor(report=lambda step, _fraction: seen.append(step),
+                            should_stop=lambda: any(step.startswith(phase) for step in seen))
+    with pytest.raises(ImportCancelled, match="cancelled"):
+        import_images(kitchen_photos, tmp_path / "scene", monitor=monitor)
+    assert not any(step.startswith("writing") for step in seen)
+    assert list(tmp_path.iterdir()) == []  # no scene, and SfM's work folder is gone
 
 
 @needs_redkitchen

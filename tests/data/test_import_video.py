@@ -23,8 +23,8 @@ from capture_fixtures import (
 from PIL import Image, ImageFilter
 
 from voxnerf.cli import main
-from voxnerf.data.importers import import_video
-from voxnerf.data.importers.video import pick_frames, sharpness
+from voxnerf.data.importers import ImportMonitor, import_video
+from voxnerf.data.importers.video import DECODE_REPORT_EVERY, DECODE_SHARE, pick_frames, sharpness
 from voxnerf.errors import SceneError
 
 CLIP_SOURCE = range(0, 250, 2)
@@ -54,7 +54,8 @@ def source_pose_of(summary: dict):
 @needs_redkitchen
 def test_video_frames_are_posed_up_to_a_similarity(clip, tmp_path):
     out = tmp_path / "scene"
-    summary = import_video(clip, out, n_frames=25)
+    reported: list[tuple[str, float]] = []
+    summary = import_video(clip, out, n_frames=25, monitor=ImportMonitor(report=lambda *step: reported.append(step)))
     video = summary["video"]
     assert summary["format"] == "video" and video["codec"] == "h264" and video["size"] == [320, 240]
     assert video["frames_read"] == len(CLIP_SOURCE) and video["frames_picked"] == 25
@@ -70,6 +71,14 @@ def test_video_frames_are_posed_up_to_a_similarity(clip, tmp_path):
     meta = json.loads((out / "transforms.json").read_text())
     assert [f["file_path"] for f in meta["frames"]] == [f"images/frame_{k:05d}.jpg" for k in range(25)]
     assert meta["ply_file_path"] == "sparse_pc.ply" and meta["prior_sigma"] > 0
+    # progress: the decoding (every DECODE_REPORT_EVERY frames, against the frames the container announces) in
+    # the first DECODE_SHARE, then structure from motion on the 25 frames picked
+    decoding = [(step, f) for step, f in reported if step.startswith("decoding")]
+    assert decoding[0][0] == f"decoding the video: {DECODE_REPORT_EVERY} of about {len(CLIP_SOURCE)} frames"
+    assert all(f <= DECODE_SHARE for _, f in decoding)
+    assert [f for _, f in reported] == sorted(f for _, f in reported)
+    assert reported[len(decoding)] == ("extracting features: 0 of 25 images", DECODE_SHARE)
+    assert reported[-1][0] == "writing the scene"
 
 
 @needs_redkitchen

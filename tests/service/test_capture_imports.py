@@ -11,7 +11,7 @@ import pytest
 from capture_fixtures import redkitchen_rgb, write_redkitchen_photos, write_video
 from phone_app_fixtures import redkitchen_frames, write_stray
 from rosbag_fixtures import REDKITCHEN, BagSpec, make_frames, write_bag
-from service_fixtures import start_service, wait_until_final, zip_scene
+from service_fixtures import FINAL_STATES, start_service, wait_for, wait_until_final, zip_scene
 
 pytestmark = [
     pytest.mark.skipif(not (REDKITCHEN / "transforms.json").is_file(), reason="shared redkitchen data not present"),
@@ -52,6 +52,7 @@ def test_a_bag_sent_as_one_file_is_imported_by_a_worker_into_a_scene_that_trains
     queued = response.json()
     assert response.headers["location"] == f"/imports/{queued['id']}"
     assert (queued["layout"], queued["name"], queued["scene_id"]) == ("rosbag", "robot", None)
+    assert queued["created_by"] == "local"  # the principal of a tokenless service's loopback clients
     assert queued["size_bytes"] == bag.stat().st_size
     done = wait_until_final(service, client, f"/imports/{queued['id']}", 300)
     assert (done["state"], done["stage"], done["progress"], done["error"]) == ("succeeded", "done", 1.0, None)
@@ -59,6 +60,7 @@ def test_a_bag_sent_as_one_file_is_imported_by_a_worker_into_a_scene_that_trains
     assert done["scene_url"] == f"/scenes/{done['scene_id']}"
     scene = client.get(done["scene_url"]).json()
     assert scene["name"] == "robot" and scene["imported"]["format"] == "rosbag"
+    assert scene["created_by"] == "local"  # the worker made the scene in the name of the import's maker
     assert scene["summary"]["frames"] == done["summary"]["frames"] and scene["summary"]["depth"]
     assert not list((service.data_dir / "imports").iterdir())  # the raw capture went with the import
     job = client.post(f"/scenes/{done['scene_id']}/jobs", json={"max_iters": 2}).json()
@@ -95,11 +97,36 @@ def test_a_zip_of_photos_is_posed_by_structure_from_motion_in_a_worker(client, s
     response = client.post("/scenes", files={"file": ("kitchen.zip", zip_scene(photos, "kitchen"))})
     assert response.status_code == 202, response.text
     assert response.json()["layout"] == "images"
-    done = wait_until_final(service, client, f"/imports/{response.json()['id']}", 300)
+    seen = []  # (stage, step, progress) while it runs
+    done = wait_for(lambda: (row := client.get(f"/imports/{response.json()['id']}").json(),
+                             seen.append((row["stage"], row["step"], row["progress"])))[0]["state"] in FINAL_STATES
+                    and row, 300, "the photos' import", 0.2)
     assert done["state"] == "succeeded", done["error"]
+    steps = [(step, progress) for stage, step, progress in seen if stage == "importing" and step]
+    assert steps, seen  # structure from motion said where it was while it ran
+    assert all(0.05 <= progress <= 0.8 for _, progress in steps)  # inside the importing stage's share
+    assert {step.split(":")[0] for step, _ in steps} <= {"extracting features", "matching features (exhaustive)",
+                                                         "registering images", "writing the scene"}
+    assert done["step"] is None  # a finished import is not in any step
     assert done["summary"]["format"] == "images" and done["summary"]["sfm"]["registered"] >= 15
     scene = client.get(done["scene_url"]).json()
     assert scene["summary"]["prior"] is not None  # the sparse points, with sigma from the reprojection errors
+
+
+def test_an_import_cancelled_during_structure_from_motion_stops_there_and_stores_nothing(client, service, tmp_path):
+    scenes_before = len(client.get("/scenes").json())
+    photos = write_redkitchen_photos(tmp_path / "photos", range(0, 120, 3))
+    import_id = client.post("/scenes", files={"file": ("kitchen.zip", zip_scene(photos, "kitchen"))}).json()["id"]
+    running = wait_for(lambda: (row := client.get(f"/imports/{import_id}").json())["step"] and row, 300,
+                       "structure from motion to report a step", 0.2)
+    assert running["state"] == "running" and running["stage"] == "importing"
+    assert client.post(f"/imports/{import_id}/cancel").status_code == 202
+    done = wait_until_final(service, client, f"/imports/{import_id}", 120)
+    assert (done["state"], done["scene_id"]) == ("cancelled", None)
+    assert done["progress"] < 0.8  # stopped inside structure from motion, not at the next stage (checking: 0.8)
+    assert len(client.get("/scenes").json()) == scenes_before
+    assert not list((service.data_dir / "imports").iterdir())
+    assert not [p for p in service.data_dir.rglob("*") if ".sfm-" in p.name]  # SfM's work folder went too
 
 
 def test_a_phone_video_sent_as_one_file_is_picked_and_posed_in_a_worker(client, service, tmp_path):
@@ -158,6 +185,7 @@ def test_a_queued_import_is_cancelled_at_once_its_capture_removed_and_the_queue_
             assert not list((service.data_dir / "staging").iterdir())
             cancelled = client.post(f"/imports/{first.json()['id']}/cancel")
             assert cancelled.status_code == 202 and cancelled.json()["state"] == "cancelled"
+            assert cancelled.json()["cancelled_by"] == "local"
             assert not list(imports_dir.iterdir())
             assert client.post(f"/imports/{first.json()['id']}/cancel").json()["state"] == "cancelled"
     finally:

@@ -49,6 +49,7 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
     row = f'tr[data-job-id="{job["id"]}"]'
     bar = f"{row} [role=progressbar]"
     page.wait_for_selector(bar, timeout=60_000)
+    assert page.inner_text(f"{row} .col-by") == "admin"  # who started it: VOXNERF_API_TOKEN's principal
 
     values = []
 

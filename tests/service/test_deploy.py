@@ -11,6 +11,7 @@ import json
 import os
 import re
 import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -296,3 +297,93 @@ def test_api_healthcheck_fails_when_nothing_listens() -> None:
     port = server.server_address[1]
     server.server_close()
     assert check_api(f"http://127.0.0.1:{port}/healthz", 2.0) is not None
+
+
+# --- the torch each image installs ----------------------------------------------------------------------------
+
+PYPROJECT = ROOT / "pyproject.toml"
+
+
+def _arg_defaults(dockerfile: Path) -> dict[str, str]:
+    """Each build argument's default (``ARG NAME=value``; a bare ``ARG NAME`` in a stage inherits it)."""
+    defaults = {}
+    for op, text in _instructions(dockerfile):
+        if op == "ARG" and "=" in text:
+            name, value = text.split("=", 1)
+            defaults[name.strip()] = value.strip().strip('"')
+    return defaults
+
+
+def _expand(text: str, args: dict[str, str]) -> str:
+    return re.sub(r"\$\{(\w+)\}", lambda m: args[m.group(1)], text)
+
+
+def _project_requirements() -> list[str]:
+    """What the images install from pyproject.toml: the dependencies, the service's and the object store's."""
+    import tomllib
+
+    project = tomllib.loads(PYPROJECT.read_text())["project"]
+    return project["dependencies"] + project["optional-dependencies"]["service"] + \
+        project["optional-dependencies"]["s3"]
+
+
+def _torch_range():
+    from packaging.requirements import Requirement
+
+    (torch,) = [Requirement(r) for r in _project_requirements() if Requirement(r).name == "torch"]
+    return torch.specifier
+
+
+def _image_torches(dockerfile: Path) -> list[str]:
+    """The torch version of each default base image that carries one (``pytorch/pytorch:<version>-...``) and of
+    each ``torch==`` the Dockerfile installs, build arguments at their defaults."""
+    args = _arg_defaults(dockerfile)
+    versions = []
+    for op, text in _instructions(dockerfile):
+        expanded = _expand(text, args)
+        if op == "FROM" and expanded.startswith("pytorch/pytorch:"):
+            versions.append(expanded.split(":", 1)[1].split("-")[0])
+        if op == "RUN":
+            versions += re.findall(r"torch==([\w.+]+)", expanded)
+    return versions
+
+
+@pytest.mark.parametrize("dockerfile", DOCKERFILES, ids=lambda p: p.name)
+def test_every_torch_an_image_starts_from_or_installs_lies_in_the_projects_range(dockerfile: Path) -> None:
+    torch_range = _torch_range()
+    versions = _image_torches(dockerfile)
+    assert versions, f"{dockerfile.name} installs no torch the test can see"
+    outside = [v for v in versions if not torch_range.contains(v, prereleases=True)]
+    assert not outside, f"{dockerfile.name}: torch {outside} is outside pyproject.toml's torch{torch_range}"
+
+
+def test_a_pytorch_base_image_of_another_torch_is_refused(tmp_path: Path) -> None:
+    """The check above, on the worker image as it once was: a CUDA base image carrying torch 2.7.1."""
+    old = tmp_path / "Dockerfile.worker"
+    old.write_text("ARG CUDA_IMAGE=pytorch/pytorch:2.7.1-cuda12.8-cudnn9-runtime\nFROM ${CUDA_IMAGE}\n"
+                   'RUN pip install --no-cache-dir "torch==2.13.0"\n')
+    assert _image_torches(old) == ["2.7.1", "2.13.0"]
+    assert not _torch_range().contains("2.7.1")
+
+
+def test_the_requirement_set_the_images_install_resolves_beside_their_torch(tmp_path: Path) -> None:
+    """pip's own resolver, as the image build runs it: pyproject.toml's requirement set constrained to the images'
+    torch, for the images' Python on Linux x86_64, binary wheels only (``--dry-run``: metadata, no download)."""
+    (version,) = set(_image_torches(DOCKERFILES[1]))
+    python = re.search(r"python:(\d+\.\d+)", _arg_defaults(DOCKERFILES[1])["PYTHON_IMAGE"]).group(1)
+    (tmp_path / "constraints.txt").write_text(f"torch=={version}\n")
+    (tmp_path / "requirements.txt").write_text("\n".join(_project_requirements()) + "\n")
+    platforms = [f"--platform=manylinux_2_{minor}_x86_64" for minor in (17, 24, 27, 28, 31, 34, 35, 36)]
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--dry-run", "--ignore-installed", "--quiet", "--only-binary=:all:",
+         f"--python-version={python}", *platforms, "--target", str(tmp_path / "target"),
+         "--report", str(tmp_path / "report.json"), "-c", str(tmp_path / "constraints.txt"),
+         "-r", str(tmp_path / "requirements.txt")],
+        capture_output=True, text=True, timeout=600,
+    )
+    if "No matching distribution" in result.stderr and "Could not fetch" in result.stderr:
+        pytest.skip("no package index reachable")
+    assert result.returncode == 0, result.stderr[-2000:]
+    installed = {item["metadata"]["name"]: item["metadata"]["version"]
+                 for item in json.loads((tmp_path / "report.json").read_text())["install"]}
+    assert installed["torch"].split("+")[0] == version

@@ -115,9 +115,24 @@ def service(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def job(service, receiver, small_room):
-    """A short job with the receiver as its callback_url, just created."""
+def tokens(service) -> dict[str, dict]:
+    """Named tokens made by the admin: ``ci`` (scope write, makes the job) and ``viewer`` (scope read)."""
     with service.client() as client:
+        made = {name: client.post("/tokens", json={"name": name, "scope": scope}) for name, scope in
+                (("ci", "write"), ("viewer", "read"))}
+    assert all(response.status_code == 201 for response in made.values()), made
+    return {name: response.json() for name, response in made.items()}
+
+
+def bearer(token: dict) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token['token']}"}
+
+
+@pytest.fixture(scope="module")
+def job(service, receiver, small_room, tokens):
+    """A short job made by token ``ci`` with the receiver as its callback_url, just created."""
+    with service.client(auth=False) as client:
+        client.headers.update(bearer(tokens["ci"]))
         scene = upload_scene(client, small_room)
         response = client.post(f"/scenes/{scene['id']}/jobs", json={**JOB, "callback_url": receiver.url})
     assert response.status_code == 202, response.text
@@ -125,9 +140,11 @@ def job(service, receiver, small_room):
     return response.json()
 
 
-def test_a_jobs_stream_runs_from_queued_to_its_final_state_and_resumes_without_repeats(service, job):
+def test_a_jobs_stream_runs_from_queued_to_its_final_state_and_resumes_without_repeats(service, job, tokens):
     path = f"/jobs/{job['id']}/events"
-    with service.client(timeout_s=TIMEOUT_S) as client:
+    with service.client(auth=False, timeout_s=TIMEOUT_S) as client:  # a read token may follow any job's events
+        client.headers.update(bearer(tokens["viewer"]))
+        assert client.post(f"/jobs/{job['id']}/cancel").status_code == 403  # and may not act on it
         with client.stream("GET", path) as response:
             assert response.status_code == 200, response.read()
             assert response.headers["content-type"].startswith("text/event-stream")
@@ -165,7 +182,7 @@ def test_a_jobs_stream_runs_from_queued_to_its_final_state_and_resumes_without_r
         assert service.client(auth=False).get(path).status_code == 401
 
 
-def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, receiver, job):
+def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, receiver, job, tokens):
     with service.client() as client:
         deliveries = wait_for(
             lambda: (d := client.get(f"/jobs/{job['id']}/deliveries").json())
@@ -178,7 +195,7 @@ def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, rec
         assert "HTTP 500" in delivery["attempts"][0]["error"] and delivery["attempts"][1]["error"] is None
         assert delivery["next_attempt_at"] is None
 
-    secret = hmac.new(TOKEN.encode(), b"voxnerf-webhook", hashlib.sha256).digest()  # the legacy token's secret
+    secret = bytes.fromhex(tokens["ci"]["webhook_secret"])  # the secret of the token that made the job
     delivered = [(headers, body) for headers, body, status in receiver.calls if status == 204]
     assert len(receiver.calls) == 6 and len(delivered) == 3
     for headers, body in delivered:

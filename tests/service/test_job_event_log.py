@@ -11,6 +11,7 @@ from app.core import events, jobstore
 from app.core.db import session_scope
 from app.core.models import JobEventRow
 from app.core.settings import Settings
+from app.core.tokens import Principal
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
 
 SCENE = "a" * 32
@@ -107,8 +108,8 @@ def test_progress_events_are_thinned_and_a_deleted_jobs_events_go(settings, monk
 
 
 def test_a_job_with_a_callback_url_gets_one_delivery_per_state_event(settings):
-    job = jobstore.create_job(settings, SCENE, {"max_iters": 5}, callback_url="https://hooks.example/x",
-                              created_by="ci")
+    job = jobstore.create_job(settings, SCENE, {"max_iters": 5}, Principal(name="ci", scope="write"),
+                              callback_url="https://hooks.example/x")
     claimed = jobstore.JOBS.claim(settings, job.id, "w:1")
     jobstore.JOBS.record_progress(settings, job.id, claimed.attempt, ProgressEvent(stage="train", iteration=1))
     jobstore.JOBS.finish(settings, job.id, claimed.attempt, "failed", {"error": "boom"})

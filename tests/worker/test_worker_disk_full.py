@@ -23,7 +23,7 @@ from synthetic_fixtures import make_micro_scene
 
 from voxnerf.files import CHECKPOINT
 from voxnerf.training.checkpoint import load_checkpoint
-from worker.tasks import disk_full_cause
+from worker.disk_full import disk_full_cause
 
 pytestmark = pytest.mark.slow
 

@@ -23,6 +23,7 @@ from collections.abc import Iterable
 from pathlib import Path, PurePosixPath
 
 from voxnerf.data.importers.colmap import import_colmap
+from voxnerf.data.importers.monitor import ImportCancelled, ImportMonitor
 from voxnerf.data.importers.polycam import import_polycam
 from voxnerf.data.importers.record3d import import_record3d
 from voxnerf.data.importers.rosbag import RosbagOptions, import_rosbag
@@ -32,11 +33,13 @@ from voxnerf.data.importers.splits import PaperSplitRule, paper_splits
 from voxnerf.data.importers.stray import import_stray
 from voxnerf.data.importers.video import import_video
 
-__all__ = ["LAYOUTS", "QUEUED_LAYOUTS", "PaperSplitRule", "RosbagOptions", "capture_file_layout", "describe",
+__all__ = ["LAYOUTS", "MONITORED_LAYOUTS", "QUEUED_LAYOUTS", "ImportCancelled", "ImportMonitor", "PaperSplitRule",
+           "RosbagOptions", "capture_file_layout", "describe",
            "detect_layout", "import_colmap", "import_images", "import_polycam", "import_record3d", "import_rosbag",
            "import_scannet", "import_stray", "import_video", "paper_splits", "run_import"]
 
-# Each layout's importer with its default options, called as ``importer(src, out, splits)``.
+# Each layout's importer with its default options, called as ``importer(src, out, splits)``; those of
+# MONITORED_LAYOUTS also take ``monitor=`` (an ImportMonitor: progress within the import, and a stop request).
 IMPORTERS = {
     "colmap": import_colmap,
     "scannet": import_scannet,
@@ -45,9 +48,10 @@ IMPORTERS = {
     "stray": import_stray,
     "rosbag": import_rosbag,
     "images": import_images,
-    "video": lambda src, out, splits: import_video(src, out, splits=splits),
+    "video": lambda src, out, splits, monitor=None: import_video(src, out, splits=splits, monitor=monitor),
 }
 LAYOUTS = tuple(IMPORTERS)
+MONITORED_LAYOUTS = ("images", "video")
 # Layouts whose import reads a whole capture (a phone's video, a robot's log) or solves for poses: the service
 # queues them as import jobs instead of importing them while the upload's request waits.
 QUEUED_LAYOUTS = ("stray", "rosbag", "images", "video")
@@ -115,13 +119,17 @@ def capture_file_layout(head: bytes) -> tuple[str, str] | None:
     return next((kind for magic, kind in CAPTURE_FILES.items() if head.startswith(magic)), None)
 
 
-def run_import(layout: str, src: str | Path, out: str | Path, splits: PaperSplitRule | None = None) -> dict:
+def run_import(layout: str, src: str | Path, out: str | Path, splits: PaperSplitRule | None = None,
+               monitor: ImportMonitor | None = None) -> dict:
     """Run the importer of ``layout`` (one of LAYOUTS) from ``src`` into ``out``, with each importer's default
-    options (a bag's topics found automatically); its summary."""
+    options (a bag's topics found automatically); its summary. ``monitor`` follows the importers of
+    MONITORED_LAYOUTS as they run (the others report nothing until they end)."""
     importer = IMPORTERS.get(layout)
-    if importer is not None:
-        return importer(src, out, splits)
-    raise ValueError(f"unknown layout {layout!r} (one of {', '.join(LAYOUTS)})")
+    if importer is None:
+        raise ValueError(f"unknown layout {layout!r} (one of {', '.join(LAYOUTS)})")
+    if monitor is not None and layout in MONITORED_LAYOUTS:
+        return importer(src, out, splits, monitor=monitor)
+    return importer(src, out, splits)
 
 
 def describe(summary: dict) -> list[str]:

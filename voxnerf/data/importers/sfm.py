@@ -13,9 +13,9 @@ Structure from motion runs inside the product with pycolmap's bundled COLMAP (CP
   lengths and tangential terms, let the synthetic room's path converge to a focal ratio of 18 in this project's
   tests; square pixels hold for phone and robot cameras.) COLMAP takes the starting focal length from EXIF when
   it has one, else 1.2 times the longer side.
-- Matching: exhaustive (every pair) up to EXHAUSTIVE_MAX_IMAGES photos, else sequential (each photo with its
-  SEQUENTIAL_OVERLAP successors in name order and the quadratic ones beyond): ``matching`` overrides. A video's
-  frames are always matched sequentially.
+- Matching: exhaustive (every pair) up to EXHAUSTIVE_MAX_IMAGES photos, else sequential with COLMAP's quadratic
+  overlap (each photo with the ones 1, 2, 4, 8, ... places after it in name order, up to 2**(SEQUENTIAL_OVERLAP
+  - 1): about n log2(n) pairs): ``matching`` overrides. A video's frames are always matched sequentially.
 - Mapping: COLMAP's incremental mapper (one thread, seed 0; its start and registration thresholds lowered:
   :data:`INIT_MIN_TRIANGULATION_DEG`); the largest reconstruction is kept (ties: the one with more points).
   Feature extraction and matching use every core, so the registered set can vary slightly run to run.
@@ -42,6 +42,7 @@ from pathlib import Path
 
 from voxnerf.data.importers import writer
 from voxnerf.data.importers.colmap import import_reconstruction
+from voxnerf.data.importers.monitor import CountWatch, ImportCancelled, ImportMonitor
 from voxnerf.data.importers.splits import PaperSplitRule
 from voxnerf.errors import SceneError
 
@@ -49,8 +50,12 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 MATCHING_CHOICES = ("auto", "exhaustive", "sequential")
 EXHAUSTIVE_MAX_IMAGES = 60
 """Up to this many photos every pair is matched (n(n-1)/2 pairs: 1770 at 60); beyond, sequential matching."""
+EXHAUSTIVE_BLOCK = 10
+"""Exhaustive matching goes through the images in blocks of this many (COLMAP's default is 50): its progress and
+a cancel are seen between two blocks."""
 SEQUENTIAL_OVERLAP = 15
-"""Sequential matching: each image is matched with this many next ones (and quadratically spaced ones beyond)."""
+"""Sequential matching with COLMAP's quadratic overlap: each image is matched with the ones 2**k places after it,
+k < SEQUENTIAL_OVERLAP (COLMAP 4 pairs only these, not also the SEQUENTIAL_OVERLAP next ones)."""
 MIN_REGISTERED = 3
 """Fewest registered photos a scene is made of; also the smallest reconstruction COLMAP keeps."""
 MAX_FEATURES = 4096
@@ -182,10 +187,37 @@ def resolve_matching(matching: str, n_images: int) -> str:
     return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "sequential"
 
 
-def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path) -> SfmResult:
+SFM_SPANS = {"extracting": (0.0, 0.3), "matching": (0.3, 0.6), "mapping": (0.6, 0.95)}
+"""The share of structure from motion's work each of its phases takes, as its progress reports it (roughly what
+they took on redkitchen's 100 photos; writing the scene takes the rest)."""
+
+
+def sequential_pairs(n_images: int, overlap: int = SEQUENTIAL_OVERLAP, quadratic: bool = True) -> int:
+    """Image pairs COLMAP's sequential matching compares among ``n_images`` in name order: each image with the
+    ones ``2**k`` places after it (``k < overlap``) when ``quadratic``, else with its ``overlap`` next ones."""
+    gaps = {2**k for k in range(overlap)} if quadratic else set(range(1, overlap + 1))
+    return sum(max(n_images - gap, 0) for gap in gaps)
+
+
+@contextmanager
+def _cancellable(token) -> Iterator[None]:
+    """A pycolmap call that ``token`` may cancel: its InterruptedError, or a cancel it saw too late to act on,
+    becomes ImportCancelled."""
+    try:
+        yield
+    except InterruptedError:
+        raise ImportCancelled("the import was cancelled") from None
+    if token.is_cancelled:
+        raise ImportCancelled("the import was cancelled")
+
+
+def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path,
+            monitor: ImportMonitor | None = None) -> SfmResult:
     """Features, matches and incremental mapping of the staged photos; the largest reconstruction.
 
-    ``named``: the folder or file errors name. Raises SceneError when no reconstruction has MIN_REGISTERED photos.
+    ``named``: the folder or file errors name. ``monitor``: each phase's progress (images with features, image
+    pairs matched, images registered) and a stop request, which cancels pycolmap's running call
+    (ImportCancelled). Raises SceneError when no reconstruction has MIN_REGISTERED photos.
     """
     import pycolmap
 
@@ -193,24 +225,18 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path) -> Sfm
         raise SceneError(named, f"{len(staged.names)} decodable photos; structure from motion needs at least "
                          f"{MIN_REGISTERED} that overlap")
     shared = len(staged.camera_keys) == 1
-    mode = pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE
-    reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
-    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_FEATURE_IMAGE_SIZE)
-    extraction.sift.max_num_features = MAX_FEATURES
     matching = resolve_matching(matching, len(staged.names))
     database = work / "database.db"
     options = _mapper_options()
+    monitor = monitor or ImportMonitor()
+    token = pycolmap.CancellationToken()
     pycolmap.set_random_seed(0)
     with _quiet_colmap():
-        pycolmap.extract_features(database, staged.dir, image_names=staged.names, camera_mode=mode,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-        if matching == "exhaustive":
-            pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
-        else:
-            pairing = pycolmap.SequentialPairingOptions(overlap=SEQUENTIAL_OVERLAP, quadratic_overlap=True)
-            pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu)
+        monitor.check()
+        _extract(staged, database, shared, monitor.within(*SFM_SPANS["extracting"]), token)
+        _match(database, len(staged.names), matching, monitor.within(*SFM_SPANS["matching"]), token)
         (work / "sparse").mkdir()
-        models = pycolmap.incremental_mapping(database, staged.dir, work / "sparse", options)
+        models = _map(staged, database, work / "sparse", options, monitor.within(*SFM_SPANS["mapping"]), token)
     models = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
     sizes = [r.num_reg_images() for r in models]
     if not models or sizes[0] < MIN_REGISTERED:
@@ -220,6 +246,82 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path) -> Sfm
     unregistered = _unregistered(database, models, options.min_num_matches)
     camera_mode = "one shared camera" if shared else "one camera per image"
     return SfmResult(models[0], matching, camera_mode, sizes, unregistered)
+
+
+def _database_count(database: Path, method: str) -> Callable[[], int | None]:
+    """``pycolmap.Database.<method>()`` of ``database`` read through a connection of its own (pycolmap's SQLite
+    reads COLMAP's write-ahead log, which another SQLite build may not); None while it cannot be opened."""
+    import pycolmap
+
+    def count() -> int | None:
+        if not database.is_file():
+            return None
+        try:
+            db = pycolmap.Database.open(database)
+        except Exception:  # not created yet, or busy: the next period tries again
+            return None
+        try:
+            return int(getattr(db, method)())
+        finally:
+            db.close()
+
+    return count
+
+
+def _extract(staged: StagedPhotos, database: Path, shared: bool, monitor: ImportMonitor, token) -> None:
+    """SIFT features of every staged photo into ``database`` (one camera, or one per photo when not ``shared``);
+    progress in images read."""
+    import pycolmap
+
+    mode = pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE
+    reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
+    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_FEATURE_IMAGE_SIZE)
+    extraction.sift.max_num_features = MAX_FEATURES
+    with _cancellable(token), CountWatch(monitor, _database_count(database, "num_images"), len(staged.names),
+                                         "extracting features", "images", token):
+        pycolmap.extract_features(database, staged.dir, image_names=staged.names, camera_mode=mode,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
+                                  cancellation_token=token)
+
+
+def _match(database: Path, n_images: int, matching: str, monitor: ImportMonitor, token) -> None:
+    """Matches of the image pairs ``matching`` picks, geometrically verified; progress in pairs matched."""
+    import pycolmap
+
+    pairs = n_images * (n_images - 1) // 2 if matching == "exhaustive" else sequential_pairs(n_images)
+    with _cancellable(token), CountWatch(monitor, _database_count(database, "num_matched_image_pairs"), pairs,
+                                         f"matching features ({matching})", "image pairs", token):
+        if matching == "exhaustive":
+            pairing = pycolmap.ExhaustivePairingOptions(block_size=EXHAUSTIVE_BLOCK)
+            pycolmap.match_exhaustive(database, pairing_options=pairing, device=pycolmap.Device.cpu,
+                                      cancellation_token=token)
+        else:
+            pairing = pycolmap.SequentialPairingOptions(overlap=SEQUENTIAL_OVERLAP, quadratic_overlap=True)
+            pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu,
+                                      cancellation_token=token)
+
+
+def _map(staged: StagedPhotos, database: Path, sparse: Path, options, monitor: ImportMonitor, token) -> dict:
+    """COLMAP's incremental mapping; its reconstructions. Progress in images registered (COLMAP calls back after
+    its first pair and after each image it adds; a second reconstruction's images count on, up to the total),
+    and a stop request cancels it between two images."""
+    import pycolmap
+
+    n = len(staged.names)
+    registered = 0
+
+    def registered_more(count: int) -> None:
+        nonlocal registered
+        registered = min(registered + count, n)
+        monitor.step(f"registering images: {registered} of {n}", registered / n)
+        if monitor.should_stop():
+            token.cancel()
+
+    monitor.step(f"registering images: 0 of {n}", 0.0)
+    with _cancellable(token):
+        return pycolmap.incremental_mapping(database, staged.dir, sparse, options,
+                                            initial_image_pair_callback=lambda: registered_more(2),
+                                            next_image_callback=lambda: registered_more(1), cancellation_token=token)
 
 
 def _mapper_options():
@@ -292,12 +394,17 @@ def reconstruct_and_write(
     fmt: str,
     named: Path,
     describe_name: Callable[[str], str] = str,
+    monitor: ImportMonitor | None = None,
 ) -> dict:
     """SfM on the staged photos and the kept reconstruction written as the scene ``out``; the summary.
 
-    ``describe_name`` turns a staged file name into what the summary calls it (a video names the frame's time).
+    ``describe_name`` turns a staged file name into what the summary calls it (a video names the frame's time);
+    ``monitor`` follows the work and may stop it (:func:`run_sfm`).
     """
-    result = run_sfm(staged, work, matching, named)
+    monitor = monitor or ImportMonitor()
+    result = run_sfm(staged, work, matching, named, monitor)
+    monitor.step("writing the scene", SFM_SPANS["mapping"][1])
+    monitor.check()
     summary = import_reconstruction(result.recon, staged.dir, out, splits, fmt, named)
     left_out = {**{name: REASONS[key] for name, key in staged.left_out.items()},
                 **{name: REASONS[key] for name, key in result.unregistered.items()}}
@@ -332,14 +439,16 @@ def reconstruct_and_write(
 
 
 def import_images(
-    src: str | Path, out: str | Path, splits: PaperSplitRule | None = None, matching: str = "auto"
+    src: str | Path, out: str | Path, splits: PaperSplitRule | None = None, matching: str = "auto",
+    monitor: ImportMonitor | None = None,
 ) -> dict:
     """Pose the photos in ``src`` by structure from motion and write them as a scene at ``out`` (absent or empty).
 
     ``matching``: ``auto`` (exhaustive up to EXHAUSTIVE_MAX_IMAGES photos, else sequential), ``exhaustive`` or
     ``sequential``. Returns the importer summary with an ``sfm`` entry (images, registered, the photos not
     registered and why, matching, cameras, reconstruction sizes, mean reprojection error). Raises SceneError
-    naming the folder or file at fault; nothing is left at ``out`` on error.
+    naming the folder or file at fault, ImportCancelled when ``monitor`` asks it to stop; nothing is left at
+    ``out`` on error.
     """
     src, out = Path(src), Path(out)
     writer.check_out_dir(out)
@@ -347,4 +456,4 @@ def import_images(
     photos = list_photos(src)
     with work_dir(out) as work:
         staged = stage_photos(photos, work)
-        return reconstruct_and_write(staged, work, out, splits, matching, "images", src)
+        return reconstruct_and_write(staged, work, out, splits, matching, "images", src, monitor=monitor)

@@ -23,11 +23,16 @@ from pathlib import Path
 import numpy as np
 
 from voxnerf.data.importers import writer
+from voxnerf.data.importers.monitor import ImportMonitor
 from voxnerf.data.importers.sfm import JPEG_QUALITY, StagedPhotos, reconstruct_and_write, work_dir
 from voxnerf.data.importers.splits import PaperSplitRule
 from voxnerf.errors import SceneError
 
 DEFAULT_FRAMES = 100
+DECODE_SHARE = 0.2
+"""The share of a video import's work its decoding takes, as its progress reports it (the rest is structure from
+motion); DECODE_REPORT_EVERY frames apart it reports and asks whether to stop."""
+DECODE_REPORT_EVERY = 30
 MAX_FRAMES = 2000
 SHARPNESS_MAX_SIDE = 640
 """Frames are box-averaged down to about this longest side before the Laplacian (same scale for every frame
@@ -117,9 +122,18 @@ class _SharpestPerWindow:
         self.best = None
 
 
-def pick_frames(path: str | Path, n_frames: int, dst: Path) -> tuple[list[PickedFrame], dict]:
+def _report_decoding(monitor: ImportMonitor, read: int, expected: int | None) -> None:
+    monitor.check()
+    of = f" of about {expected}" if expected else ""
+    monitor.step(f"decoding the video: {read}{of} frames", read / expected if expected else 0.0)
+
+
+def pick_frames(path: str | Path, n_frames: int, dst: Path,
+                monitor: ImportMonitor | None = None) -> tuple[list[PickedFrame], dict]:
     """Write the sharpest frame of each of ``n_frames`` equal time windows of the video at ``path`` into ``dst``
-    (``frame_00000.jpg`` ...); the frames kept and the video's facts (codec, size, fps, duration, frames read)."""
+    (``frame_00000.jpg`` ...); the frames kept and the video's facts (codec, size, fps, duration, frames read).
+    ``monitor``: frames decoded against the frames the container announces, every DECODE_REPORT_EVERY frames,
+    and a stop request (ImportCancelled)."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(path, "video file not found")
@@ -131,11 +145,14 @@ def pick_frames(path: str | Path, n_frames: int, dst: Path) -> tuple[list[Picked
     duration = float(meta.get("duration") or 0.0)
     expected = max(1, round(fps * duration)) if fps > 0 and duration > 0 else None
     picker = _SharpestPerWindow(dst, n_frames, expected, fps)
+    monitor = monitor or ImportMonitor()
     read = 0
     try:
         for index, data in enumerate(frames):
             picker.add(index, np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3))
             read += 1
+            if read % DECODE_REPORT_EVERY == 0:
+                _report_decoding(monitor, read, expected)
     except RuntimeError as err:  # the stream breaks off: keep the frames decoded before it
         if not read:
             raise SceneError(path, f"no decodable frames: {writer.one_line(err)}") from None
@@ -150,23 +167,26 @@ def pick_frames(path: str | Path, n_frames: int, dst: Path) -> tuple[list[Picked
 
 
 def import_video(
-    src: str | Path, out: str | Path, n_frames: int = DEFAULT_FRAMES, splits: PaperSplitRule | None = None
+    src: str | Path, out: str | Path, n_frames: int = DEFAULT_FRAMES, splits: PaperSplitRule | None = None,
+    monitor: ImportMonitor | None = None,
 ) -> dict:
     """Pick ``n_frames`` frames from the video ``src``, pose them by structure from motion and write the scene
     ``out`` (absent or empty). The summary's ``video`` entry gives the stream's facts and, per frame kept, its
-    source index, time and sharpness; ``sfm`` what SfM registered. SceneError naming the file at fault; nothing
-    left at ``out`` on error."""
+    source index, time and sharpness; ``sfm`` what SfM registered. SceneError naming the file at fault,
+    ImportCancelled when ``monitor`` asks it to stop; nothing left at ``out`` on error."""
     src, out = Path(src), Path(out)
     writer.check_out_dir(out)
     with work_dir(out) as work:
         staged = StagedPhotos(work / "images")
         staged.dir.mkdir()
-        picked, facts = pick_frames(src, n_frames, staged.dir)
+        monitor = monitor or ImportMonitor()
+        picked, facts = pick_frames(src, n_frames, staged.dir, monitor.within(0.0, DECODE_SHARE))
         staged.names = [frame.name for frame in picked]
         staged.camera_keys = {tuple(facts["size"])}  # one camera: every frame of a stream has its size and lens
         times = {frame.name: frame.time for frame in picked}
         summary = reconstruct_and_write(staged, work, out, splits, "sequential", "video", src,
-                                        describe_name=lambda name: f"{name} (t={times[name]:.2f} s)")
+                                        describe_name=lambda name: f"{name} (t={times[name]:.2f} s)",
+                                        monitor=monitor.within(DECODE_SHARE, 1.0))
     video = {**facts, "picked": [{"file": f"images/{f.name}", "frame": f.index, "time_s": round(f.time, 4),
                                   "sharpness": round(f.sharpness, 2)} for f in picked]}
     note = (f"{len(picked)} frames picked from {facts['frames_read']} ({facts['codec']}, "
