@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import re
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -33,19 +34,24 @@ from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import events, health, imports, jobs, outputs, render, scenes, tokens, viewer
+from app.routes import events, health, imports, jobs, outputs, render, scenes, tokens, uploads, viewer
+from app.uploads import sessions as upload_sessions
 from app.uploads.rules import UploadError
 from app.webhooks import deliver_due
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
+UPLOAD_PART_PATH = re.compile(r"^/uploads/[^/]+/parts/[^/]+$")  # PUT: one part of an upload session
 
 
 def sweep_once(app: FastAPI) -> None:
-    """Requeue jobs and output jobs whose worker died, re-send lost messages, drop uncollected render results."""
+    """Requeue jobs and output jobs whose worker died, re-send lost messages, drop uncollected render results,
+    remove expired upload sessions."""
     settings: Settings = app.state.settings
     sweep_jobs(settings, app.state.celery)
     remove_old_outcomes(settings.render_results_dir, 2 * settings.render_timeout_s)
+    for session_id in upload_sessions.remove_expired(settings):
+        log.info("upload session %s expired; removed with its parts", session_id)
 
 
 async def _sweep_forever(app: FastAPI) -> None:
@@ -128,7 +134,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(
         BodyLimitMiddleware,
         limit_for=lambda method, path: (
-            settings.max_upload_bytes if (method, path) == ("POST", "/scenes") else settings.max_request_bytes
+            settings.max_upload_bytes if (method, path) == ("POST", "/scenes")
+            else settings.max_upload_part_bytes if method == "PUT" and UPLOAD_PART_PATH.match(path)
+            else settings.max_request_bytes
         ),
     )
     app.add_middleware(RequestGuardMiddleware, settings=settings)  # added last: runs first
@@ -138,7 +146,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, imports, jobs, events, outputs, render, viewer, tokens):
+    for module in (scenes, uploads, imports, jobs, events, outputs, render, viewer, tokens):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
 

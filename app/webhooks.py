@@ -132,7 +132,7 @@ async def _attempt(settings: Settings, client: httpx.AsyncClient, delivery: Webh
             if not 200 <= status < 300:
                 error = f"the receiver answered HTTP {status}" + (" (redirects are not followed)"
                                                                  if 300 <= status < 400 else "")
-        except TokenError as err:
+        except TokenError as err:  # its maker's token is gone (or VOXNERF_API_TOKEN unset): nothing signs it
             error, final = f"cannot sign: {err}", True
         except CallbackRefused as err:
             error = str(err)

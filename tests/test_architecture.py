@@ -3,6 +3,9 @@
 - the API (``app/`` outside ``app/core``) never imports the workers (``worker``);
 - the workers import ``app.core`` and nothing else of ``app``;
 - ``app/core`` imports neither the workers nor the API modules;
+- the engine (``voxnerf/``) imports neither the service (``app``, ``worker``) nor a web library, but for the
+  command line (``voxnerf.cli``: ``serve`` and ``worker`` start them) and the service's client (``voxnerf.client``),
+  which imports of the service only the models its requests and answers are checked with;
 - no two files of ``voxnerf/``, ``app/`` or ``worker/`` import each other in a cycle (a function-level import or
   one for type checking counts: each is a dependency all the same);
 
@@ -95,6 +98,31 @@ def test_core_modules_import_neither_the_api_nor_the_workers(path: Path):
         if _under(name, "worker") or (_under(name, "app") and not _under(name, "app.core"))
     )
     assert not bad, f"{path.relative_to(ROOT)} imports {bad}: app.core must not depend on its users"
+
+
+ENGINE = [p for p in _modules("voxnerf")
+          if not (_under(_module_name(p), "voxnerf.cli") or _under(_module_name(p), "voxnerf.client"))]
+CLIENT = [p for p in _modules("voxnerf") if _under(_module_name(p), "voxnerf.client")]
+WEB_PACKAGES = ("app", "worker", "fastapi", "starlette", "uvicorn", "httpx", "celery", "kombu", "sqlalchemy")
+CLIENT_MAY_IMPORT = ("app.schemas", "app.core.render_request")  # the models the API checks requests and answers with
+
+
+def test_engine_and_client_groups_are_not_empty():
+    assert ROOT / "voxnerf" / "config.py" in ENGINE and ROOT / "voxnerf" / "client" / "api.py" in CLIENT
+
+
+@pytest.mark.parametrize("path", ENGINE, ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_engine_imports_no_service_and_no_web_library(path: Path):
+    bad = sorted(name for name in _imports(path) if any(_under(name, package) for package in WEB_PACKAGES))
+    assert not bad, f"{path.relative_to(ROOT)} imports {bad}: the engine stays free of the service"
+
+
+@pytest.mark.parametrize("path", CLIENT, ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_client_imports_of_the_service_only_its_request_and_answer_models(path: Path):
+    bad = sorted(name for name in _imports(path)
+                 if (_under(name, "app") and not any(_under(name, model) for model in CLIENT_MAY_IMPORT))
+                 or _under(name, "worker"))
+    assert not bad, f"{path.relative_to(ROOT)} imports {bad}: the client shares only the API's models"
 
 
 def _module_graph() -> dict[str, set[str]]:

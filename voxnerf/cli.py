@@ -1,4 +1,4 @@
-"""Command line: ``voxnerf train | eval | render | export | synth | import | serve | worker | tokens``.
+"""Command line: ``voxnerf train | eval | render | export | synth | import | serve | worker | tokens | remote``.
 
 Errors the user can fix print one line (``voxnerf: error: <file>: <key>: <message>``) and exit with 2.
 """
@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from voxnerf.cameras.rules import LENS_KEYS, CameraError, Intrinsics, resolve_intrinsics, validate_pose
+from voxnerf.cameras.rules import POSE_FILE_KEYS, CameraError, Intrinsics, resolve_intrinsics, validate_pose
 from voxnerf.errors import RunError, VoxNeRFError
 
 if TYPE_CHECKING:
@@ -32,22 +32,28 @@ def _focal_scale(text: str) -> str | float:
         raise argparse.ArgumentTypeError(f"expected auto or a number, got {text!r}") from None
 
 
-def train_config(args: argparse.Namespace) -> TrainConfig:
-    """The config of ``voxnerf train``'s flags, each ``--set FIELD=VALUE`` (a flat name, ``lr``, or a dotted one,
-    ``schedule.lr``) winning over them."""
-    from voxnerf.config import TrainConfig
-
+def job_option_values(args: argparse.Namespace) -> dict:
+    """The training settings of the job-option flags (:func:`_add_job_options`), each ``--set FIELD=VALUE`` (a
+    flat name, ``lr``, or a dotted one, ``schedule.lr``) winning over them: ``voxnerf train``'s config less its
+    device, and ``voxnerf remote train``'s job options."""
     values = dict(
         preset=args.preset, sampler=args.sampler, max_seconds=args.max_seconds, max_iters=args.max_iters,
         depth_loss=not args.no_depth_loss, depth_source=args.depth_source, downscale=args.downscale,
         pose_refinement=args.pose_refinement, appearance=args.appearance, focal_scale=args.focal_scale,
-        device=args.device, seed=args.seed,
-        compile=not args.no_compile, hash_kernel=not args.no_hash_kernel, eval_at=args.eval_at or [],
+        seed=args.seed, compile=not args.no_compile, hash_kernel=not args.no_hash_kernel, eval_at=args.eval_at or [],
         **({"eval_every_s": args.eval_every} if args.eval_every else {}),
         **({"n_importance": args.samples[0], "n_rest": args.samples[1]} if args.samples else {}),
         **({"smooth_patches": args.smooth_patches} if args.smooth_patches is not None else {}),
     )
-    return TrainConfig(**(values | dict(args.set or [])))
+    return values | dict(args.set or [])
+
+
+def train_config(args: argparse.Namespace) -> TrainConfig:
+    """The config of ``voxnerf train``'s flags (:func:`job_option_values` and ``--device``; ``--set device=...``
+    wins)."""
+    from voxnerf.config import TrainConfig
+
+    return TrainConfig(**({"device": args.device} | job_option_values(args)))
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -102,9 +108,6 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 MAX_RENDER_PIXELS = 8192 * 8192
-# Pose-file keys of the intrinsics and the lens, by resolve_intrinsics' argument name.
-POSE_FILE_KEYS = {"fl_x": "fl_x", "fl_y": "fl_y", "cx": "cx", "cy": "cy", "width": "w", "height": "h",
-                  **{key: key for key in LENS_KEYS}}
 
 
 def _read_pose(path: Path, default: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
@@ -488,6 +491,15 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a model on a scene directory")
     p.add_argument("scene", help="scene directory (transforms.json and its files; see docs/scene-format.md)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, report.json, eval renders)")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
+    p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
+    _add_job_options(p)
+    p.set_defaults(func=_train)
+
+
+def _add_job_options(p: argparse.ArgumentParser) -> None:
+    """The training flags a job takes, locally (``voxnerf train``) or on a service (``voxnerf remote train``,
+    ``POST /scenes/{id}/jobs``): read by :func:`job_option_values`."""
     p.add_argument("--max-seconds", type=float, help="wall-clock bound of the whole command")
     p.add_argument("--max-iters", type=int)
     p.add_argument("--sampler", choices=["voxnerf", "occgrid", "uniform"], default="voxnerf")
@@ -511,7 +523,6 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
                    "the prior (docs/engine.md)")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu")
     p.add_argument("--downscale", type=int, default=1)
-    p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-compile", action="store_true", help="run the training step eagerly")
     p.add_argument("--no-hash-kernel", action="store_true",
@@ -530,8 +541,6 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
                    "in its component, e.g. --set lr_schedule=budget --set model.sh_bands=2; VALUE is read as JSON "
                    "where it parses (numbers, true, [1, 2]), else as text; "
                    "repeatable, and it wins over the flags above")
-    p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
-    p.set_defaults(func=_train)
 
 
 def _add_eval_command(sub: argparse._SubParsersAction) -> None:
@@ -730,6 +739,81 @@ def _add_tokens_command(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_tokens)
 
 
+def _remote(args: argparse.Namespace) -> int:
+    from voxnerf.client.commands import run_remote
+
+    options = None
+    if args.remote_command == "train":
+        options = job_option_values(args) | ({"callback_url": args.callback_url} if args.callback_url else {})
+    return run_remote(args, options)
+
+
+def _add_remote_command(sub: argparse._SubParsersAction) -> None:
+    """``voxnerf remote ...``: the same work on a running service (voxnerf.client; docs/service.md)."""
+    p = sub.add_parser("remote", help="work with a running VoxNeRF service: upload, train, status, render, video, "
+                       "download, cancel", description="Talk to a VoxNeRF service (voxnerf serve) at --url or "
+                       "VOXNERF_URL (default http://127.0.0.1:8000), with --token or VOXNERF_API_TOKEN.")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--url", default=argparse.SUPPRESS, help="the service (default: VOXNERF_URL)")
+    common.add_argument("--token", default=argparse.SUPPRESS, help="its API token (default: VOXNERF_API_TOKEN)")
+    commands = p.add_subparsers(dest="remote_command", required=True)
+    _add_remote_work(commands, common)
+    _add_remote_views(commands, common)
+    p.set_defaults(func=_remote)
+
+
+def _add_remote_work(commands: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
+    """``voxnerf remote upload | train | status | cancel``."""
+    q = commands.add_parser("upload", parents=[common], help="upload a scene directory, zip or capture; the last "
+                            "line printed is the new scene's id")
+    q.add_argument("path", help="a scene directory (zipped first), a .zip, or a capture (video, ROS bag...)")
+    q.add_argument("--name", help="display name (default: the file or directory name)")
+    q.add_argument("--splits", choices=["paper"], help="an upload to import: write the paper's splits")
+    q.add_argument("--no-wait", action="store_true",
+                   help="a capture whose import is queued: print the import's id instead of waiting for its scene")
+    q = commands.add_parser("train", parents=[common], help="train a scene on the service; prints the job id")
+    q.add_argument("scene", help="the scene's id")
+    q.add_argument("--wait", action="store_true",
+                   help="follow the job until it ends: exit 0 when it succeeded, 1 when it failed or was cancelled")
+    q.add_argument("--callback-url", metavar="URL", help="where the service posts the job's state changes, signed "
+                   "(webhooks: docs/service.md)")
+    _add_job_options(q)
+    q = commands.add_parser("status", parents=[common], help="a job's state and progress, or the latest jobs")
+    q.add_argument("job", nargs="?", help="a job id (default: list the latest jobs)")
+    q.add_argument("--json", action="store_true", help="print the job as GET /jobs/{id} answers it")
+    q = commands.add_parser("cancel", parents=[common], help="cancel a queued or running job")
+    q.add_argument("job")
+
+
+def _add_remote_views(commands: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
+    """``voxnerf remote render | video | download``."""
+    q = commands.add_parser("render", parents=[common], help="render a view of a finished job to PNG or EXR")
+    q.add_argument("job")
+    view = q.add_mutually_exclusive_group(required=True)
+    view.add_argument("--frame", metavar="NAME", help="the scene's camera NAME (a frame's file_path or its stem)")
+    view.add_argument("--pose", metavar="FILE", help="JSON with transform_matrix and optional fl_x fl_y cx cy, w h "
+                      "and a lens, as voxnerf render --pose")
+    q.add_argument("--out", required=True, help="IMG.png or IMG.exr (EXR: colour, depth and opacity)")
+    q.add_argument("--width", type=int, help="image width (with --height; default the camera's)")
+    q.add_argument("--height", type=int)
+    q = commands.add_parser("video", parents=[common], help="render a fly-through video (MP4) of a finished job")
+    q.add_argument("job")
+    path = q.add_mutually_exclusive_group(required=True)
+    path.add_argument("--path", choices=["interpolate", "orbit"], help="a path generated from the training cameras")
+    path.add_argument("--camera-path", metavar="FILE.json", help="a nerfstudio camera path")
+    q.add_argument("--frames", type=int, help="--path: number of frames")
+    q.add_argument("--fps", type=float, help="--path: frames per second (default 30)")
+    q.add_argument("--width", type=int, help="--path: frame width (with --height; default the scene's)")
+    q.add_argument("--height", type=int)
+    q.add_argument("--radius", type=float, help="--path orbit: radius, scene units")
+    q.add_argument("--height-above", type=float, help="--path orbit: height above the cameras' centre")
+    q.add_argument("--out", required=True, help="VIDEO.mp4")
+    q = commands.add_parser("download", parents=[common], help="download a finished job's run: report.json, "
+                            "checkpoint.pt, evaluation renders, output files")
+    q.add_argument("job")
+    q.add_argument("--out", required=True, help="directory to write into (voxnerf render reads it as a run)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="voxnerf", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -742,6 +826,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_serve_command(sub)
     _add_worker_command(sub)
     _add_tokens_command(sub)
+    _add_remote_command(sub)
     return parser
 
 

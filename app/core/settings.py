@@ -96,6 +96,27 @@ class Settings(BaseSettings):
         description="POST /scenes requests one API process takes at once; more are answered 429 with "
         "Retry-After (each holds a worker thread, staging disk and a validation process)",
     )
+    max_upload_session_bytes: int = Field(
+        default=65536 * MiB, gt=0,
+        description="the whole file of one upload session (POST /uploads), sent in parts; larger than "
+        "max_upload_bytes, the limit of a one-request upload",
+    )
+    upload_part_bytes: int = Field(
+        default=64 * MiB, ge=64 * 1024, le=1024 * MiB,
+        description="size of the parts of an upload session (the last one is shorter); a file of more than "
+        "max_upload_parts such parts gets larger parts, so that it needs no more",
+    )
+    max_upload_parts: int = Field(default=10_000, ge=1, le=100_000, description="parts of one upload session")
+    max_upload_sessions: int = Field(
+        default=16, ge=1, le=1000,
+        description="upload sessions open at once (created, not yet completed, deleted or expired); one more "
+        "is answered 429",
+    )
+    upload_session_expiry_s: float = Field(
+        default=86_400.0, gt=0,
+        description="an upload session no part was sent to for this long expires: the API's sweeper removes it "
+        "and its parts",
+    )
     upload_validation_memory_bytes: int = Field(
         default=4096 * MiB,
         gt=0,
@@ -333,6 +354,17 @@ class Settings(BaseSettings):
         return self.data_dir / "imports"
 
     @property
+    def upload_sessions_dir(self) -> Path:
+        """Upload sessions: each one's description and the parts received so far (:mod:`app.uploads.sessions`)."""
+        return self.data_dir / "upload-sessions"
+
+    @property
+    def max_upload_part_bytes(self) -> int:
+        """The largest part any upload session can have: ``upload_part_bytes``, or the part of a session of
+        ``max_upload_session_bytes`` split into ``max_upload_parts`` parts when that is larger."""
+        return max(self.upload_part_bytes, -(-self.max_upload_session_bytes // self.max_upload_parts))
+
+    @property
     def staging_dir(self) -> Path:
         """Uploads are unpacked and validated here, then renamed into ``scenes_dir`` (same filesystem)."""
         return self.data_dir / "staging"
@@ -348,7 +380,8 @@ class Settings(BaseSettings):
 
     def make_dirs(self) -> None:
         """Create every directory the service writes to (idempotent)."""
-        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.imports_dir, self.render_results_dir):
+        for path in (self.scenes_dir, self.runs_dir, self.staging_dir, self.imports_dir, self.render_results_dir,
+                     self.upload_sessions_dir):
             path.mkdir(parents=True, exist_ok=True)
         if self.embedded_broker:
             (self.broker_dir / "queue").mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import BinaryIO
 
 from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -27,6 +31,7 @@ from app.schemas import ImportOut, JobOptions, JobOut, SceneOut
 from app.uploads import staging
 from app.uploads.form import read_form
 from voxnerf.config import TrainConfig
+from voxnerf.data.importers.splits import PaperSplitRule
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["scenes"])
@@ -95,8 +100,29 @@ def _split_rule(value: object, is_zip: bool):
 async def create_scene(
     request: Request, settings: SettingsDep, celery: CeleryDep, principal: PrincipalDep
 ) -> SceneOut | JSONResponse:
+    async with upload_slot(request, settings):
+        declared = _declared_length(request)  # the body is not read yet: a refused upload writes nothing
+        await run_in_threadpool(require_room, settings, declared, what=f"an upload of {declared} bytes")
+        stored = await _receive_scene(request, settings, principal)
+    return stored_answer(settings, celery, stored)
+
+
+def stored_answer(settings: Settings, celery, stored: StoredScene | ImportRow) -> SceneOut | JSONResponse:
+    """What an upload answers (``POST /scenes``, ``POST /uploads/{id}/complete``): the new scene (201), or the
+    queued import of a capture (202, its message sent to the import workers)."""
+    if isinstance(stored, ImportRow):
+        work.send_or_503(settings, celery, IMPORTS, stored.id)
+        body = ImportOut.from_row(IMPORTS.get(settings, stored.id)).model_dump(mode="json")
+        return JSONResponse(body, status_code=202, headers={"Location": f"/imports/{stored.id}"})
+    return SceneOut.from_row(jobstore.get_scene(settings, stored.id))
+
+
+@contextlib.asynccontextmanager
+async def upload_slot(request: Request, settings: Settings) -> AsyncIterator[None]:
+    """One of the ``max_concurrent_uploads`` uploads this API process takes at once, held for the block; 429 with
+    Retry-After when none is free (asked before a body is read: a refused upload costs no disk and no thread)."""
     slots = _upload_slots(request, settings)
-    if not slots.try_acquire():  # before the body is read: a refused upload costs no disk and no thread
+    if not slots.try_acquire():
         raise HTTPException(
             429,
             f"{slots.limit} uploads are already in progress on this API process "
@@ -104,16 +130,9 @@ async def create_scene(
             headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)},
         )
     try:
-        declared = _declared_length(request)  # the body is not read yet: a refused upload writes nothing
-        await run_in_threadpool(require_room, settings, declared, what=f"an upload of {declared} bytes")
-        stored = await _receive_scene(request, settings, principal)
+        yield
     finally:
         slots.release()
-    if isinstance(stored, ImportRow):
-        work.send_or_503(settings, celery, IMPORTS, stored.id)
-        body = ImportOut.from_row(IMPORTS.get(settings, stored.id)).model_dump(mode="json")
-        return JSONResponse(body, status_code=202, headers={"Location": f"/imports/{stored.id}"})
-    return SceneOut.from_row(jobstore.get_scene(settings, stored.id))
 
 
 def _declared_length(request: Request) -> int:
@@ -143,14 +162,9 @@ async def _receive_scene(request: Request, settings: Settings, principal: Princi
             )
         splits = _split_rule(form.get("splits"), isinstance(archive, UploadFile))
         if isinstance(archive, UploadFile):
-            base = (archive.filename or "scene").rsplit("/", 1)[-1]
-            stem = base.rsplit(".", 1)[0] if "." in base[1:] else base  # room.zip, robot.bag -> room, robot
-            name = _display_name(form.get("name"), stem)
-            capture = await run_in_threadpool(staging.capture_kind, archive.file)
-            if capture is not None:
-                return await run_in_threadpool(staging.store_capture, settings, name, archive.file, capture, splits,
-                                               principal)
-            stored = await run_in_threadpool(staging.store_zip, settings, name, archive.file, splits, principal)
+            stored = await run_in_threadpool(
+                store_file, settings, archive.file, archive.filename, form.get("name"), splits, principal
+            )
         elif parts:
             named = [(p.filename or "", p.file) for p in parts]
             stored = await run_in_threadpool(
@@ -162,6 +176,24 @@ async def _receive_scene(request: Request, settings: Settings, principal: Princi
                 "no scene: send a multipart form with a .zip in field 'file', or the files in field 'files'",
             )
     return stored
+
+
+def store_file(settings: Settings, source: BinaryIO | Path, filename: str | None, name: object,
+               splits: PaperSplitRule | None, principal: Principal | None = None) -> StoredScene | ImportRow:
+    """Store an upload sent as one file (``filename``, display name ``name`` or the file name's stem): a capture
+    recognised by its first bytes is queued for import, anything else is a zip to validate and store. ``source``
+    is a stream to copy, or a file (an upload session's, :mod:`app.routes.uploads`) moved into staging."""
+    base = (filename or "scene").rsplit("/", 1)[-1]
+    stem = base.rsplit(".", 1)[0] if "." in base[1:] else base  # room.zip, robot.bag -> room, robot
+    display = _display_name(name, stem)
+    if isinstance(source, Path):
+        with open(source, "rb") as head:
+            capture = staging.capture_kind(head)
+    else:
+        capture = staging.capture_kind(source)
+    if capture is not None:
+        return staging.store_capture(settings, display, source, capture, splits, principal)
+    return staging.store_zip(settings, display, source, splits, principal)
 
 
 @router.get("/scenes", response_model=list[SceneOut], summary="List scenes, newest first")

@@ -152,6 +152,16 @@ def store_scene(settings: Settings, name: str, stage: Callable[[Path], StagedUpl
         shutil.rmtree(staging, ignore_errors=True)
 
 
+def _place(settings: Settings, source: BinaryIO | Path, target: Path) -> None:
+    """Put an upload's file at ``target``: a stream (a request's body) is copied, at most ``max_upload_bytes``;
+    a file (an upload session's, bounded by ``max_upload_session_bytes`` as its parts arrived) is moved."""
+    if isinstance(source, Path):
+        source.replace(target)
+        return
+    source.seek(0)
+    copy_limited(source, target, settings.max_upload_bytes, "file")
+
+
 def capture_kind(source: BinaryIO) -> tuple[str, str] | None:
     """``(layout, suffix)`` of a capture sent as one file (a ROS bag) from its first bytes, None for anything
     else (:func:`voxnerf.data.importers.capture_file_layout`); the stream is left at its start."""
@@ -161,24 +171,23 @@ def capture_kind(source: BinaryIO) -> tuple[str, str] | None:
     return capture_file_layout(head)
 
 
-def store_capture(settings: Settings, name: str, source: BinaryIO, kind: tuple[str, str],
+def store_capture(settings: Settings, name: str, source: BinaryIO | Path, kind: tuple[str, str],
                   splits: PaperSplitRule | None = None, principal: Principal | None = None) -> ImportRow:
-    """Queue the import of a capture sent as one file of ``kind`` (:func:`capture_kind`): copied as it is (at
-    most ``max_upload_bytes``) and moved into the imports directory; nothing of it is parsed here."""
+    """Queue the import of a capture sent as one file of ``kind`` (:func:`capture_kind`): placed as it is
+    (:func:`_place`) and moved into the imports directory; nothing of it is parsed here."""
     layout, suffix = kind
     settings.make_dirs()
     staging = Path(tempfile.mkdtemp(prefix="upload-", dir=settings.staging_dir))
     try:
         capture = staging / f"capture{suffix}"
-        source.seek(0)
-        copy_limited(source, capture, settings.max_upload_bytes, "file")
+        _place(settings, source, capture)
         return _queue_import(settings, capture, name, layout, splits, principal)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
 
 def store_zip(
-    settings: Settings, name: str, source: BinaryIO, splits: PaperSplitRule | None = None,
+    settings: Settings, name: str, source: BinaryIO | Path, splits: PaperSplitRule | None = None,
     principal: Principal | None = None,
 ) -> StoredScene | ImportRow:
     """Store the scene in a zip archive (a binary file): a scene directory, or a COLMAP model or ScanNet export
@@ -187,8 +196,7 @@ def store_zip(
 
     def stage(root: Path) -> StagedUpload:
         archive = root.parent / ARCHIVE_NAME
-        source.seek(0)
-        copy_limited(source, archive, settings.max_upload_bytes, "file")
+        _place(settings, source, archive)
         return StagedUpload(root, archive, splits)
 
     return store_scene(settings, name, stage, principal)

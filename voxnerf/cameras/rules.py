@@ -46,6 +46,10 @@ COEFFICIENT_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 MODEL_COEFFICIENTS = {PINHOLE: (), OPENCV: ("k1", "k2", "k3", "p1", "p2"), OPENCV_FISHEYE: ("k1", "k2", "k3", "k4")}
 # The keys that ask a render for a lens (pose file of ``voxnerf render``, ``POST /render``): absent = pinhole.
 LENS_KEYS = ("camera_model", *COEFFICIENT_KEYS)
+# Pose-file keys (``voxnerf render --pose``, ``voxnerf remote render --pose``) of the intrinsics and the lens, by
+# resolve_intrinsics' argument name (which POST /render's body uses too).
+POSE_FILE_KEYS = {"fl_x": "fl_x", "fl_y": "fl_y", "cx": "cx", "cy": "cy", "width": "w", "height": "h",
+                  **{key: key for key in LENS_KEYS}}
 
 
 @dataclass(frozen=True)
