@@ -1,4 +1,4 @@
-"""ASGI middleware bounding request bodies while they stream in (413 with a JSON ``detail``).
+"""ASGI middleware bounding request bodies while they stream in (413 with a JSON ``detail``), and counting them.
 
 The limit is checked against ``Content-Length`` before the first byte is read and against the bytes
 received so far, so an oversized upload is cut off without being buffered anywhere.
@@ -39,3 +39,26 @@ class BodyLimitMiddleware:
             return message
 
         await self.app(scope, limited_receive, send)
+
+
+class BodyCountMiddleware:
+    """``count(n)`` for each ``n`` bytes of body received by a request for which ``counts(method, path)`` holds
+    (the metrics' upload bytes)."""
+
+    def __init__(self, app: ASGIApp, counts: Callable[[str, str], bool], count: Callable[[int], None]) -> None:
+        self.app = app
+        self.counts = counts
+        self.count = count
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or not self.counts(scope["method"], scope["path"]):
+            await self.app(scope, receive, send)
+            return
+
+        async def counted_receive() -> Message:
+            message = await receive()
+            if received := len(message.get("body", b"")):
+                self.count(received)
+            return message
+
+        await self.app(scope, counted_receive, send)

@@ -22,19 +22,22 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.body_limit import BodyLimitMiddleware
+from app.api_reference import install_api_reference
+from app.body_limit import BodyCountMiddleware, BodyLimitMiddleware
 from app.core import db, storage
 from app.core.celery_app import create_celery
 from app.core.cleanup import clean_leftovers
 from app.core.disk_space import InsufficientStorage
 from app.core.dispatch import sweep_jobs
+from app.core.log_format import configure_logging
+from app.core.metrics import ApiMetrics
 from app.core.progress import json_safe
 from app.core.redact import install_log_masking, public_error
 from app.core.render_results import remove_old_outcomes
 from app.core.settings import Settings, get_settings
 from app.deps import require_token
 from app.origin_guard import RequestGuardMiddleware, log_exposure
-from app.routes import events, health, imports, jobs, outputs, render, scenes, tokens, uploads, viewer
+from app.routes import events, health, imports, jobs, metrics, outputs, render, scenes, tokens, uploads, viewer
 from app.uploads import sessions as upload_sessions
 from app.uploads.rules import UploadError
 from app.webhooks import deliver_due
@@ -42,6 +45,12 @@ from app.webhooks import deliver_due
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
 UPLOAD_PART_PATH = re.compile(r"^/uploads/[^/]+/parts/[^/]+$")  # PUT: one part of an upload session
+
+
+def is_upload(method: str, path: str) -> bool:
+    """Whether a request's body is upload bytes (the metrics count them): ``POST /scenes``, or a ``PUT`` of one
+    part of an upload session."""
+    return (method, path) == ("POST", "/scenes") or (method == "PUT" and bool(UPLOAD_PART_PATH.match(path)))
 
 
 def sweep_once(app: FastAPI) -> None:
@@ -119,18 +128,23 @@ async def _validation_error(_request: Request, err: RequestValidationError) -> J
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The API for ``settings`` (default: from ``VOXNERF_*`` environment variables)."""
     settings = settings or get_settings()
+    if settings.log_format == "json":  # uvicorn has set its logging up by now (it calls this factory after)
+        configure_logging("json")
     app = FastAPI(
         title="VoxNeRF",
         version="0.1.0",
         summary="Upload indoor scans, train prior-guided radiance fields, render any pose.",
         lifespan=_lifespan,
-        docs_url=None,  # Swagger UI and ReDoc would load scripts from a CDN; /openapi.json stays
+        openapi_url=None,  # app.api_reference serves the schema (behind the token), /docs and /redoc
+        docs_url=None,
         redoc_url=None,
     )
     app.state.settings = settings
     app.state.celery = create_celery(settings)
     app.state.render_slots = render.RenderSlots(settings.max_concurrent_renders)
     app.state.event_streams = render.RenderSlots(settings.max_event_streams)  # open GET /jobs/{id}/events
+    app.state.metrics = ApiMetrics()
+    app.add_middleware(BodyCountMiddleware, counts=is_upload, count=app.state.metrics.upload_bytes.inc)
     app.add_middleware(
         BodyLimitMiddleware,
         limit_for=lambda method, path: (
@@ -146,9 +160,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
 
     protected = [Depends(require_token)]
-    for module in (scenes, uploads, imports, jobs, events, outputs, render, viewer, tokens):
+    for module in (scenes, uploads, imports, jobs, events, outputs, render, viewer, tokens, metrics):
         app.include_router(module.router, dependencies=protected)
     app.include_router(health.router)
+    install_api_reference(app, protected)
 
     @app.get("/", include_in_schema=False)
     def dashboard() -> FileResponse:

@@ -145,7 +145,8 @@ class _JobOptionsRules(BaseModel):
     descriptions are TrainConfig's, with a few tighter REST limits. At least one bound is required. Besides them,
     ``callback_url``: where the job's state changes are posted (webhooks)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"max_seconds": 300, "eval_every_s": 30.0}, {"max_iters": 2000, "seed": 1}]})
 
     callback_url: str | None = Field(
         None,
@@ -309,7 +310,9 @@ class VideoRequest(BaseModel):
     (one turn around their centre), with ``frames``, ``fps`` and optionally ``width``/``height`` (default:
     the scene's size), ``radius`` and ``height_above`` (scene units; orbit only). Sizes must be even."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"path": "orbit", "frames": 120, "fps": 30, "width": 640, "height": 480},
+        {"path": "interpolate", "frames": 90}]})
 
     camera_path: dict | None = Field(None, description="nerfstudio camera-path JSON object")
     dataparser_transforms: dict | None = Field(
@@ -346,7 +349,8 @@ class ExportRequest(BaseModel):
     """Geometry of a trained job: a triangle ``mesh`` or a coloured ``pointcloud``, as binary PLY in scene
     units (:func:`voxnerf.inference.export.export_geometry`)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"kind": "mesh", "min_opacity": 0.5}, {"kind": "pointcloud", "max_views": 50}]})
 
     kind: Literal["mesh", "pointcloud"]
     voxel_size: float | None = Field(None, gt=0, description="scene units; default the engine's for the scene")
@@ -513,7 +517,10 @@ class CameraPathRequest(BaseModel):
     (:func:`voxnerf.cameras.paths.interpolate_path`, as videos through training cameras do), or a nerfstudio
     ``camera_path`` (with its ``dataparser_transforms`` when needed) to read back in scene units."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+        {"keyframes": [[[1, 0, 0, 0.5], [0, 1, 0, 0.2], [0, 0, 1, 2.0], [0, 0, 0, 1]],
+                       [[0, 0, 1, 2.0], [0, 1, 0, 0.2], [-1, 0, 0, 0.5], [0, 0, 0, 1]]],
+         "frames": 60, "fps": 30, "width": 640, "height": 480, "fl_x": 525, "fl_y": 525, "cx": 320, "cy": 240}]})
 
     keyframes: list[Matrix4] | None = Field(None, min_length=2, max_length=1000)
     frames: int | None = Field(None, ge=2)
@@ -562,7 +569,8 @@ class CameraPathOut(BaseModel):
 class TokenCreate(BaseModel):
     """A named token to make (``POST /tokens``, scope admin)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"name": "ci", "scope": "write", "max_queued": 10}, {"name": "dashboards", "scope": "read"}]})
 
     name: str = Field(min_length=1, max_length=64, description="a slug: lowercase letters, digits, '-' and '_'; "
                       "never reused, since work is recorded under it; not 'admin' or 'local'")

@@ -23,6 +23,7 @@ from collections.abc import Iterator
 import uvicorn
 
 from app.core.celery_app import OUTPUTS_QUEUE, RENDER_QUEUE, TRAIN_QUEUE
+from app.core.log_format import configure_logging
 from app.core.redact import install_log_masking
 from app.core.settings import get_settings
 from app.main import create_app
@@ -88,14 +89,16 @@ def serve(host: str, port: int, workers: bool = True) -> None:
     settings = get_settings()
     check_bind(host, settings)
     settings.make_dirs()
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging(settings.log_format)
     install_log_masking()  # broker and storage URLs' credentials never reach a log line
     with _signals_noted() as received:
         procs = [_spawn_worker(q) for q in (TRAIN_QUEUE, RENDER_QUEUE, OUTPUTS_QUEUE)] if workers else []
         log.info("data in %s; broker %s", settings.data_dir, settings.broker_url or "embedded filesystem queue")
         try:
             if not received:  # a signal during start-up: stop at once
-                uvicorn.run(create_app(settings), host=host, port=port, **SERVER_OPTIONS)
+                # JSON logs: uvicorn's loggers get no handlers of their own and write through the root's
+                logs = {"log_config": None} if settings.log_format == "json" else {}
+                uvicorn.run(create_app(settings), host=host, port=port, **SERVER_OPTIONS, **logs)
         finally:
             if received:
                 log.info("received %s: stopping the workers", signal.Signals(received[0]).name)

@@ -33,7 +33,7 @@ from app.core import events
 from app.core.jobstore import JOBS
 from app.core.models import WebhookDeliveryRow
 from app.core.settings import Settings
-from app.core.tokens import UnknownPrincipal, webhook_secret
+from app.core.tokens import TokenError, webhook_secret
 from app.schemas import JobOut
 
 log = logging.getLogger(__name__)
@@ -132,7 +132,7 @@ async def _attempt(settings: Settings, client: httpx.AsyncClient, delivery: Webh
             if not 200 <= status < 300:
                 error = f"the receiver answered HTTP {status}" + (" (redirects are not followed)"
                                                                  if 300 <= status < 400 else "")
-        except UnknownPrincipal as err:
+        except TokenError as err:  # its maker's token is gone (or VOXNERF_API_TOKEN unset): nothing signs it
             error, final = f"cannot sign: {err}", True
         except CallbackRefused as err:
             error = str(err)

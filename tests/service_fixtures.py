@@ -182,14 +182,14 @@ class Service:
             self.env,
         )
 
-    def start_worker(self, queue: str, name: str | None = None) -> None:
+    def start_worker(self, queue: str, name: str | None = None, env: dict[str, str] | None = None) -> None:
         """A worker process (concurrency 1) on ``queue``, known as ``name`` (default: the queue's name) in
-        ``procs`` and logging to ``worker-<name>.log``."""
+        ``procs`` and logging to ``worker-<name>.log``; ``env`` adds to (or replaces) the service's variables."""
         name = name or queue
         self.procs[name] = _start(
             [PYTHON, "-m", "worker", "--queues", queue, "--concurrency", "1"],
             self.root / f"worker-{name}.log",
-            self.env,
+            {**self.env, **(env or {})},
         )
 
     def restart_api(self) -> None:
@@ -203,8 +203,10 @@ class Service:
         stop_process(self.procs.pop(name), kill=True)
 
     def answers(self) -> bool:
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}  # the schema is behind the token
         try:
-            return httpx.get(f"{self.base_url}/openapi.json", timeout=5, trust_env=False).status_code == 200
+            return httpx.get(f"{self.base_url}/openapi.json", headers=headers, timeout=5,
+                             trust_env=False).status_code == 200
         except httpx.HTTPError:
             return False
 

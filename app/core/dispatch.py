@@ -98,14 +98,20 @@ def _redis_payloads(app: Celery, queue: str) -> list[dict]:
     return payloads
 
 
-def waiting_row_ids(settings: Settings, app: Celery, queue: str) -> set[str] | None:
-    """The row ids whose message waits in ``queue``, not yet taken by a consumer; None when the broker's queue
-    cannot be read (a broker other than the embedded one and Redis)."""
+def waiting_messages(settings: Settings, app: Celery, queue: str) -> list[dict] | None:
+    """The messages (kombu payloads) waiting in ``queue``, not yet taken by a consumer; None when the broker's
+    queue cannot be read (a broker other than the embedded one and Redis)."""
     if settings.embedded_broker:
-        payloads = waiting_payloads(settings.broker_dir / "queue", queue)
-    elif urlparse(settings.broker_url).scheme in ("redis", "rediss"):
-        payloads = _redis_payloads(app, queue)
-    else:
+        return waiting_payloads(settings.broker_dir / "queue", queue)
+    if urlparse(settings.broker_url).scheme in ("redis", "rediss"):
+        return _redis_payloads(app, queue)
+    return None
+
+
+def waiting_row_ids(settings: Settings, app: Celery, queue: str) -> set[str] | None:
+    """The row ids whose message waits in ``queue`` (:func:`waiting_messages`); None when it cannot be read."""
+    payloads = waiting_messages(settings, app, queue)
+    if payloads is None:
         return None
     return {row_id for row_id in map(_first_arg, payloads) if row_id is not None}
 

@@ -4,8 +4,10 @@ Every change of a job is journalled by :func:`journal` in the transaction that m
 kind of change is made: the lease lifecycle (:mod:`app.core.lease`: claim, progress, cancel, finish, failure,
 requeue) and the job's creation (:func:`app.core.jobstore.create_job`). A change appends, in this order:
 
-- one ``stage`` event per stage record the job gained (its ``stages`` list grew), with the record as data;
-- one ``evaluation`` event per history point it gained, with the point as data;
+- one ``stage`` event per stage record that is new or changed (a stage's record is compared with the last
+  ``stage`` event of its name: the engine updates some records in place, e.g. ``progress_evals`` after each
+  progress evaluation), with the record as data;
+- one ``evaluation`` event per history point not sent before, with the point as data;
 - one ``state`` event when its state changed (data: the job's columns), else one ``progress`` event (the same).
 
 Each job's events are numbered from 1 (``seq``, only growing): the number is taken after the job's row is
@@ -20,6 +22,7 @@ sends them (``app/webhooks.py``) and records each attempt here.
 
 from __future__ import annotations
 
+import json
 import time
 from typing import Any
 
@@ -48,10 +51,29 @@ def job_from_columns(data: dict[str, Any]) -> JobRow:
     return JobRow(**{name: value for name, value in data.items() if name in names})
 
 
-def _count(session: Session, job_id: str, kind: str) -> int:
-    return session.scalar(
-        select(func.count()).select_from(JobEventRow).where(JobEventRow.job_id == job_id, JobEventRow.kind == kind)
-    )
+def _sent(session: Session, job_id: str, kind: str) -> list[dict]:
+    """The data of the job's events of ``kind``, oldest first."""
+    return list(session.scalars(
+        select(JobEventRow.data).where(JobEventRow.job_id == job_id, JobEventRow.kind == kind).order_by(JobEventRow.seq)
+    ))
+
+
+def _new_records(session: Session, job_id: str, stages: list | None, history: list | None) -> list[tuple[str, Any]]:
+    """``(kind, record)`` of the stage records that are new or changed since their last ``stage`` event and of the
+    history points no ``evaluation`` event has carried (a resumed run reports its earlier ones again)."""
+    last_stage = {data.get("name"): data for data in _sent(session, job_id, "stage")}
+    evaluated = {json.dumps(data, sort_keys=True) for data in _sent(session, job_id, "evaluation")}
+    new: list[tuple[str, Any]] = []
+    for record in json_safe(stages or []):
+        if last_stage.get(record.get("name")) != record:
+            last_stage[record.get("name")] = record
+            new.append(("stage", record))
+    for point in json_safe(history or []):
+        key = json.dumps(point, sort_keys=True)
+        if key not in evaluated:
+            evaluated.add(key)
+            new.append(("evaluation", point))
+    return new
 
 
 def _last_state(session: Session, job_id: str) -> str | None:
@@ -95,9 +117,7 @@ def journal(session: Session, job_id: str, change: str) -> None:
         return
     now = time.time()
     seq = session.scalar(select(func.coalesce(func.max(JobEventRow.seq), 0)).where(JobEventRow.job_id == job_id))
-    events: list[tuple[str, Any]] = []
-    for kind, records in (("stage", row.stages), ("evaluation", row.history)):
-        events += [(kind, record) for record in (records or [])[_count(session, job_id, kind):]]
+    events = _new_records(session, job_id, row.stages, row.history)
     if change == "state" and _last_state(session, job_id) == row.state:
         change = "progress"
     events.append((change, job_columns(row)))

@@ -145,13 +145,13 @@ JOBS = WorkKind(
 
 def create_job(settings: Settings, scene_id: str, options: dict, principal: Principal | None = None,
                callback_url: str | None = None) -> JobRow | None:
-    """A new queued job on ``scene_id`` made by ``principal`` (None: outside the API, by no one), its first event,
-    ``queued``, journalled with it, whose state changes are posted to ``callback_url`` when given; None when the
+    """A new queued job on ``scene_id`` made by ``principal`` (None: outside the API, by no one), its first event
+    (``queued``) journalled with it; its state changes are posted to ``callback_url`` when given. None when the
     scene does not exist. Raises :class:`app.core.lease.QueueFull` when ``settings.max_queued_jobs`` jobs are queued
     already, or as many as the principal's own limit allows (:meth:`app.core.lease.WorkKind.refuse_beyond`; nothing
     is written then)."""
-    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, callback_url=callback_url,
-                       created_by=principal and principal.name, **initial_values())
+    row = JOBS.new_row(new_id(), scene_id=scene_id, options=options, created_by=principal and principal.name,
+                       callback_url=callback_url, **initial_values())
     with session_scope(settings) as session:
         session.add(row)
         session.flush()

@@ -74,7 +74,6 @@ class JobRow(ProgressColumns, LeaseColumns, Base):
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     callback_url: Mapped[str | None] = mapped_column(Text, nullable=True)  # webhooks: app/core/events.py
-    created_by: Mapped[str | None] = mapped_column(String(255), nullable=True)  # the principal's name
 
 
 EVENT_KINDS = ("progress", "stage", "evaluation", "state")

@@ -27,6 +27,8 @@ OutputName = Literal[tuple(OUTPUT_NAMES)]  # rgb, depth, opacity
 FormatName = Literal[tuple(MEDIA_TYPES)]  # png, exr
 CameraModel = Literal[CAMERA_MODELS]  # PINHOLE, OPENCV, OPENCV_FISHEYE
 MAX_SIDE = 16384
+EXAMPLE_JOB = "3f2b8c1d9e0a4b5c8d7e6f5a4b3c2d1e"  # of the API reference's examples
+EXAMPLE_POSE = [[1, 0, 0, 0.5], [0, 1, 0, 0.2], [0, 0, 1, 2.0], [0, 0, 0, 1]]
 
 
 class RenderRequest(BaseModel):
@@ -44,7 +46,9 @@ class RenderRequest(BaseModel):
     else 0 (:func:`voxnerf.cameras.rules.resolve_intrinsics`, the rule of ``voxnerf render`` too).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"job_id": EXAMPLE_JOB, "transform_matrix": EXAMPLE_POSE, "width": 640, "height": 480, "format": "png"},
+        {"job_id": EXAMPLE_JOB, "transform_matrix": EXAMPLE_POSE, "format": "exr", "outputs": ["rgb", "depth"]}]})
 
     job_id: str = Field(pattern=ID_RE.pattern, description="a succeeded job's id")
     transform_matrix: list[list[float]] = Field(

@@ -228,6 +228,11 @@ class Settings(BaseSettings):
     health_timeout_s: float = Field(
         default=1.0, gt=0, description="how long /healthz waits for worker replies"
     )
+    log_format: Literal["text", "json"] = Field(
+        default="text",
+        description="how the API and the workers log: text lines, or one JSON object per line (time, level, "
+        "logger, message, job_id / output_id / import_id when known, exception) for log shippers",
+    )
     health_cache_s: float = Field(
         default=2.0, gt=0, le=60,
         description="an anonymous /healthz answer (status only) is reused this long before one check refreshes it",

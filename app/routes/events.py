@@ -9,7 +9,9 @@ point for ``evaluation``). Progress events are snapshots, so of those read toget
 stream ends after the ``state`` event of a final state. ``Last-Event-ID: N`` resumes after event N; for a job that
 has already ended it gets just the final state event (204 when N is that event or later: nothing is left to send,
 which also stops a browser's EventSource from reconnecting). A comment line is sent every ``event_keepalive_s``
-while nothing happens. One API process keeps at most ``max_event_streams`` streams open (429 beyond).
+while nothing happens. One API process keeps at most ``max_event_streams`` streams open (429 beyond). When the
+server is told to stop (SIGTERM, SIGINT) the open streams end within ``event_poll_s``: uvicorn waits for every open
+response before it stops, and a client reconnects with ``Last-Event-ID`` anyway (:func:`server_stopping`).
 
 The stream is written with Starlette's ``StreamingResponse``: the format is three lines per event and the read
 loop is this module's own, so a library (sse-starlette) would add a dependency without taking any work away.
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
 import time
 from collections.abc import AsyncIterator
 
@@ -27,6 +30,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from starlette.types import Receive, Scope, Send
 
+from app.api_reference import error_responses
 from app.core import events
 from app.core.jobstore import JOBS
 from app.core.models import JobEventRow
@@ -40,6 +44,7 @@ router = APIRouter(tags=["jobs"])
 
 STREAM_RETRY_AFTER_S = 5  # what a client refused for too many open streams is told to wait
 KEEPALIVE = b": keep-alive\n\n"
+EVENTS_PER_READ = 500
 EVENT_EXAMPLE = (
     'id: 7\nevent: progress\ndata: {"id": "...", "state": "running", "progress": 0.42, ...}\n\n'
     'id: 8\nevent: stage\ndata: {"name": "prior", "ran": true, "why": "...", "seconds": 1.2}\n\n'
@@ -64,6 +69,14 @@ def sse_message(event: JobEventRow) -> bytes:
     return f"id: {event.seq}\nevent: {event.kind}\ndata: {data}\n\n".encode()
 
 
+def server_stopping() -> bool:
+    """Whether the uvicorn server of this process has been told to stop: while it serves, its ``handle_exit`` is the
+    SIGTERM handler, and it sets the server's ``should_exit``. False under any other server (its streams then end
+    with their jobs, or when the client goes)."""
+    server = getattr(signal.getsignal(signal.SIGTERM), "__self__", None)
+    return bool(getattr(server, "should_exit", False))
+
+
 def _newest_progress_only(batch: list[JobEventRow]) -> list[JobEventRow]:
     """``batch`` without the progress events a later one in it supersedes."""
     last_progress = max((i for i, e in enumerate(batch) if e.kind == "progress"), default=-1)
@@ -73,8 +86,8 @@ def _newest_progress_only(batch: list[JobEventRow]) -> list[JobEventRow]:
 async def _stream(settings: Settings, job_id: str, after: int) -> AsyncIterator[bytes]:
     """The job's events after ``after`` as they are written, up to and including its final state event."""
     last_sent = time.monotonic()
-    while True:
-        batch = await run_in_threadpool(events.events_after, settings, job_id, after)
+    while not server_stopping():
+        batch = await run_in_threadpool(events.events_after, settings, job_id, after, EVENTS_PER_READ)
         if batch:
             after = batch[-1].seq
             chunk = b""
@@ -85,7 +98,8 @@ async def _stream(settings: Settings, job_id: str, after: int) -> AsyncIterator[
                     return
             yield chunk
             last_sent = time.monotonic()
-            continue  # a full batch may have more behind it: read again at once
+            if len(batch) == EVENTS_PER_READ:
+                continue  # more may be behind it: read again at once
         if time.monotonic() - last_sent >= settings.event_keepalive_s:
             # an ended (or deleted) job with nothing after ``after``: its final event is behind the client already
             job = await run_in_threadpool(JOBS.get, settings, job_id)
@@ -129,9 +143,8 @@ def _last_event_id(value: str | None) -> int | None:
         200: {"description": "an event stream that ends with the job's final state",
               "content": {"text/event-stream": {"schema": {"type": "string"}, "example": EVENT_EXAMPLE}}},
         204: {"description": "Last-Event-ID is the final event of a job that has ended: nothing left to send"},
-        404: {"description": "no such job"},
-        422: {"description": "Last-Event-ID is not an event id"},
-        429: {"description": "max_event_streams streams are open; retry after Retry-After"},
+        **error_responses(404, 422, 429, e422="Last-Event-ID must be an event id (a whole number >= 0), not 'x'",
+                          e429="64 event streams are open (VOXNERF_MAX_EVENT_STREAMS); retry later"),
     },
 )
 async def job_events(
@@ -141,6 +154,9 @@ async def job_events(
     last_event_id: str | None = Header(None, alias="Last-Event-ID",
                                        description="resume after this event id (browsers send it on reconnecting)"),
 ) -> Response:
+    """The job's events as they are written: ``progress`` (the job), ``stage`` (a stage record), ``evaluation`` (a
+    history point), ``state`` (the job); the stream ends after the final state's event. ``Last-Event-ID: N``
+    resumes after event N (a browser's EventSource sends it when it reconnects)."""
     after = _last_event_id(last_event_id)
     job = await run_in_threadpool(work.found, settings, JOBS, job_id)
     if job.state in events.FINAL_STATES:
@@ -161,7 +177,8 @@ async def job_events(
 
 
 @router.get("/jobs/{job_id}/deliveries", response_model=list[WebhookDeliveryOut],
-            summary="Webhook deliveries of a job's state changes, with every attempt")
+            summary="Webhook deliveries of a job's state changes, with every attempt",
+            responses=error_responses(404))
 def job_deliveries(job_id: JobId, settings: SettingsDep) -> list[WebhookDeliveryOut]:
     """One delivery per state change of a job that has a ``callback_url``, oldest first: its outcome
     (``pending``, ``delivered``, ``abandoned``) and each attempt's time, HTTP status and error. 404 for an unknown

@@ -113,10 +113,14 @@ def _has_principal(settings: Settings, authorization: str | None) -> bool:
 @router.get(
     "/healthz",
     response_model=HealthOut,
-    responses={503: {"model": HealthOut}},
+    responses={503: {"model": HealthOut, "description": "the database, the broker or a queue's workers are missing",
+                     "content": {"application/json": {"example": {"status": "unavailable"}}}}},
     summary="Status (no auth); database, broker and live workers with the token",
 )
 async def healthz(request: Request) -> JSONResponse:
+    """200 when the database and the broker answer and the train and render queues each have a live worker, else
+    503. Without the token only ``status`` (from a check at most ``VOXNERF_HEALTH_CACHE_S`` old); with it (or on a
+    tokenless service) the database, the broker and the live workers of each queue."""
     # Async with no sync dependencies: a waiting request holds no thread of the pool.
     settings: Settings = request.app.state.settings
     probe = health_probe(request)

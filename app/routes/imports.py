@@ -7,6 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query
 
+from app.api_reference import EXAMPLE_ID, error_responses
 from app.core import jobstore
 from app.core.imports import IMPORTS, remove_raw
 from app.deps import ID_DOC, PrincipalDep, SettingsDep
@@ -23,15 +24,21 @@ def list_imports(
     state: Annotated[JobState | None, Query(description="only imports in this state")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> list[ImportOut]:
+    """The capture imports ``POST /scenes`` queued (videos, photos, ROS bags, Stray recordings), newest first."""
     return [ImportOut.from_row(row) for row in IMPORTS.newest(settings, limit, state=state)]
 
 
-@router.get("/imports/{import_id}", response_model=ImportOut, summary="State, stage and progress of an import")
+@router.get("/imports/{import_id}", response_model=ImportOut, summary="State, stage and progress of an import",
+            responses=error_responses(404, e404=f"no import {EXAMPLE_ID}"))
 def get_import(import_id: ImportId, settings: SettingsDep) -> ImportOut:
+    """The import's state, stage and progress; once it has succeeded, ``scene_id`` names the scene it made and
+    ``summary`` is what its importer wrote."""
     return ImportOut.from_row(work.found(settings, IMPORTS, import_id))
 
 
-@router.post("/imports/{import_id}/cancel", status_code=202, response_model=ImportOut, summary="Cancel an import")
+@router.post("/imports/{import_id}/cancel", status_code=202, response_model=ImportOut, summary="Cancel an import",
+             responses=error_responses(404, 409, e404=f"no import {EXAMPLE_ID}",
+                                       e409=f"import {EXAMPLE_ID} already succeeded"))
 def cancel_import(import_id: ImportId, settings: SettingsDep, principal: PrincipalDep) -> ImportOut:
     """A queued import is cancelled at once; a running one when its worker next checks (between the importer's
     stages). The raw capture of one cancelled while queued goes at once. 403 for another token's import (scope

@@ -10,6 +10,7 @@ from urllib.parse import quote
 from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.responses import FileResponse
 
+from app.api_reference import EXAMPLE_ID, error_responses
 from app.core import jobstore, outputs, storage
 from app.core.jobstore import JOBS
 from app.core.models import JobRow
@@ -37,22 +38,29 @@ def list_jobs(
     limit: int = Query(100, ge=1, le=1000),
     scene_id: str | None = Query(None, pattern=jobstore.ID_RE.pattern),
 ) -> list[JobOut]:
+    """Training jobs with their state and progress, newest first; ``scene_id`` keeps those of one scene."""
     return [JobOut.from_row(row) for row in JOBS.newest(settings, limit, scene_id=scene_id)]
 
 
-@router.get("/jobs/{job_id}", response_model=JobOut, summary="State, progress, ETA, history, stages, metrics")
+@router.get("/jobs/{job_id}", response_model=JobOut, summary="State, progress, ETA, history, stages, metrics",
+            responses=error_responses(404))
 def get_job(job_id: JobId, settings: SettingsDep) -> JobOut:
+    """The job as it is now: state, options, progress (stage, iteration, ETA), PSNR history, stage records, and
+    once it has succeeded its metrics per evaluation split."""
     return JobOut.from_row(_job_or_404(settings, job_id))
 
 
-@router.post("/jobs/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job")
+@router.post("/jobs/{job_id}/cancel", status_code=202, response_model=JobOut, summary="Cancel a job",
+             responses=error_responses(404, 409, e409=f"job {EXAMPLE_ID} already succeeded"))
 def cancel_job(job_id: JobId, settings: SettingsDep, principal: PrincipalDep) -> JobOut:
     """Cancel a queued job at once, a running one at its next iteration (its checkpoint is kept); 403 for another
     token's job (scope write)."""
     return JobOut.from_row(work.cancel(settings, JOBS, job_id, principal))
 
 
-@router.delete("/jobs/{job_id}", status_code=204, summary="Delete a finished job, its run and its outputs")
+@router.delete("/jobs/{job_id}", status_code=204, summary="Delete a finished job, its run and its outputs",
+               responses=error_responses(404, 409, e409=f"job {EXAMPLE_ID} is running; cancel it and wait for it "
+                                         "to stop first"))
 def delete_job(job_id: JobId, settings: SettingsDep, principal: PrincipalDep) -> Response:
     """Delete a succeeded, failed or cancelled job: its row, its output jobs, its run directory (checkpoint,
     report, renders, outputs) here and in the object store. 409 while it or one of its outputs is queued or
@@ -90,8 +98,10 @@ def _eval_root(settings: Settings, job: JobRow) -> Path:
     return _run_dir(settings, job) / EVAL_DIR
 
 
-@router.get("/jobs/{job_id}/renders", response_model=list[EvalRender], summary="Evaluation renders of a job")
+@router.get("/jobs/{job_id}/renders", response_model=list[EvalRender], summary="Evaluation renders of a job",
+            responses=error_responses(404, 503))
 def list_renders(job_id: JobId, settings: SettingsDep) -> list[EvalRender]:
+    """The evaluation renders the run has written so far (split, view name, URL to download the PNG)."""
     root = _eval_root(settings, _job_or_404(settings, job_id))
     if not root.is_dir():
         return []
@@ -120,10 +130,11 @@ def _plain_name(value: str) -> bool:
 @router.get(
     "/jobs/{job_id}/renders/{split}/{filename}",
     response_class=FileResponse,
-    responses={200: {"content": {"image/png": {}}}},
+    responses={200: {"content": {"image/png": {}}}, **error_responses(404, 503, e404="no such render")},
     summary="Download one evaluation render (PNG)",
 )
 def get_render(job_id: JobId, split: str, filename: str, settings: SettingsDep) -> FileResponse:
+    """One PNG of ``GET /jobs/{id}/renders``: ``split`` and ``filename`` as that list's URL names them."""
     job = _job_or_404(settings, job_id)
     if not (_plain_name(split) and _plain_name(filename) and filename.endswith(".png")):
         raise HTTPException(404, "no such render")
@@ -137,10 +148,14 @@ def get_render(job_id: JobId, split: str, filename: str, settings: SettingsDep) 
 @router.get(
     "/jobs/{job_id}/report",
     response_class=FileResponse,
-    responses={200: {"content": {"application/json": {}}}},
+    responses={200: {"content": {"application/json": {}}},
+               **error_responses(404, 503, e404=f"job {EXAMPLE_ID} has no report.json (running): a run writes it "
+                                 "when it ends")},
     summary="Download the run's report.json (config, stages, history, metrics); written when the run ends",
 )
 def get_report(job_id: JobId, settings: SettingsDep) -> FileResponse:
+    """The run's report.json as ``voxnerf train`` writes it: the configuration, stage records, PSNR history and
+    final metrics; 404 until the run has ended."""
     job = _job_or_404(settings, job_id)
     path = _run_dir(settings, job) / REPORT
     if not path.is_file():
@@ -151,7 +166,7 @@ def get_report(job_id: JobId, settings: SettingsDep) -> FileResponse:
 @router.get(
     "/jobs/{job_id}/checkpoint",
     response_class=FileResponse,
-    responses={200: {"content": {"application/octet-stream": {}}}},
+    responses={200: {"content": {"application/octet-stream": {}}}, **error_responses(404, 409, 503)},
     summary="Download the run's checkpoint (checkpoint.pt: `voxnerf render` reads it from a run directory)",
 )
 def get_checkpoint(job_id: JobId, settings: SettingsDep) -> FileResponse:

@@ -14,6 +14,7 @@ from celery import Celery
 from fastapi import APIRouter, HTTPException, Path, Query
 from fastapi.responses import FileResponse
 
+from app.api_reference import EXAMPLE_ID, NOT_RENDERABLE_EXAMPLE, error_responses
 from app.core import jobstore, storage
 from app.core import outputs as store
 from app.core.disk_space import require_room
@@ -61,10 +62,19 @@ def _output_or_404(settings: Settings, output_id: str) -> OutputRow:
     return work.found(settings, OUTPUTS, output_id)
 
 
+QUEUE_ERRORS = error_responses(
+    404, 409, 422, 429, 503, 507, e409=NOT_RENDERABLE_EXAMPLE,
+    e429="100 outputs are queued already (the limit is 100, VOXNERF_MAX_QUEUED_OUTPUTS); wait for some to start, or "
+    "cancel some")
+
+
 @router.post("/jobs/{job_id}/videos", status_code=202, response_model=OutputOut,
-             summary="Render a fly-through video (MP4) of a trained job")
+             summary="Render a fly-through video (MP4) of a trained job", responses=QUEUE_ERRORS)
 def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celery: CeleryDep,
                  principal: PrincipalDep) -> OutputOut:
+    """Queue a video on the ``outputs`` queue: along a nerfstudio ``camera_path``, or a generated ``path``
+    (``interpolate`` through the training cameras, or an ``orbit``). 202 with the output; follow it at
+    ``GET /outputs/{id}`` and download it from its ``file_url`` once it has succeeded."""
     job, partial = _source_or_error(settings, job_id)
     try:
         params, frames = store.video_params(settings, body.model_dump())
@@ -75,9 +85,11 @@ def create_video(job_id: JobId, body: VideoRequest, settings: SettingsDep, celer
 
 
 @router.post("/jobs/{job_id}/exports", status_code=202, response_model=OutputOut,
-             summary="Export a mesh or a point cloud (PLY) of a trained job")
+             summary="Export a mesh or a point cloud (PLY) of a trained job", responses=QUEUE_ERRORS)
 def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, celery: CeleryDep,
                   principal: PrincipalDep) -> OutputOut:
+    """Queue a geometry export on the ``outputs`` queue: a triangle mesh or a coloured point cloud, binary PLY in
+    scene units. 202 with the output; follow it at ``GET /outputs/{id}``."""
     job, partial = _source_or_error(settings, job_id)
     params = body.model_dump(exclude={"kind"})
     try:
@@ -87,18 +99,25 @@ def create_export(job_id: JobId, body: ExportRequest, settings: SettingsDep, cel
     return _queue(settings, celery, job_id, body.kind, params, None, partial, principal)
 
 
-@router.get("/jobs/{job_id}/outputs", response_model=list[OutputOut], summary="Output jobs of a job, newest first")
+@router.get("/jobs/{job_id}/outputs", response_model=list[OutputOut], summary="Output jobs of a job, newest first",
+            responses=error_responses(404))
 def list_outputs(job_id: JobId, settings: SettingsDep, limit: int = Query(100, ge=1, le=1000)) -> list[OutputOut]:
+    """The videos, meshes and point clouds made (or being made) from the job, newest first."""
     work.found(settings, JOBS, job_id)
     return [OutputOut.from_row(row) for row in OUTPUTS.newest(settings, limit, job_id=job_id)]
 
 
-@router.get("/outputs/{output_id}", response_model=OutputOut, summary="State, progress, ETA, error, summary")
+@router.get("/outputs/{output_id}", response_model=OutputOut, summary="State, progress, ETA, error, summary",
+            responses=error_responses(404, e404=f"no output {EXAMPLE_ID}"))
 def get_output(output_id: OutputId, settings: SettingsDep) -> OutputOut:
+    """The output's state and progress (frames or views done of total); once it has succeeded, what it made and
+    its ``file_url``."""
     return OutputOut.from_row(_output_or_404(settings, output_id))
 
 
-@router.post("/outputs/{output_id}/cancel", status_code=202, response_model=OutputOut, summary="Cancel an output")
+@router.post("/outputs/{output_id}/cancel", status_code=202, response_model=OutputOut, summary="Cancel an output",
+             responses=error_responses(404, 409, e404=f"no output {EXAMPLE_ID}",
+                                       e409=f"output {EXAMPLE_ID} already succeeded"))
 def cancel_output(output_id: OutputId, settings: SettingsDep, principal: PrincipalDep) -> OutputOut:
     """Cancel a queued output at once, a running one at its next frame or view (nothing is kept); 403 for another
     token's output (scope write)."""
@@ -110,11 +129,13 @@ def cancel_output(output_id: OutputId, settings: SettingsDep, principal: Princip
     response_class=FileResponse,
     responses={
         200: {"content": {"video/mp4": {}, "application/octet-stream": {}}, "description": "the MP4 or PLY"},
-        409: {"description": "the output has not succeeded"},
+        **error_responses(404, 409, 503, e404=f"no output {EXAMPLE_ID}",
+                          e409=f"output {EXAMPLE_ID} is running; its file is served once it has succeeded"),
     },
     summary="Download a succeeded output (video/mp4, or PLY as application/octet-stream)",
 )
 def get_output_file(output_id: OutputId, settings: SettingsDep) -> FileResponse:
+    """The MP4 or PLY of a succeeded output (409 before: a partial file is never served)."""
     row = _output_or_404(settings, output_id)
     if row.state != "succeeded":
         raise HTTPException(409, f"output {output_id} is {row.state}; its file is served once it has succeeded")

@@ -13,6 +13,7 @@ instead of queueing threads that each wait up to ``render_timeout_s`` for a rend
 from __future__ import annotations
 
 import logging
+import time
 
 from celery import Celery
 from fastapi import APIRouter, HTTPException, Request, Response
@@ -20,6 +21,7 @@ from fastapi.concurrency import run_in_threadpool
 from kombu.exceptions import KombuError
 from redis import RedisError
 
+from app.api_reference import EXAMPLE_ID, error_responses
 from app.core import jobstore
 from app.core.dispatch import send_render
 from app.core.jobstore import JOBS
@@ -39,6 +41,8 @@ RETRY_AFTER_S = 1  # what a refused client is told to wait: about one render of 
 PARTIAL_HEADER = "X-VoxNeRF-Partial"  # "true" on a render of an unfinished model: not a succeeded job's
 ITERATION_HEADER = "X-VoxNeRF-Iteration"  # the training iteration of the checkpoint that rendered
 STATE_HEADER = "X-VoxNeRF-Job-State"  # the job's state when the render was asked (running: a live checkpoint)
+NO_CHECKPOINT_YET_EXAMPLE = (f"job {EXAMPLE_ID} has no checkpoint yet: training writes its first about 60 s after its "
+                             "set-up (VOXNERF_CHECKPOINT_EVERY_S), and renders start from it")
 
 
 class RenderSlots:
@@ -113,10 +117,12 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
                            f"{STATE_HEADER}: the job's state, {PARTIAL_HEADER}: true unless the job succeeded (a "
                            "running job's latest checkpoint, or a cancelled or failed job's last one)",
         },
-        409: {"description": "the job is queued, or has written no checkpoint yet"},
-        429: {"description": "max_concurrent_renders renders are in progress; retry after Retry-After"},
-        503: {"description": "the broker is unreachable"},
-        504: {"description": "no render worker answered in time"},
+        **error_responses(
+            404, 409, 422, 429, 500, 503, 504, e409=NO_CHECKPOINT_YET_EXAMPLE,
+            e422="1920x1440 exceeds the limit of 2073600 pixels",
+            e429="8 renders are already in progress on this API process (VOXNERF_MAX_CONCURRENT_RENDERS); retry "
+            "in 1 s",
+            e503="the render queue is unavailable (Connection refused); try again later"),
     },
     summary="Render a camera pose of a trained job (succeeded, or from the latest checkpoint of a running, "
             "cancelled or failed one) to PNG or EXR",
@@ -124,6 +130,10 @@ def _render(body: RenderRequest, settings: Settings, celery: Celery) -> Response
 async def render(
     body: RenderRequest, request: Request, settings: SettingsDep, celery: CeleryDep
 ) -> Response:
+    """Render one view of a trained job on a render worker and answer the image: PNG (one of rgb, depth,
+    opacity) or EXR (any of them as float channels). Missing intrinsics are the scene's first training camera's;
+    ``camera_model`` renders through a lens. 429 with ``Retry-After`` beyond ``VOXNERF_MAX_CONCURRENT_RENDERS``
+    renders in progress on this API process."""
     slots: RenderSlots = request.app.state.render_slots
     if not slots.try_acquire():
         raise HTTPException(
@@ -132,7 +142,14 @@ async def render(
             f"(VOXNERF_MAX_CONCURRENT_RENDERS); retry in {RETRY_AFTER_S} s",
             headers={"Retry-After": str(RETRY_AFTER_S)},
         )
+    started, status = time.perf_counter(), 500
     try:
-        return await run_in_threadpool(_render, body, settings, celery)
+        response = await run_in_threadpool(_render, body, settings, celery)
+        status = response.status_code
+        return response
+    except HTTPException as err:
+        status = err.status_code
+        raise
     finally:
         slots.release()
+        request.app.state.metrics.render_seconds.labels(status=str(status)).observe(time.perf_counter() - started)

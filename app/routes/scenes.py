@@ -15,6 +15,7 @@ from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
 from app import webhooks
+from app.api_reference import EXAMPLE_ID, error_responses
 from app.core import jobstore, storage
 from app.core.disk_space import require_room
 from app.core.imports import IMPORTS
@@ -68,7 +69,8 @@ UPLOAD_BODY = {
                         "extrapolation splits (default: none, the loader's default split applies)",
                     },
                 },
-            }
+            },
+            "example": {"file": "(the bytes of redkitchen.zip)", "name": "redkitchen"},
         }
     },
 }
@@ -92,7 +94,9 @@ def _split_rule(value: object, is_zip: bool):
     status_code=201,
     response_model=SceneOut,
     responses={202: {"model": ImportOut, "description": "a capture whose import is queued: follow it at "
-                     "/imports/{id}; its scene exists once it has succeeded"}},
+                     "/imports/{id}; its scene exists once it has succeeded"},
+               **error_responses(413, 415, 422, 429, 503, 507,
+                                 e422="entry room/transforms.json: frames[3].transform_matrix is not a 4x4 matrix")},
     openapi_extra={"requestBody": UPLOAD_BODY},
     summary="Upload a scene (zip in field 'file', or its files in fields 'files'); COLMAP, ScanNet, Record3D and "
     "Polycam zips are imported; videos, photos, ROS bags and Stray recordings are queued for import",
@@ -100,6 +104,12 @@ def _split_rule(value: object, is_zip: bool):
 async def create_scene(
     request: Request, settings: SettingsDep, celery: CeleryDep, principal: PrincipalDep
 ) -> SceneOut | JSONResponse:
+    """A multipart form: a .zip in field ``file`` (a scene directory, or a COLMAP, ScanNet, Record3D or Polycam
+    export, imported at once), a capture in ``file`` (a video, photos, a ROS bag or a Stray recording: its import
+    is queued, answered 202 with the import), or the scene's files in fields ``files``. The upload is unpacked and
+    validated in a sandboxed process (sizes, pixels, file types, poses, the prior) before the scene exists: 201
+    with the scene and its summary. Example: ``curl -H "Authorization: Bearer $TOKEN" -F file=@room.zip
+    http://127.0.0.1:8000/scenes``."""
     async with upload_slot(request, settings):
         declared = _declared_length(request)  # the body is not read yet: a refused upload writes nothing
         await run_in_threadpool(require_room, settings, declared, what=f"an upload of {declared} bytes")
@@ -198,6 +208,7 @@ def store_file(settings: Settings, source: BinaryIO | Path, filename: str | None
 
 @router.get("/scenes", response_model=list[SceneOut], summary="List scenes, newest first")
 def list_scenes(settings: SettingsDep) -> list[SceneOut]:
+    """Every stored scene with its summary (frames, splits, image size, prior, depth), newest first."""
     return [SceneOut.from_row(row) for row in jobstore.list_scenes(settings)]
 
 
@@ -208,15 +219,21 @@ def _scene_or_404(settings, scene_id: str):
     return row
 
 
-@router.get("/scenes/{scene_id}", response_model=SceneOut, summary="One scene and its summary")
+@router.get("/scenes/{scene_id}", response_model=SceneOut, summary="One scene and its summary",
+            responses=error_responses(404, e404=f"no scene {EXAMPLE_ID}"))
 def get_scene(scene_id: SceneId, settings: SettingsDep) -> SceneOut:
+    """The scene's name, size and summary (what the upload's validation found), and for an imported upload what
+    its importer wrote."""
     return SceneOut.from_row(_scene_or_404(settings, scene_id))
 
 
-@router.delete("/scenes/{scene_id}", status_code=204, summary="Delete a scene (refused while a job uses it)")
+@router.delete("/scenes/{scene_id}", status_code=204, summary="Delete a scene (refused while a job uses it)",
+               responses=error_responses(404, 409, e404=f"no scene {EXAMPLE_ID}",
+                                         e409=f"scene {EXAMPLE_ID} is used by 1 active job(s): {EXAMPLE_ID}; "
+                                         "cancel or wait for them first"))
 def delete_scene(scene_id: SceneId, settings: SettingsDep, principal: PrincipalDep) -> Response:
-    """Delete a scene and its files; 409 while a queued or running job uses it, 403 for another token's scene
-    (scope write)."""
+    """Delete the scene's row and files (here and in the object store; its finished jobs stay); 409 while a queued
+    or running job uses it, 403 for another token's scene (scope write)."""
     require_owner(principal, f"scene {scene_id}", _scene_or_404(settings, scene_id).created_by)
     try:
         deleted = jobstore.delete_scene(settings, scene_id)
@@ -238,14 +255,19 @@ def delete_scene(scene_id: SceneId, settings: SettingsDep, principal: PrincipalD
     status_code=202,
     response_model=JobOut,
     summary="Start training a scene",
+    responses=error_responses(404, 422, 429, 503, e404=f"no scene {EXAMPLE_ID}",
+                              e429="100 jobs are queued already (the limit is 100, VOXNERF_MAX_QUEUED_JOBS); "
+                              "wait for some to start, or cancel some"),
 )
 def create_job(
     scene_id: SceneId, options: JobOptions, settings: SettingsDep, celery: CeleryDep, response: Response,
     principal: PrincipalDep,
 ) -> JobOut:
-    """Queue a training job; ``callback_url`` (optional) receives its state changes (see docs/service.md,
-    "Live events and webhooks"): a URL whose host resolves to a private or loopback address is refused with 422
-    unless VOXNERF_WEBHOOK_ALLOW_PRIVATE is set."""
+    """Queue a training job on the scene with the given options (the ``voxnerf train`` flags; at least one of
+    ``max_seconds`` and ``max_iters``): 202 with the job, ``Location: /jobs/{id}``; follow it at ``GET /jobs/{id}``
+    or its events. ``callback_url`` (optional) receives its state changes (see docs/service.md, "Live events and
+    webhooks"): a URL whose host resolves to a private or loopback address is refused with 422 unless
+    VOXNERF_WEBHOOK_ALLOW_PRIVATE is set."""
     values = options.model_dump(exclude_none=True, exclude={"callback_url"})
     if options.callback_url is not None:
         try:

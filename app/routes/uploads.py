@@ -15,6 +15,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.requests import ClientDisconnect
 
+from app.api_reference import EXAMPLE_ID, error_responses
 from app.deps import CeleryDep, PrincipalDep, SettingsDep
 from app.routes.scenes import store_file, stored_answer, upload_slot
 from app.schemas import ImportOut, SceneOut
@@ -24,6 +25,7 @@ from app.uploads.rules import UploadError
 router = APIRouter(tags=["uploads"])
 SessionId = Annotated[str, PathParam(pattern=sessions.SESSION_ID_RE.pattern, description="upload session id")]
 PartNumber = Annotated[int, PathParam(ge=0, le=100_000, description="part number, from 0")]
+SESSION_GONE_EXAMPLE = f"no upload session {EXAMPLE_ID} (completed, deleted or expired)"
 
 
 class UploadCreate(BaseModel):
@@ -72,8 +74,17 @@ class PartOut(BaseModel):
 
 
 @router.post("/uploads", status_code=201, response_model=UploadOut,
-             summary="Start an upload session: a file past one request's limit (or on a poor connection) sent in parts")
+             summary="Start an upload session: a file past one request's limit (or on a poor connection) sent in parts",
+             responses=error_responses(
+                 413, 422, 429, 507, e413="total_bytes: 137438953472 bytes is more than the 68719476736 an upload "
+                 "session takes (VOXNERF_MAX_UPLOAD_SESSION_BYTES)",
+                 e429="16 upload sessions are open (VOXNERF_MAX_UPLOAD_SESSIONS): complete or delete one, or wait "
+                 "for one to expire"))
 def create_upload(body: UploadCreate, settings: SettingsDep, response: Response) -> UploadOut:
+    """Open a session for one file of ``total_bytes`` (a zip or a capture, as ``POST /scenes`` takes): 201 with
+    its id, its part size and part count, ``Location: /uploads/{id}``. Send each part with ``PUT
+    /uploads/{id}/parts/{n}``, then ``POST /uploads/{id}/complete``. A session no part reaches for
+    ``VOXNERF_UPLOAD_SESSION_EXPIRY_S`` expires."""
     staging.split_rule(body.splits)  # 422 for anything but a known rule
     sha256 = sessions.check_sha256(body.sha256, "sha256")
     name = body.filename.replace("\\", "/").rsplit("/", 1)[-1]
@@ -84,8 +95,10 @@ def create_upload(body: UploadCreate, settings: SettingsDep, response: Response)
     return UploadOut.of(state)
 
 
-@router.get("/uploads/{upload_id}", response_model=UploadOut, summary="An upload session: the parts received")
+@router.get("/uploads/{upload_id}", response_model=UploadOut, summary="An upload session: the parts received",
+            responses=error_responses(404, 410, e404=SESSION_GONE_EXAMPLE))
 def get_upload(upload_id: SessionId, settings: SettingsDep) -> UploadOut:
+    """What a client resuming after a dropped connection needs: the parts received and those missing."""
     return UploadOut.of(sessions.state(settings, upload_id))
 
 
@@ -94,7 +107,11 @@ def get_upload(upload_id: SessionId, settings: SettingsDep) -> UploadOut:
     response_model=PartOut,
     summary="Send one part (raw body, its SHA-256 in X-Content-SHA256); resending a received part is harmless",
     openapi_extra={"requestBody": {"required": True, "content": {"application/octet-stream": {
-        "schema": {"type": "string", "format": "binary"}}}}},
+        "schema": {"type": "string", "format": "binary"}, "example": "(the part's bytes)"}}}},
+    responses=error_responses(
+        404, 409, 410, 413, 422, 507, e404=SESSION_GONE_EXAMPLE,
+        e409="part 3 was received already with other bytes (SHA-256 ...); delete the session to start again",
+        e422="part 3: the bytes received hash to 9f86d0..., not to the X-Content-SHA256 sent"),
 )
 async def put_part(
     upload_id: SessionId,
@@ -104,6 +121,9 @@ async def put_part(
     x_content_sha256: Annotated[str, Header(description="SHA-256 of the part's bytes, 64 hex digits")],
     response: Response,
 ) -> PartOut | Response:
+    """The bytes of part ``number`` (every part has the session's part size but the last): 201 when new, 200
+    when the same bytes had been received already. Its size and SHA-256 are checked before it is kept; a part
+    cut off by a dropped connection leaves nothing, so it is simply sent again."""
     declared = sessions.check_sha256(x_content_sha256, "X-Content-SHA256")
     session, temp = await run_in_threadpool(sessions.incoming_file, settings, upload_id, number)
     temp_path = Path(temp.name)
@@ -134,12 +154,17 @@ async def put_part(
     "/uploads/{upload_id}/complete",
     status_code=201,
     response_model=SceneOut,
-    responses={202: {"model": ImportOut, "description": "a capture whose import is queued, as POST /scenes"}},
     summary="Join the parts and store the file as POST /scenes stores an upload (the session is then gone)",
+    responses={202: {"model": ImportOut, "description": "a capture whose import is queued, as POST /scenes"},
+               **error_responses(404, 409, 410, 413, 415, 422, 429, 503, 507, e404=SESSION_GONE_EXAMPLE,
+                                 e409="2 of 40 parts not received yet: 17, 31; send them first")},
 )
 async def complete_upload(
     upload_id: SessionId, request: Request, settings: SettingsDep, celery: CeleryDep, principal: PrincipalDep
 ) -> SceneOut | JSONResponse:
+    """Join the parts (every one must have arrived), check the whole file's SHA-256 when the session has one, and
+    validate and store it as ``POST /scenes`` does: 201 with the scene, or 202 with the queued import of a
+    capture."""
     async with upload_slot(request, settings):
         settings.make_dirs()
         handle, name = tempfile.mkstemp(prefix="session-", suffix=".upload", dir=settings.staging_dir)
@@ -156,7 +181,9 @@ async def complete_upload(
     return stored_answer(settings, celery, stored)
 
 
-@router.delete("/uploads/{upload_id}", status_code=204, summary="Abandon an upload session and its parts")
+@router.delete("/uploads/{upload_id}", status_code=204, summary="Abandon an upload session and its parts",
+               responses=error_responses(404, e404=SESSION_GONE_EXAMPLE))
 def delete_upload(upload_id: SessionId, settings: SettingsDep) -> Response:
+    """Remove the session and the parts received (an expired one too)."""
     sessions.delete(settings, upload_id)
     return Response(status_code=204)

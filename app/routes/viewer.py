@@ -18,6 +18,7 @@ import numpy as np
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import FileResponse
 
+from app.api_reference import EXAMPLE_ID, error_responses
 from app.core import storage
 from app.core.jobstore import JOBS
 from app.core.models import JobRow
@@ -72,9 +73,17 @@ def _scene_view(request: Request, settings: Settings, job_id: str) -> tuple[JobR
     return job, _shared_read(request, settings, job, f"scene {job.scene_id}", read)
 
 
-@router.get("/jobs/{job_id}/cameras", response_model=CamerasOut,
+SCENE_READ_ERRORS = error_responses(
+    404, 429, 503, e429="2 scene reads are in progress (VOXNERF_MAX_CONCURRENT_SCENE_READS); retry in 1 s",
+    e503=f"scene {EXAMPLE_ID} of job {EXAMPLE_ID}: the scene read was killed (out of memory)")
+
+
+@router.get("/jobs/{job_id}/cameras", response_model=CamerasOut, responses=SCENE_READ_ERRORS,
             summary="The cameras of a job's scene (poses in scene units, intrinsics, splits), for the viewer")
 def get_cameras(job_id: JobId, request: Request, settings: SettingsDep) -> CamerasOut:
+    """Every camera of the job's scene as the viewer draws it, with the URL of its ground-truth image, the
+    scene's units and the scale of depth renders. The scene is read once (in a child process, under the upload
+    validation's limits) and cached."""
     job, view = _scene_view(request, settings, job_id)
     frames = [
         ViewerCamera(**{k: v for k, v in frame.items() if k != "image_path"},
@@ -85,9 +94,11 @@ def get_cameras(job_id: JobId, request: Request, settings: SettingsDep) -> Camer
                       depth_unit_scale=view["depth_unit_scale"], frames=frames)
 
 
-@router.get("/jobs/{job_id}/prior-preview", response_model=PriorPreviewOut,
+@router.get("/jobs/{job_id}/prior-preview", response_model=PriorPreviewOut, responses=SCENE_READ_ERRORS,
             summary="A sparse sample of the prior (at most a few thousand points, scene units), for the viewer")
 def get_prior_preview(job_id: JobId, request: Request, settings: SettingsDep) -> PriorPreviewOut:
+    """A random sample of the scene's prior file, or of the prior the job's run fused when the scene has none
+    (404 when neither exists)."""
     job, view = _scene_view(request, settings, job_id)
     if view["prior"] is not None:
         return PriorPreviewOut(**view["prior"])
@@ -100,9 +111,10 @@ def get_prior_preview(job_id: JobId, request: Request, settings: SettingsDep) ->
 
 
 @router.get("/jobs/{job_id}/cameras/{index}/image", response_class=FileResponse,
-            responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}},
+            responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}, **SCENE_READ_ERRORS},
             summary="The ground-truth image of one of a job's scene cameras")
 def get_camera_image(job_id: JobId, index: int, request: Request, settings: SettingsDep) -> FileResponse:
+    """The image file of camera ``index`` (its position in ``GET /jobs/{id}/cameras``), as the scene stores it."""
     job, view = _scene_view(request, settings, job_id)
     if not 0 <= index < len(view["frames"]):
         raise HTTPException(404, f"job {job_id}: its scene has no camera {index}")
@@ -114,8 +126,12 @@ def get_camera_image(job_id: JobId, index: int, request: Request, settings: Sett
 
 
 @router.post("/camera-paths", response_model=CameraPathOut,
+             responses=error_responses(422, e422="camera_path: 'camera_path' must be a list of keyframes"),
              summary="Interpolate a video path through keyframes, or read a nerfstudio camera path, for the viewer")
 def make_camera_path(body: CameraPathRequest, settings: SettingsDep) -> CameraPathOut:
+    """The frames of a path (to preview) and its nerfstudio camera-path JSON (to export, or to send to
+    ``POST /jobs/{id}/videos``): interpolated through ``keyframes``, or a nerfstudio ``camera_path`` read back
+    into scene units. 422 naming the key at fault."""
     try:
         path = _camera_path(body, settings)
     except (CameraPathError, CameraError) as err:

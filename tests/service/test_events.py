@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -23,8 +24,10 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from browser_fixtures import browser_page, csp_reports
-from service_fixtures import start_redis, start_service, upload_scene, wait_for
+from service_fixtures import start_redis, start_service, stop_process, upload_scene, wait_for
 
+from app.core.settings import Settings
+from app.core.tokens import TokenError, webhook_secret
 from app.webhooks import CallbackRefused, checked_addresses, signature
 
 pytestmark = pytest.mark.slow
@@ -112,9 +115,24 @@ def service(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def job(service, receiver, small_room):
-    """A short job with the receiver as its callback_url, just created."""
+def tokens(service) -> dict[str, dict]:
+    """Named tokens made by the admin: ``ci`` (scope write, makes the job) and ``viewer`` (scope read)."""
     with service.client() as client:
+        made = {name: client.post("/tokens", json={"name": name, "scope": scope}) for name, scope in
+                (("ci", "write"), ("viewer", "read"))}
+    assert all(response.status_code == 201 for response in made.values()), made
+    return {name: response.json() for name, response in made.items()}
+
+
+def bearer(token: dict) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token['token']}"}
+
+
+@pytest.fixture(scope="module")
+def job(service, receiver, small_room, tokens):
+    """A short job made by token ``ci`` with the receiver as its callback_url, just created."""
+    with service.client(auth=False) as client:
+        client.headers.update(bearer(tokens["ci"]))
         scene = upload_scene(client, small_room)
         response = client.post(f"/scenes/{scene['id']}/jobs", json={**JOB, "callback_url": receiver.url})
     assert response.status_code == 202, response.text
@@ -122,9 +140,11 @@ def job(service, receiver, small_room):
     return response.json()
 
 
-def test_a_jobs_stream_runs_from_queued_to_its_final_state_and_resumes_without_repeats(service, job):
+def test_a_jobs_stream_runs_from_queued_to_its_final_state_and_resumes_without_repeats(service, job, tokens):
     path = f"/jobs/{job['id']}/events"
-    with service.client(timeout_s=TIMEOUT_S) as client:
+    with service.client(auth=False, timeout_s=TIMEOUT_S) as client:  # a read token may follow any job's events
+        client.headers.update(bearer(tokens["viewer"]))
+        assert client.post(f"/jobs/{job['id']}/cancel").status_code == 403  # and may not act on it
         with client.stream("GET", path) as response:
             assert response.status_code == 200, response.read()
             assert response.headers["content-type"].startswith("text/event-stream")
@@ -162,7 +182,7 @@ def test_a_jobs_stream_runs_from_queued_to_its_final_state_and_resumes_without_r
         assert service.client(auth=False).get(path).status_code == 401
 
 
-def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, receiver, job):
+def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, receiver, job, tokens):
     with service.client() as client:
         deliveries = wait_for(
             lambda: (d := client.get(f"/jobs/{job['id']}/deliveries").json())
@@ -175,7 +195,7 @@ def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, rec
         assert "HTTP 500" in delivery["attempts"][0]["error"] and delivery["attempts"][1]["error"] is None
         assert delivery["next_attempt_at"] is None
 
-    secret = hmac.new(TOKEN.encode(), b"voxnerf-webhook", hashlib.sha256).digest()  # the legacy token's secret
+    secret = bytes.fromhex(tokens["ci"]["webhook_secret"])  # the secret of the token that made the job
     delivered = [(headers, body) for headers, body, status in receiver.calls if status == 204]
     assert len(receiver.calls) == 6 and len(delivered) == 3
     for headers, body in delivered:
@@ -186,7 +206,9 @@ def test_each_state_change_is_posted_signed_and_retried_after_a_500(service, rec
         payload = json.loads(body)
         assert payload["job_id"] == job["id"] and payload["job"]["state"] == payload["state"]
         assert str(payload["event_id"]) == headers["X-VoxNeRF-Event-Id"]
-    assert [json.loads(body)["state"] for _, body in delivered] == ["queued", "running", "succeeded"]
+    # deliveries due together are sent at once, so they may arrive in any order: event_id orders them
+    payloads = sorted((json.loads(body) for _, body in delivered), key=lambda payload: payload["event_id"])
+    assert [payload["state"] for payload in payloads] == ["queued", "running", "succeeded"]
 
 
 RUNNING_PAGE_SHOWS_PROGRESS = """() => document.body.dataset.state === 'running'
@@ -275,6 +297,28 @@ def check_a_queued_jobs_stream(service, small_room) -> None:
         assert client.get(f"/jobs/{job['id']}/deliveries").json() == []  # no callback_url, no deliveries
 
 
+def test_open_streams_end_when_the_server_stops(idle_service, small_room):
+    """uvicorn waits for every open response before it stops: a stream of a job that stays queued must end."""
+    with idle_service.client(timeout_s=60) as client:
+        scene = upload_scene(client, small_room)
+        job = client.post(f"/scenes/{scene['id']}/jobs", json=JOB).json()
+        with client.stream("GET", f"/jobs/{job['id']}/events") as response:
+            lines = response.iter_lines()
+            (queued,), _ = read_events(lines, stop=lambda e: True)
+            api = idle_service.procs.pop("api")
+            started = time.monotonic()
+            api.send_signal(signal.SIGTERM)
+            try:
+                api.wait(timeout=15)
+            finally:
+                stop_process(api)  # still running: the test fails, and nothing is left behind
+            rest, _ = read_events(lines)
+        stopped_in = time.monotonic() - started
+    idle_service.start_api()
+    wait_for(idle_service.answers, 60, "the API to answer again")
+    assert queued["data"]["state"] == "queued" and rest == [] and stopped_in < 10, (stopped_in, idle_service.logs())
+
+
 @pytest.mark.parametrize("url", [
     "http://127.0.0.1:9/hook", "http://localhost/hook", "http://[::1]/hook", "http://10.1.2.3/hook",
     "http://169.254.169.254/latest", "http://192.168.0.10/", "http://[::ffff:127.0.0.1]/", "http://0.0.0.0/",
@@ -304,3 +348,17 @@ def test_address_rules_and_the_signature():
             checked_addresses(url, allow_private=False)
     mac = hmac.new(b"k", b"1700000000.{}", hashlib.sha256).hexdigest()
     assert signature(b"k", "1700000000", b"{}") == f"sha256={mac}"
+
+
+def test_webhook_secrets_of_the_principals_without_named_tokens(tmp_path):
+    tokenless = Settings(data_dir=tmp_path / "data")
+    secret = webhook_secret(tokenless, "local")
+    path = tmp_path / "data" / "webhook_secret"
+    assert len(secret) == 32 and path.read_bytes() == secret and path.stat().st_mode & 0o777 == 0o600
+    assert webhook_secret(tokenless, "local") == secret  # made once
+    with pytest.raises(TokenError):
+        webhook_secret(tokenless, "admin")  # no VOXNERF_API_TOKEN
+    with_token = Settings(data_dir=tmp_path / "data", api_token=TOKEN)
+    assert webhook_secret(with_token, "admin") == hmac.new(TOKEN.encode(), b"voxnerf-webhook", hashlib.sha256).digest()
+    with pytest.raises(TokenError):
+        webhook_secret(with_token, "ci")

@@ -11,6 +11,7 @@ from app.core import events, jobstore
 from app.core.db import session_scope
 from app.core.models import JobEventRow
 from app.core.settings import Settings
+from app.core.tokens import Principal
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
 
 SCENE = "a" * 32
@@ -42,15 +43,19 @@ def test_a_jobs_lifecycle_is_logged_in_order(settings):
                                   ProgressEvent(stage="train", iteration=3, stages=[stage], history=[point]))
     jobstore.JOBS.record_progress(settings, job.id, claimed.attempt,
                                   ProgressEvent(stage="train", iteration=4, stages=[stage], history=[point]))
+    updated = stage.model_copy(update={"seconds": 2.5})  # the engine updates some stage records in place
+    jobstore.JOBS.record_progress(settings, job.id, claimed.attempt,
+                                  ProgressEvent(stage="train", iteration=4, stages=[updated], history=[point]))
     final = EvalRecord(elapsed_s=3.0, iteration=5, psnr={"test": 21.0}, final=True)
     report = TrainReport(status="succeeded", config={"max_iters": 5}, device="cpu", iteration=5, train_seconds=3.0,
-                         history=[point, final], stages=[stage])
+                         history=[point, final], stages=[updated])
     assert jobstore.finish_with_report(settings, job.id, claimed.attempt, report, 1.0)
     assert _log(settings, job.id) == [
         (1, "state", "queued"), (2, "state", "running"),
         (3, "stage", "prior"), (4, "evaluation", 3), (5, "progress", "running"),
         (6, "progress", "running"),
-        (7, "evaluation", 5), (8, "state", "succeeded"),
+        (7, "stage", "prior"), (8, "progress", "running"),
+        (9, "evaluation", 5), (10, "state", "succeeded"),
     ]
     last = events.last_event(settings, job.id)
     assert last.data["stage"] == "done" and last.data["progress"] == 1.0
@@ -103,8 +108,8 @@ def test_progress_events_are_thinned_and_a_deleted_jobs_events_go(settings, monk
 
 
 def test_a_job_with_a_callback_url_gets_one_delivery_per_state_event(settings):
-    job = jobstore.create_job(settings, SCENE, {"max_iters": 5}, callback_url="https://hooks.example/x",
-                              created_by="ci")
+    job = jobstore.create_job(settings, SCENE, {"max_iters": 5}, Principal(name="ci", scope="write"),
+                              callback_url="https://hooks.example/x")
     claimed = jobstore.JOBS.claim(settings, job.id, "w:1")
     jobstore.JOBS.record_progress(settings, job.id, claimed.attempt, ProgressEvent(stage="train", iteration=1))
     jobstore.JOBS.finish(settings, job.id, claimed.attempt, "failed", {"error": "boom"})
