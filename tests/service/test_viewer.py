@@ -319,6 +319,11 @@ def test_the_viewer_renders_drags_snaps_and_starts_a_video(trained, page, tmp_pa
         assert body["transform_matrix"] == evaluation["transform_matrix"] and body["width"] == evaluation["width"]
         direct = client.post("/render", json=body)
         assert direct.status_code == 200 and direct.content == image
+        # which checkpoint rendered, through either broker's outcome: the succeeded job's last one
+        finished = client.get(f"/jobs/{job_id}").json()
+        assert int(direct.headers["X-VoxNeRF-Iteration"]) == finished["checkpoint_iteration"] == finished["iteration"]
+        assert direct.headers["X-VoxNeRF-Job-State"] == "succeeded" and "X-VoxNeRF-Partial" not in direct.headers
+    assert page.inner_text("#checkpoint") == f"iteration {finished['iteration']}"
     expected = np.asarray(Image.open(io.BytesIO(direct.content)).convert("RGB"))
     np.testing.assert_array_equal(_canvas_rgb(page), expected)
     page.wait_for_function("() => document.getElementById('gt-image').naturalWidth > 0", timeout=30_000)
