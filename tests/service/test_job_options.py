@@ -121,7 +121,7 @@ def _row(**progress) -> object:
         stage="train", iteration=3, elapsed_s=1.5, progress=0.3, eta_s=None, loss=None, history=[], stages=[],
         loss_series=None,  # a column added later: null in the rows written before it (app.core.db adds it)
         created_by=None, cancelled_by=None,  # as loss_series: added with named tokens
-        callback_url=None,
+        callback_url=None, checkpoint_iteration=None,  # as loss_series: added with webhooks and the live viewer
     )
     return type("Row", (), {**base, **progress})()
 
