@@ -181,8 +181,10 @@ function viewerLink(job) {
 
 function updateRow(row, job) {
   const cell = (name) => row.querySelector(`.col-${name}`);
-  cell("id").replaceChildren(pageLink(`/static/job.html?id=${job.id}`, job.id, "job-page"));
-  cell("scene").replaceChildren(pageLink(`/static/scene.html?id=${job.scene_id}`, job.scene_id, "scene-page"));
+  if (!cell("id").firstChild) {  // a job's own links never change: made once, so a click on them is never lost
+    cell("id").appendChild(pageLink(`/static/job.html?id=${job.id}`, job.id, "job-page"));
+    cell("scene").appendChild(pageLink(`/static/scene.html?id=${job.scene_id}`, job.scene_id, "scene-page"));
+  }
   cell("by").textContent = job.created_by || "";
   const state = Object.assign(document.createElement("span"), { className: `state state-${job.state}`, textContent: job.state });
   cell("state").replaceChildren(state);
@@ -195,8 +197,12 @@ function updateRow(row, job) {
     cell("plot").replaceChildren(psnrPlot(job.history));
   }
   if (job.state === "succeeded" && !thumbsLoaded.has(job.id)) loadThumbnails(job, cell("thumbs").firstChild);
-  cell("actions").replaceChildren(...(job.state === "queued" || job.state === "running" ? [cancelButton(job)] : []),
-    ...(viewable(job) ? [viewerLink(job)] : []));
+  const actionsKey = `${job.state} ${viewable(job)}`;
+  if (row.dataset.actionsKey !== actionsKey) {  // rebuilt only when they change (a link being clicked stays)
+    row.dataset.actionsKey = actionsKey;
+    cell("actions").replaceChildren(...(job.state === "queued" || job.state === "running" ? [cancelButton(job)] : []),
+      ...(viewable(job) ? [viewerLink(job)] : []));
+  }
   if (job.state === "succeeded") {
     const buttons = cell("outputs").querySelector(".output-buttons");
     if (!buttons.childElementCount) buttons.append(...outputButtons(job));
@@ -335,7 +341,7 @@ async function refreshJobs() {
       follow(job);
       return row;
     });
-    body.replaceChildren(...rows);
+    if (rows.length !== body.rows.length || rows.some((row, i) => body.rows[i] !== row)) body.replaceChildren(...rows);
     $("no-jobs").hidden = jobs.length > 0;
     const done = jobs.filter((job) => job.state === "succeeded");
     fillSelect($("render-job"), done, (job) => `${job.id.slice(0, 8)} (scene ${job.scene_id.slice(0, 8)})`);
