@@ -11,7 +11,6 @@ import json
 import os
 import re
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -364,26 +363,3 @@ def test_a_pytorch_base_image_of_another_torch_is_refused(tmp_path: Path) -> Non
                    'RUN pip install --no-cache-dir "torch==2.13.0"\n')
     assert _image_torches(old) == ["2.7.1", "2.13.0"]
     assert not _torch_range().contains("2.7.1")
-
-
-def test_the_requirement_set_the_images_install_resolves_beside_their_torch(tmp_path: Path) -> None:
-    """pip's own resolver, as the image build runs it: pyproject.toml's requirement set constrained to the images'
-    torch, for the images' Python on Linux x86_64, binary wheels only (``--dry-run``: metadata, no download)."""
-    (version,) = set(_image_torches(DOCKERFILES[1]))
-    python = re.search(r"python:(\d+\.\d+)", _arg_defaults(DOCKERFILES[1])["PYTHON_IMAGE"]).group(1)
-    (tmp_path / "constraints.txt").write_text(f"torch=={version}\n")
-    (tmp_path / "requirements.txt").write_text("\n".join(_project_requirements()) + "\n")
-    platforms = [f"--platform=manylinux_2_{minor}_x86_64" for minor in (17, 24, 27, 28, 31, 34, 35, 36)]
-    result = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--dry-run", "--ignore-installed", "--quiet", "--only-binary=:all:",
-         f"--python-version={python}", *platforms, "--target", str(tmp_path / "target"),
-         "--report", str(tmp_path / "report.json"), "-c", str(tmp_path / "constraints.txt"),
-         "-r", str(tmp_path / "requirements.txt")],
-        capture_output=True, text=True, timeout=600,
-    )
-    if "No matching distribution" in result.stderr and "Could not fetch" in result.stderr:
-        pytest.skip("no package index reachable")
-    assert result.returncode == 0, result.stderr[-2000:]
-    installed = {item["metadata"]["name"]: item["metadata"]["version"]
-                 for item in json.loads((tmp_path / "report.json").read_text())["install"]}
-    assert installed["torch"].split("+")[0] == version
