@@ -1,6 +1,6 @@
 """``GET /metrics``: the service's metrics in Prometheus' text format (:mod:`app.core.metrics` says what each is).
 
-Behind the token like every other route (a scrape config sends it: docs/service.md, "Metrics"). A scrape reads the
+Behind the token like every other route (a scrape config sends it: docs/integration.md, "Metrics"). A scrape reads the
 job store and the broker's queues, takes the health check's view of the workers (the check of ``/healthz``: at most
 ``VOXNERF_HEALTH_CACHE_S`` old, else one runs, up to about 2 x ``VOXNERF_HEALTH_TIMEOUT_S``), and asks those workers
 for their device memory (one broadcast that ends when they have all answered).

@@ -265,7 +265,7 @@ def create_job(
 ) -> JobOut:
     """Queue a training job on the scene with the given options (the ``voxnerf train`` flags; at least one of
     ``max_seconds`` and ``max_iters``): 202 with the job, ``Location: /jobs/{id}``; follow it at ``GET /jobs/{id}``
-    or its events. ``callback_url`` (optional) receives its state changes (see docs/service.md, "Live events and
+    or its events. ``callback_url`` (optional) receives its state changes (see docs/integration.md, "Live events and
     webhooks"): a URL whose host resolves to a private or loopback address is refused with 422 unless
     VOXNERF_WEBHOOK_ALLOW_PRIVATE is set."""
     values = options.model_dump(exclude_none=True, exclude={"callback_url"})
