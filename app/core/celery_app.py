@@ -79,8 +79,9 @@ def get_celery() -> Celery:
 
 
 def polling_interval_s(settings: Settings, queues: Sequence[str]) -> float:
-    """How often a worker consuming ``queues`` polls the embedded filesystem queue when it is idle: the render
-    interval when it serves renders (the filesystem queue's latency is then a user's wait), else the broker's."""
+    """How often a worker consuming ``queues`` looks into the embedded filesystem queue while it runs a task (an
+    idle one waits on the folder's watch, app/core/broker.py): the render interval when it serves renders (a render
+    queued behind another waits that long after it), else the broker's."""
     if RENDER_QUEUE in queues:
         return min(settings.render_polling_interval_s, settings.broker_polling_interval_s)
     return settings.broker_polling_interval_s

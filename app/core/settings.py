@@ -42,11 +42,13 @@ class Settings(BaseSettings):
         default=None, description="Celery broker, e.g. redis://127.0.0.1:6379/0; default: filesystem queue"
     )
     broker_polling_interval_s: float = Field(
-        default=0.05, gt=0, le=5, description="how often an idle worker looks into the filesystem queue"
+        default=0.05, gt=0, le=5,
+        description="how often a worker running a task (any worker, without inotify) looks into the filesystem queue",
     )
     render_polling_interval_s: float = Field(
         default=0.01, gt=0, le=5,
-        description="the same for a worker that consumes the render queue (a render's wait is a user's)",
+        description="the same for a worker that consumes the render queue (a render queued behind another waits up "
+        "to this long after it)",
     )
     api_token: SecretStr | None = Field(
         default=None,
