@@ -428,6 +428,16 @@ def _at_least_one(text: str) -> int:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
 def _serve(args: argparse.Namespace) -> int:
     from app.serve import serve
 
@@ -756,6 +766,8 @@ def _add_remote_command(sub: argparse._SubParsersAction) -> None:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--url", default=argparse.SUPPRESS, help="the service (default: VOXNERF_URL)")
     common.add_argument("--token", default=argparse.SUPPRESS, help="its API token (default: VOXNERF_API_TOKEN)")
+    common.add_argument("--retries", type=_non_negative_int, default=argparse.SUPPRESS,
+                        help="attempts after the first on 429, 503 and connection errors, with back-off (default 6)")
     commands = p.add_subparsers(dest="remote_command", required=True)
     _add_remote_work(commands, common)
     _add_remote_views(commands, common)

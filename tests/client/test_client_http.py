@@ -275,3 +275,19 @@ def test_an_uploaded_capture_s_import_is_waited_for_and_its_failure_is_one_line(
     with Client(f"http://127.0.0.1:{server.server_port}") as client, \
             pytest.raises(VoxNeRFError, match=f"^import {IMPORT_ID} failed: no frame sharp enough$"):
         client.upload(capture)
+
+
+def test_the_remote_cli_s_retries_option_sets_the_attempts(servers, capsys):
+    from voxnerf.cli import main
+
+    server, seen = servers(lambda handler, n: _reply(handler, 503, {"detail": "broker down"}))
+    url = f"http://127.0.0.1:{server.server_port}"
+    assert main(["remote", "status", JOB_ID, "--url", url, "--retries", "1"]) == 2
+    assert len(seen.requests) == 2
+    assert capsys.readouterr().err == "voxnerf: error: broker down (HTTP 503)\n"
+    assert main(["remote", "status", JOB_ID, "--url", url, "--retries", "0"]) == 2
+    assert len(seen.requests) == 3
+    with pytest.raises(SystemExit) as refused:
+        main(["remote", "status", JOB_ID, "--url", url, "--retries", "-1"])
+    assert refused.value.code == 2 and "--retries: must be >= 0, got -1" in capsys.readouterr().err
+    assert len(seen.requests) == 3

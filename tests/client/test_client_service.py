@@ -193,5 +193,5 @@ def test_remote_refusals_are_one_line(service, small_room, tmp_path):
     not_zip.write_bytes(b"not a zip at all")
     refused = _remote(service, "upload", str(not_zip), timeout_s=120)
     assert refused.returncode == 2 and len(refused.stderr.splitlines()) == 1 and "(HTTP 422)" in refused.stderr
-    nowhere = _remote(service, "status", "--url", "http://127.0.0.1:9", timeout_s=180)
+    nowhere = _remote(service, "status", "--url", "http://127.0.0.1:9", "--retries", "1", timeout_s=180)
     assert nowhere.returncode == 2 and "cannot reach http://127.0.0.1:9" in nowhere.stderr

@@ -38,7 +38,7 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
             "/scenes", files={"file": ("room.zip", zip_scene(small_room), "application/zip")}
         ).json()
         job = client.post(
-            f"/scenes/{scene['id']}/jobs", json={"max_seconds": 45, "compile": False, "eval_every_s": 8.0}
+            f"/scenes/{scene['id']}/jobs", json={"max_seconds": 25, "compile": False, "eval_every_s": 8.0}
         ).json()
 
     csp = csp_reports(page)

@@ -17,7 +17,7 @@ import pytest
 from browser_fixtures import browser_page, csp_reports
 from fastapi.testclient import TestClient
 from PIL import Image
-from service_fixtures import start_redis, start_service, wait_for, zip_scene
+from service_fixtures import start_service, wait_for, zip_scene
 
 from app.core import jobstore
 from app.core.settings import Settings
@@ -188,21 +188,16 @@ def test_a_bad_nerfstudio_path_is_422_naming_the_key(api):
 # ------------------------------------------------------------------------------------------------ the page
 
 
-@pytest.fixture(scope="module", params=["embedded", "redis"])
-def trained(request, tmp_path_factory, small_room):
-    """A service (token set; on its embedded default, or behind a redis-server started here) with a short job
-    trained on the small room: (service, job id)."""
-    root = tmp_path_factory.mktemp(f"viewer-{request.param}")
-    redis = start_redis(root / "redis") if request.param == "redis" else None
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, small_room):
+    """A service on its embedded default (token set) with a short job trained on the small room: (service, job
+    id). The page is the same on either broker; renders and videos through Redis are tests/service/test_service.py's
+    and test_service_outputs.py's."""
+    svc = start_service(tmp_path_factory.mktemp("viewer") / "service", token=TOKEN)
     try:
-        svc = start_service(root / "service", broker_url=redis.url if redis else None, token=TOKEN)
-        try:
-            yield svc, _trained_job(svc, small_room)
-        finally:
-            svc.stop()
+        yield svc, _trained_job(svc, small_room)
     finally:
-        if redis is not None:
-            redis.stop()
+        svc.stop()
 
 
 def _trained_job(svc, scene_dir) -> str:

@@ -18,7 +18,8 @@ from voxnerf.errors import VoxNeRFError
 
 def run_remote(args: argparse.Namespace, job_options: dict | None) -> int:
     """Run ``voxnerf remote <args.remote_command>``; ``job_options``: ``remote train``'s, from its flags."""
-    with Client(getattr(args, "url", None), getattr(args, "token", None)) as client:
+    retries = {"retries": args.retries} if hasattr(args, "retries") else {}
+    with Client(getattr(args, "url", None), getattr(args, "token", None), **retries) as client:
         if args.remote_command == "train":
             return _train(client, args, job_options or {})
         return COMMANDS[args.remote_command](client, args)
