@@ -14,8 +14,8 @@ an empty table. Message names, ordering and every other behaviour stay kombu's.
 
 kombu's transport looks into the queue folder every ``polling_interval`` while it waits, a wake-up of an idle
 worker 20 to 100 times a second, and a message waits up to one interval. Here, on Linux, a consumer that could
-take a message waits on an inotify watch of the queue folder instead (:class:`QueueFolderWatch`): it wakes when
-a message is renamed in, and otherwise only when the caller's timeout ends. While one of its channels is full
+take a message waits on an inotify watch of the queue folder instead (app/core/folder_watch.py): it wakes when a
+message is renamed in, and otherwise only when the caller's timeout ends. While one of its channels is full
 (a task running to its prefetch limit) nothing in the folder says that the task ended, so it then polls at
 ``polling_interval`` as kombu does; without inotify (another system) it always does.
 """
@@ -23,13 +23,8 @@ a message is renamed in, and otherwise only when the caller's timeout ends. Whil
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
-import errno
 import fcntl
 import os
-import select
-import sys
 import uuid
 from pathlib import Path
 from queue import Empty
@@ -39,6 +34,7 @@ from kombu.transport import filesystem, virtual
 from kombu.utils.encoding import bytes_to_str, str_to_bytes
 from kombu.utils.json import dumps, loads
 
+from app.core.folder_watch import FolderWatch
 from voxnerf.data.image_io import write_atomic
 
 Binding = filesystem.exchange_queue_t  # (routing_key, pattern, queue) of a queue bound to an exchange
@@ -148,60 +144,11 @@ def _read_table(path) -> list[Binding]:
     return [Binding(*entry) for entry in loads(bytes_to_str(data))] if data.strip() else []
 
 
-# inotify(7): a file renamed into, or closed after writing in, the watched folder.
-_IN_MOVED_TO, _IN_CLOSE_WRITE, _IN_NONBLOCK, _IN_CLOEXEC = 0x80, 0x8, os.O_NONBLOCK, os.O_CLOEXEC
-
-
-class QueueFolderWatch:
-    """An inotify watch of one folder: :meth:`wait` returns once a file has arrived in it since the last call
-    (events are queued from the watch's creation on, so none that comes between a look into the folder and
-    the wait is missed) or when ``timeout_s`` ends. :meth:`open` gives None where inotify is not available."""
-
-    def __init__(self, fd: int) -> None:
-        self.fd = fd
-
-    @classmethod
-    def open(cls, folder: str) -> QueueFolderWatch | None:
-        if not sys.platform.startswith("linux"):
-            return None
-        try:
-            libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-            fd = libc.inotify_init1(_IN_NONBLOCK | _IN_CLOEXEC)
-        except (OSError, AttributeError):
-            return None
-        if fd < 0:
-            return None
-        if libc.inotify_add_watch(fd, os.fsencode(folder), _IN_MOVED_TO | _IN_CLOSE_WRITE) < 0:
-            os.close(fd)
-            return None
-        return cls(fd)
-
-    def wait(self, timeout_s: float) -> None:
-        readable, _, _ = select.select([self.fd], [], [], max(timeout_s, 0.0))
-        if readable:
-            self._drain()
-
-    def _drain(self) -> None:
-        """Read every queued event (their content does not matter: the caller looks into the folder)."""
-        while True:
-            try:
-                if not os.read(self.fd, 65536):
-                    return
-            except OSError as exc:
-                if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
-                    return
-                raise
-
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            os.close(self.fd)
-
-
 class Transport(filesystem.Transport):
     """Selected by ``broker_transport = "app.core.broker:Transport"`` with ``broker_url = "filesystem://"``."""
 
     Channel = Channel
-    _watch: QueueFolderWatch | None = None
+    _watch: FolderWatch | None = None
     _watch_pid: int | None = None
 
     def drain_events(self, connection, timeout=None):
@@ -223,11 +170,11 @@ class Transport(filesystem.Transport):
             else:
                 watch.wait(IDLE_WAIT_S if left is None else min(IDLE_WAIT_S, left))
 
-    def _folder_watch(self) -> QueueFolderWatch | None:
+    def _folder_watch(self) -> FolderWatch | None:
         """This process's watch of the queue folder (a forked child makes its own), made on its first wait."""
         if self._watch_pid != os.getpid():
             folder = self.client.transport_options.get("data_folder_in")
-            self._watch = QueueFolderWatch.open(folder) if folder else None
+            self._watch = FolderWatch.open(folder) if folder else None
             self._watch_pid = os.getpid()
         return self._watch
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import redis
 
+from app.core.folder_watch import FolderWatch
 from app.core.settings import Settings
 from voxnerf.data.image_io import write_atomic
 
@@ -103,14 +104,25 @@ def write_outcome(results_dir: Path, request_id: str, outcome: RenderOutcome) ->
 
 
 def wait_outcome(results_dir: Path, request_id: str, timeout_s: float) -> RenderOutcome | None:
-    """Embedded mode: poll until the outcome's marker is there (then remove both files); None on timeout."""
+    """Embedded mode: wait until the outcome's marker is there (then remove both files); None on timeout. The wait
+    sleeps on a watch of ``results_dir`` (any outcome written there wakes it to look), or polls every
+    ``POLL_INTERVAL_S`` without inotify."""
     marker = results_dir / f"{request_id}.json"
     data_path = results_dir / f"{request_id}.out"
     deadline = time.monotonic() + timeout_s
-    while not marker.exists():
-        if time.monotonic() > deadline:
-            return None
-        time.sleep(POLL_INTERVAL_S)
+    watch = FolderWatch.open(results_dir)  # before the first look: an outcome written after it wakes the wait
+    try:
+        while not marker.exists():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            if watch is None:
+                time.sleep(min(POLL_INTERVAL_S, left))
+            else:
+                watch.wait(left)
+    finally:
+        if watch is not None:
+            watch.close()
     header = marker.read_bytes()
     data = data_path.read_bytes() if data_path.exists() else None
     marker.unlink()

@@ -5,7 +5,6 @@ Counts of wake-ups (voluntary context switches of the waiting thread), never dur
 from __future__ import annotations
 
 import multiprocessing
-import os
 import resource
 import sys
 import time
@@ -14,8 +13,7 @@ from pathlib import Path
 import pytest
 from kombu import Connection, Exchange, Queue
 
-from app.core import broker
-from app.core.broker import QueueFolderWatch
+from app.core import folder_watch
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="inotify is Linux's")
 
@@ -100,7 +98,7 @@ def test_a_consumer_whose_channel_is_full_polls_at_its_interval(tmp_path, name):
 
 
 def test_without_inotify_the_consumer_polls_and_still_receives(tmp_path, name, monkeypatch):
-    monkeypatch.setattr(broker.sys, "platform", "darwin")
+    monkeypatch.setattr(folder_watch.sys, "platform", "darwin")
     with _connection(tmp_path, polling_interval=0.01) as conn:
         queue = conn.SimpleQueue(name)
         queue.put({"n": 2})
@@ -110,29 +108,3 @@ def test_without_inotify_the_consumer_polls_and_still_receives(tmp_path, name, m
         idle, _ = _wakeups(lambda: pytest.raises(queue.Empty, queue.get, timeout=0.5))
         queue.close()
     assert idle >= 20, idle
-
-
-def test_the_watch_wakes_for_a_file_renamed_in_and_not_for_a_hidden_temporary_one_being_written(tmp_path):
-    watch = QueueFolderWatch.open(str(tmp_path))
-    assert watch is not None
-    try:
-        wakeups, _ = _wakeups(lambda: watch.wait(0.3))
-        assert wakeups <= 2, wakeups  # one sleep for the whole timeout
-        (tmp_path / ".m.tmp").write_bytes(b"x")  # closed after writing: an event, read and dropped
-        watch.wait(0.0)
-        os.replace(tmp_path / ".m.tmp", tmp_path / "m.msg")
-        readable_before = _readable(watch)
-        watch.wait(5.0)
-        assert readable_before and not _readable(watch)  # the rename was announced, and the wait read it
-    finally:
-        watch.close()
-
-
-def test_a_missing_folder_gives_no_watch(tmp_path):
-    assert QueueFolderWatch.open(str(tmp_path / "absent")) is None
-
-
-def _readable(watch: QueueFolderWatch) -> bool:
-    import select
-
-    return bool(select.select([watch.fd], [], [], 0)[0])
