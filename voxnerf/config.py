@@ -135,6 +135,13 @@ class SamplingConfig(_Section):
     )
     occgrid_resolution: int = Field(default=64, ge=8)
     occgrid_update_every: int = Field(default=32, ge=1)
+    octree_misses: Literal["auto", "gather", "mask"] = Field(
+        default="auto",
+        description="how the voxnerf sampler's rays that miss the octree get the occupancy grid's samples: "
+        "'gather' samples only those rays (the hit mask is read on the host: a device sync per batch on a GPU), "
+        "'mask' samples every ray and keeps the missing rays' samples (fixed shapes, no sync); 'auto': gather on "
+        "a CPU, mask on a GPU (voxnerf.model.samplers.octree_misses_on; docs/cuda.md)",
+    )
 
     @property
     def samples_per_ray(self) -> int:
