@@ -178,3 +178,21 @@ def test_docs_engine_lists_every_setting_in_its_component_with_who_may_set_it():
         listed = re.findall(r"`(\w+)`(?: \((job|worker)\))?", row[1])
         assert [(field, who or "internal") for field, who in listed] == \
             [(field, audience(field)) for field in section.model_fields], name
+
+
+@pytest.mark.parametrize("preset", ["cpu", "paper"])
+def test_the_full_render_path_s_chunk_is_the_device_s_unless_set(preset):
+    """eval_chunk left unset takes the rendering device's value (4,096 rays on a CPU, 32,768 on a GPU, for either
+    preset: a checkpoint keeps it unset, so where it renders decides); a value set wins on every device."""
+    from voxnerf.config import EVAL_CHUNKS
+
+    evaluation = TrainConfig(preset=preset).resolved().evaluation
+    assert evaluation.eval_chunk is None
+    assert evaluation.chunk_on("cpu") == EVAL_CHUNKS["cpu"] == 4096
+    assert evaluation.chunk_on("cuda") == EVAL_CHUNKS["cuda"] == 32_768
+    model_config = TrainConfig(**TrainConfig(preset=preset).for_model())
+    assert model_config.evaluation.chunk_on("cuda") == 32_768
+    chosen = TrainConfig(preset=preset, eval_chunk=1000).evaluation
+    assert chosen.chunk_on("cpu") == chosen.chunk_on("cuda") == 1000
+    with pytest.raises(ValueError, match="no evaluation chunk for device type 'mps'"):
+        evaluation.chunk_on("mps")
