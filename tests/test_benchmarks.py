@@ -32,6 +32,7 @@ sample_placement = importlib.import_module("sample_placement")
 suite_geometry = importlib.import_module("suite_geometry")
 pose_views = importlib.import_module("pose_views")
 step_profile = importlib.import_module("step_profile")
+gpu_check = importlib.import_module("gpu_check")
 service_speed = importlib.import_module("service_speed")
 suite_rooms = importlib.import_module("voxnerf.synthetic.suite")
 
@@ -499,7 +500,26 @@ def test_step_profile_times_every_phase_and_traces_the_steps_after_the_warm_ones
     core = ("batch (rays, sampling)", "forward + backward", "optimiser update")
     assert [row["phase_calls"][name] for name in core] == [2, 2, 2]  # the two timed steps, no warm or traced one
     assert row["config"]["rays_per_batch"] == 64 and row["config"]["max_iters"] == 4
-    assert "Self CPU" in row["trace"] and "## eager on cpu" in capsys.readouterr().out
+    assert row["octree_misses"] == "gather" and row["host_syncs_per_step"] is None  # a CPU: nothing counted
+    assert "Self CPU" in row["trace"] and "## eager on cpu (octree misses: gather)" in capsys.readouterr().out
+
+
+def test_gpu_check_measures_both_sampler_paths_side_by_side(room: Path, tmp_path: Path) -> None:
+    """The GPU check's dry run on a CPU (scripts/gpu_check.sh runs it on a GPU): step profile and throughput of
+    each octree-miss path, render latency of each size in passes of the device's chunk, all in its JSON and
+    tables."""
+    out = tmp_path / "check"
+    args = [str(room), "--out", str(out), "--device", "cpu", "--downscale", "1", "--steps", "1", "--warm", "1",
+            "--train-seconds", "4", "--renders", "1", "--presets", "cpu", "--overrides", '{"compile": false}']
+    assert gpu_check.main(args) == 0
+    results = json.loads((out / "gpu_check.json").read_text())
+    assert list(results["step_profile"]) == list(results["throughput"]) == ["cpu, gather", "cpu, mask"]
+    assert [row["octree_misses"] for row in results["step_profile"].values()] == ["gather", "mask"]
+    assert [row["octree_misses"] for row in results["throughput"].values()] == ["gather", "mask"]
+    assert list(results["render"]) == ["cpu, 320x240, chunk 4096", "cpu, 640x480, chunk 4096"]  # a CPU: one chunk
+    assert all(row["path"] == "fast" and row["median_ms"] > 0 for row in results["render"].values())
+    table = (out / "gpu_check.md").read_text()
+    assert "| cpu, mask |" in table and "| cpu, 640x480, chunk 4096 | fast |" in table
 
 
 def test_step_profile_refuses_a_config_that_is_not_a_json_object(capsys) -> None:

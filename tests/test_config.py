@@ -105,6 +105,7 @@ def test_who_may_set_a_setting_is_said_where_it_is_defined():
 
 
 OLD_RUN = Path(__file__).parent / "fixtures" / "run_v0_1"
+ADDED_SINCE_OLD_RUN = {"octree_misses": "auto"}  # settings added after OLD_RUN was written, at their defaults
 
 
 def test_a_checkpoint_of_the_flat_config_loads_and_renders():
@@ -123,9 +124,9 @@ def test_a_checkpoint_of_the_flat_config_loads_and_renders():
 
 def test_a_report_of_the_flat_config_names_the_settings_a_report_names_now():
     old = json.loads((OLD_RUN / "report.json").read_text())
-    assert set(old["config"]) == set(TrainConfig().flat())
+    assert set(old["config"]) | set(ADDED_SINCE_OLD_RUN) == set(TrainConfig().flat())
     again = json.loads(json.dumps(TrainConfig(**old["config"]).flat()))
-    assert again == old["config"]
+    assert again == old["config"] | ADDED_SINCE_OLD_RUN
 
 
 def test_a_run_of_the_flat_config_resumes(tmp_path_factory, tmp_path):
@@ -143,7 +144,7 @@ def test_a_run_of_the_flat_config_resumes(tmp_path_factory, tmp_path):
     old = json.loads((OLD_RUN / "report.json").read_text())["config"]
     report = train(scene, run, TrainConfig(**(old | {"max_iters": 5})), progress_bar=False)
     assert report.status == "succeeded" and report.resumed_from_iteration == 3 and report.iteration == 5
-    assert set(json.loads((run / "report.json").read_text())["config"]) == set(old)
+    assert set(json.loads((run / "report.json").read_text())["config"]) == set(old) | set(ADDED_SINCE_OLD_RUN)
 
 
 def test_a_checkpoint_keeps_the_model_s_own_config_and_rebuilds_it():
@@ -177,3 +178,21 @@ def test_docs_engine_lists_every_setting_in_its_component_with_who_may_set_it():
         listed = re.findall(r"`(\w+)`(?: \((job|worker)\))?", row[1])
         assert [(field, who or "internal") for field, who in listed] == \
             [(field, audience(field)) for field in section.model_fields], name
+
+
+@pytest.mark.parametrize("preset", ["cpu", "paper"])
+def test_the_full_render_path_s_chunk_is_the_device_s_unless_set(preset):
+    """eval_chunk left unset takes the rendering device's value (4,096 rays on a CPU, 32,768 on a GPU, for either
+    preset: a checkpoint keeps it unset, so where it renders decides); a value set wins on every device."""
+    from voxnerf.config import EVAL_CHUNKS
+
+    evaluation = TrainConfig(preset=preset).resolved().evaluation
+    assert evaluation.eval_chunk is None
+    assert evaluation.chunk_on("cpu") == EVAL_CHUNKS["cpu"] == 4096
+    assert evaluation.chunk_on("cuda") == EVAL_CHUNKS["cuda"] == 32_768
+    model_config = TrainConfig(**TrainConfig(preset=preset).for_model())
+    assert model_config.evaluation.chunk_on("cuda") == 32_768
+    chosen = TrainConfig(preset=preset, eval_chunk=1000).evaluation
+    assert chosen.chunk_on("cpu") == chosen.chunk_on("cuda") == 1000
+    with pytest.raises(ValueError, match="no evaluation chunk for device type 'mps'"):
+        evaluation.chunk_on("mps")

@@ -34,16 +34,18 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "sampling": {"n_importance": 8, "n_rest": 4},
         "model": {"hash_levels": 12, "hash_features": 2, "hash_log2_size": 17, "hash_max_resolution": 1024,
                   "hidden_dim": 64},
-        "evaluation": {"eval_chunk": 4096},
     },
     "paper": {
         "schedule": {"rays_per_batch": 4096, "lr_decay_iters": 30_000},
         "sampling": {"n_importance": 128, "n_rest": 128},
         "model": {"hash_levels": 16, "hash_features": 2, "hash_log2_size": 19, "hash_max_resolution": 2048,
                   "hidden_dim": 64},
-        "evaluation": {"eval_chunk": 32_768},
     },
 }
+# Rays per pass of the full render path by device type, where eval_chunk is not set: on a GPU one pass of 32,768
+# rays keeps it busy (an H200 evaluated redkitchen's 55 views in 11.1 s in such passes, in 17.9 s in 4,096-ray
+# ones: docs/cuda.md); a CPU keeps the 4,096 it always had.
+EVAL_CHUNKS = {"cpu": 4096, "cuda": 32_768}
 STRICT = {"extra": "forbid", "allow_inf_nan": False}
 # Who may set a setting besides the Python API and ``voxnerf train --set``: a job's REST options (JOB, also the CLI's
 # named flags), the worker's deployment settings (WORKER: where a job trains, how often it saves, how long its
@@ -56,7 +58,8 @@ WORKER = {"audience": "worker"}
 
 class _Section(BaseModel):
     """A component of the config. A field whose default is None takes the preset's value (see
-    :meth:`TrainConfig.resolved`)."""
+    :meth:`TrainConfig.resolved`); ``eval_chunk`` alone takes the rendering device's
+    (:meth:`EvaluationConfig.chunk_on`)."""
 
     model_config = STRICT
 
@@ -135,6 +138,13 @@ class SamplingConfig(_Section):
     )
     occgrid_resolution: int = Field(default=64, ge=8)
     occgrid_update_every: int = Field(default=32, ge=1)
+    octree_misses: Literal["auto", "gather", "mask"] = Field(
+        default="auto",
+        description="how the voxnerf sampler's rays that miss the octree get the occupancy grid's samples: "
+        "'gather' samples only those rays (the hit mask is read on the host: a device sync per batch on a GPU), "
+        "'mask' samples every ray and keeps the missing rays' samples (fixed shapes, no sync); 'auto': gather on "
+        "a CPU, mask on a GPU (voxnerf.model.samplers.octree_misses_on; docs/cuda.md)",
+    )
 
     @property
     def samples_per_ray(self) -> int:
@@ -279,7 +289,11 @@ class CorrectionsConfig(_Section):
 class EvaluationConfig(_Section):
     """Evaluations during and after training, and the rays per forward pass of a render."""
 
-    eval_chunk: int | None = Field(default=None, gt=0)
+    eval_chunk: int | None = Field(
+        default=None, gt=0,
+        description="rays per pass of the full render path (renders, evaluations); None: by the device that renders "
+        "(EVAL_CHUNKS: 4,096 on a CPU, 32,768 on a GPU)",
+    )
     eval_every_s: float = Field(json_schema_extra=JOB, default=60.0, gt=0,
                                 description="training seconds between progress evaluations")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
@@ -291,6 +305,16 @@ class EvaluationConfig(_Section):
         "the later ones are skipped once they are spent"
     )
     final_eval: bool = True
+
+    def chunk_on(self, device_type: str) -> int:
+        """Rays per pass of the full render path on a device of type ``device_type`` ("cpu", "cuda"): ``eval_chunk``
+        when set, else :data:`EVAL_CHUNKS`' value for the device."""
+        if self.eval_chunk is not None:
+            return int(self.eval_chunk)
+        if device_type not in EVAL_CHUNKS:
+            raise ValueError(f"no evaluation chunk for device type {device_type!r}: expected one of "
+                             f"{', '.join(EVAL_CHUNKS)}")
+        return EVAL_CHUNKS[device_type]
 
 
 SECTIONS: dict[str, type[_Section]] = {

@@ -184,3 +184,25 @@ def test_a_render_stops_between_passes_once_should_stop_says_so(trained, path):
     kept = render(trained, _pose(), camera, ("rgb",), path=path, should_stop=lambda: False)
     plain = render(trained, _pose(), camera, ("rgb",), path=path)
     np.testing.assert_array_equal(kept["rgb"], plain["rgb"])
+
+
+def test_the_full_path_renders_in_passes_of_the_device_s_chunk_unless_the_config_sets_one(trained, monkeypatch):
+    """On a CPU the full path's passes are EVAL_CHUNKS["cpu"] rays (4,096, as the cpu preset always had); a
+    config's eval_chunk wins (the CUDA value is checked in tests/test_config.py)."""
+    model = trained.model
+    passes = []
+    real = type(model).render_rays
+
+    def counting(self, rays, *args, **kwargs):
+        passes.append(len(rays))
+        return real(self, rays, *args, **kwargs)
+
+    monkeypatch.setattr(type(model), "render_rays", counting)
+    camera = Intrinsics(40.0, 40.0, 40.0, 30.0, 80, 60)  # 4,800 rays
+    assert model.config.evaluation.eval_chunk is None
+    render_normalized(model, torch.eye(4), camera, ("rgb",), path="full")
+    assert passes == [4096, 704]
+    passes.clear()
+    monkeypatch.setattr(model.config.evaluation, "eval_chunk", 3000)
+    render_normalized(model, torch.eye(4), camera, ("rgb",), path="full")
+    assert passes == [3000, 1800]

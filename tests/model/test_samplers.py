@@ -2,16 +2,19 @@
 
 import math
 
+import pytest
 import torch
 
 from voxnerf.model.samplers import (
     GRID_UPDATE_BATCH,
+    OCTREE_MISSES,
     OccGridSampler,
     OccupancyGrid,
     RayBundle,
     UniformSampler,
     VoxNeRFSampler,
     intervals_around_window,
+    octree_misses_on,
 )
 from voxnerf.prior.octree import SparseVoxelOctree
 
@@ -160,3 +163,98 @@ def test_occupancy_grid_update_calls_density_with_one_shape():
     assert seen == [100] * 6
     assert int(grid.occupied.sum()) == 8 * 8 * 2  # the two cell layers with x > 0.5; the zero padding is not
     assert grid.is_occupied(torch.tensor([[0.8, 0.0, 0.0], [-0.8, 0.0, 0.0]])).tolist() == [True, False]
+
+
+def _half_missing_rays(n: int) -> RayBundle:
+    """``n`` rays, the first half towards the wall of :func:`_wall_octree` (hits), the second half away from it
+    (misses), the misses' first hits cast too."""
+    towards = _rays(n // 2, direction=(1.0, 0.05, -0.03))
+    away = _rays(n - n // 2, direction=(-1.0, 0.02, 0.04), far=0.95)
+    return RayBundle(*(torch.cat([a, b]) for a, b in zip(
+        (towards.origins, towards.dirs, towards.near, towards.far), (away.origins, away.dirs, away.near, away.far),
+        strict=True)))
+
+
+def _samplers(octree, n_importance=8, n_rest=4) -> dict[str, VoxNeRFSampler]:
+    grid = OccupancyGrid(16)
+    grid.occupied.zero_()
+    grid.occupied[grid.cell_index(torch.tensor([[-0.5, 0.0, 0.0], [0.3, 0.0, 0.0]]))] = True
+    fallback = OccGridSampler(grid, n_importance + n_rest)
+    return {misses: VoxNeRFSampler(octree, n_importance, n_rest, fallback, misses) for misses in OCTREE_MISSES}
+
+
+def test_masked_misses_give_the_gathered_intervals():
+    """The sync-free path ("mask": the fallback on every ray, kept where the ray missed) gives the intervals the
+    gathering one gives, on rays that all hit, all miss, and half and half."""
+    octree = _wall_octree()
+    samplers = _samplers(octree)
+    rays = _half_missing_rays(64)
+    rays.hit_t, rays.hit = samplers["gather"].first_hits(rays)
+    assert bool(rays.hit[:32].all()) and not bool(rays.hit[32:].any())
+    for rows in (slice(0, 32), slice(32, 64), slice(0, 64)):
+        part = rays.take(rows)
+        gathered = samplers["gather"](part, stratified=False)
+        masked = samplers["mask"](part, stratified=False)
+        for g, m in zip(gathered, masked, strict=True):
+            assert torch.equal(g, m), rows
+        _check_intervals(*masked, part, 12)
+    # Stratified: the same seed gives the hitting rays the same samples; the missing rays draw from the stream in
+    # another shape (every ray against the missing ones), so theirs are only valid intervals.
+    out = {}
+    for misses, sampler in samplers.items():
+        torch.manual_seed(3)
+        out[misses] = sampler(rays, stratified=True)
+        _check_intervals(*out[misses], rays, 12)
+    for g, m in zip(out["gather"], out["mask"], strict=True):
+        assert torch.equal(g[:32], m[:32])
+
+
+def test_masked_misses_need_no_host_sync():
+    """The "mask" path compiles as one graph (``fullgraph=True`` fails on any graph break, and reading a tensor's
+    value on the host, as the gathering path's branch and sized gather do, is one); the gathering path does not."""
+    octree = _wall_octree()
+    rays = _half_missing_rays(32)
+    samplers = _samplers(octree)
+    rays.hit_t, rays.hit = samplers["gather"].first_hits(rays)
+    for misses, sampler in samplers.items():
+        torch._dynamo.reset()
+
+        def sample(origins, dirs, near, far, hit_t, hit, sampler=sampler):
+            return sampler(RayBundle(origins, dirs, near, far, hit_t, hit), False)
+
+        compiled = torch.compile(sample, fullgraph=True, backend="eager")
+        args = (rays.origins, rays.dirs, rays.near, rays.far, rays.hit_t, rays.hit)
+        if misses == "mask":
+            for c, e in zip(compiled(*args), sampler(rays, False), strict=True):
+                assert torch.equal(c, e)
+        else:
+            # a graph break (Unsupported) or a guard on a value only the device knows (UserError: data-dependent)
+            with pytest.raises((torch._dynamo.exc.Unsupported, torch._dynamo.exc.UserError)):
+                compiled(*args)
+    torch._dynamo.reset()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: the sync debug mode watches CUDA syncs")
+def test_masked_misses_make_no_cuda_sync():
+    octree = _wall_octree().to(torch.device("cuda"))
+    rays = _half_missing_rays(64)
+    sampler = _samplers(octree)["mask"]
+    sampler.fallback.grid.to("cuda")
+    rays = RayBundle(*(x.cuda() for x in (rays.origins, rays.dirs, rays.near, rays.far)))
+    rays.hit_t, rays.hit = sampler.first_hits(rays)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        sampler(rays, stratified=True)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+
+
+def test_octree_misses_are_gathered_on_a_cpu_and_masked_elsewhere():
+    assert octree_misses_on("auto", "cpu") == "gather" and octree_misses_on("auto", torch.device("cpu")) == "gather"
+    assert octree_misses_on("auto", "cuda") == "mask" and octree_misses_on("auto", torch.device("cuda:1")) == "mask"
+    assert octree_misses_on("mask", "cpu") == "mask" and octree_misses_on("gather", "cuda") == "gather"
+    with pytest.raises(ValueError, match="octree misses 'sometimes'"):
+        octree_misses_on("sometimes", "cpu")
+    with pytest.raises(ValueError, match="octree misses 'auto'"):
+        VoxNeRFSampler(_wall_octree(), 8, 4, OccGridSampler(OccupancyGrid(8), 12), "auto")

@@ -73,6 +73,16 @@ def test_sampler_follows_the_config_and_the_octree(sampler, with_octree, expecte
     assert type(model.sampler()) is expected
 
 
+def test_the_voxnerf_sampler_fills_octree_misses_as_the_config_says_on_the_model_s_device(monkeypatch):
+    model = _model("voxnerf", _octree())
+    assert model.sampler().misses == "gather"  # "auto" on a CPU
+    model.config = model.config.updated(octree_misses="mask")
+    assert model.sampler().misses == "mask"
+    model.config = model.config.updated(octree_misses="auto")
+    monkeypatch.setattr(VoxNeRFModel, "device", property(lambda self: torch.device("cuda")))  # a GPU's model
+    assert model.sampler().misses == "mask"
+
+
 def test_field_for_follows_the_resolved_preset():
     field = field_for(TrainConfig(max_iters=1, preset="cpu", hash_kernel=False))
     cfg = TrainConfig(max_iters=1, preset="cpu").resolved()

@@ -38,6 +38,14 @@ def test_train_returns_the_report_it_writes_and_sends_typed_events(tiny_room, tm
     set_up = STAGES[: STAGES.index("compile") + 1]
     assert [e.stage for e in events if e.stage != "train"] == [*set_up, "final_eval", "final_eval", "done"]
     assert events[-1].progress == 1.0 and events[-1].iteration == 3 and len(events[-1].history) == 1
+    assert report.runtime["octree_misses"] == "gather"  # the voxnerf sampler's "auto" on a CPU
+
+
+def test_a_run_with_masked_octree_misses_trains_and_says_so(tiny_room, tmp_path):
+    """The sync-free fallback a GPU takes by default also trains on a CPU when asked (its loss finite at every step:
+    the divergence guard would have failed the run), and report.json names it."""
+    report = train(tiny_room, tmp_path, _config(octree_misses="mask", final_eval=False), progress_bar=False)
+    assert report.status == "succeeded" and report.iteration == 3 and report.runtime["octree_misses"] == "mask"
 
 
 def test_a_resumed_run_continues_its_iterations_and_history(tiny_room, tmp_path):

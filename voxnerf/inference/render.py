@@ -103,8 +103,9 @@ def render_normalized(
         intrinsics: the camera; with a lens, each pixel's ray goes through its inverse distortion (the image
             a distorted camera sees, as evaluation compares with distorted ground truth).
         outputs: subset of ("rgb", "depth", "opacity"); "depth" is z-depth in normalised units.
-        chunk: rays per forward pass (default: :data:`FAST_CHUNK` on the fast path, the config's eval_chunk
-            on the full one).
+        chunk: rays per forward pass (default: :data:`FAST_CHUNK` on the fast path, on the full one the
+            config's eval_chunk, or the model's device's where it is not set:
+            :meth:`voxnerf.config.EvaluationConfig.chunk_on`).
         path: ``"fast"`` (:mod:`voxnerf.inference.fast_path`: front to back, rays stop when opaque, no compiling),
             ``"full"`` (every sample of every ray, compiled when the config says so: the training-time path) or
             ``"auto"`` (:func:`resolved_render_path`).
@@ -117,7 +118,7 @@ def render_normalized(
     if unknown:
         raise RunError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
     fast = resolved_render_path(path, model.device) == "fast"
-    chunk = chunk or (FAST_CHUNK if fast else int(model.config.evaluation.eval_chunk))
+    chunk = chunk or (FAST_CHUNK if fast else model.config.evaluation.chunk_on(model.device.type))
     if fast and should_stop is not None:
         chunk = min(chunk, STOPPABLE_FAST_CHUNK)
     c2w = c2w.to(model.device, torch.float32)

@@ -9,7 +9,8 @@ Every sampler returns the same number ``S`` of sorted, non-overlapping intervals
   crosses (inverse transform sampling of the ray's occupancy), so empty space gets almost none.
 - :class:`VoxNeRFSampler` (paper III-C): ``n_importance`` samples from ``N(z, 3 v^2)`` truncated to
   ``z +- 3 sqrt(3) v`` around the first occupied octree leaf ``z``, ``n_rest`` uniform on the rest of
-  ``[near, far]``; rays that hit no leaf fall back to the occupancy grid.
+  ``[near, far]``; rays that hit no leaf fall back to the occupancy grid, by one of :data:`OCTREE_MISSES`
+  (:func:`octree_misses_on` picks it per device).
 """
 
 from __future__ import annotations
@@ -26,6 +27,24 @@ from voxnerf.prior.octree import SparseVoxelOctree
 # Gaussian CDF at -3 and +3 standard deviations: the importance window of the paper.
 _PHI_LO = 0.5 * math.erfc(3.0 / math.sqrt(2.0))
 _PHI_HI = 1.0 - _PHI_LO
+
+# How the VoxNeRF sampler gives the rays that miss the octree their occupancy-grid intervals:
+# - "gather": the fallback samples only the missing rays (a sized gather and scatter, and a branch on whether any
+#   ray missed: each reads the hit mask on the host, a device sync per batch on a GPU);
+# - "mask": the fallback samples every ray and ``torch.where`` keeps its intervals where the ray missed (fixed
+#   shapes, nothing read on the host: on a GPU the batch queues without waiting, and it can be compiled whole).
+OCTREE_MISSES = ("gather", "mask")
+
+
+def octree_misses_on(choice: str, device: torch.device | str) -> str:
+    """The :data:`OCTREE_MISSES` entry that ``choice`` ("auto" or one of them) means on ``device``: "auto" is
+    "gather" on a CPU, where a sync costs nothing and sampling every ray through the occupancy grid costs the
+    fallback's march for each hitting ray too, and "mask" elsewhere (docs/cuda.md). ValueError for anything else."""
+    if choice == "auto":
+        return "gather" if torch.device(device).type == "cpu" else "mask"
+    if choice not in OCTREE_MISSES:
+        raise ValueError(f"octree misses {choice!r}: expected auto or one of {', '.join(OCTREE_MISSES)}")
+    return choice
 
 
 @dataclass
@@ -214,11 +233,15 @@ class VoxNeRFSampler:
     """The paper's surface-guided sampler (III-C) on a :class:`SparseVoxelOctree`."""
 
     def __init__(
-        self, octree: SparseVoxelOctree, n_importance: int, n_rest: int, fallback: OccGridSampler
+        self, octree: SparseVoxelOctree, n_importance: int, n_rest: int, fallback: OccGridSampler,
+        misses: str = "gather",
     ) -> None:
         self.octree, self.n_importance, self.n_rest, self.fallback = octree, n_importance, n_rest, fallback
         if fallback.n_samples != n_importance + n_rest:
             raise ValueError("the fallback sampler must give n_importance + n_rest samples")
+        if misses not in OCTREE_MISSES:
+            raise ValueError(f"octree misses {misses!r}: expected one of {', '.join(OCTREE_MISSES)}")
+        self.misses = misses  # how the rays that miss the octree get the fallback's intervals (OCTREE_MISSES)
 
     @property
     def half_window(self) -> float:
@@ -255,6 +278,10 @@ class VoxNeRFSampler:
         z, hit = self.first_hits(rays)
         t = self.sample_points(rays, z, stratified)
         starts, ends = intervals_around_window(t, rays.near, rays.far, z - self.half_window, z + self.half_window)
+        if self.misses == "mask":
+            fs, fe = self.fallback(RayBundle(rays.origins, rays.dirs, rays.near, rays.far), stratified)
+            miss = ~hit[:, None]
+            return torch.where(miss, fs, starts), torch.where(miss, fe, ends)
         if bool((~hit).any()):
             miss = ~hit
             sub = RayBundle(rays.origins[miss], rays.dirs[miss], rays.near[miss], rays.far[miss])

@@ -19,7 +19,14 @@ from voxnerf.model import hash_kernel
 from voxnerf.model.appearance import ImageAppearance
 from voxnerf.model.field import RadianceField
 from voxnerf.model.losses import PAPER_BETA, color_loss, depth_loss, depth_smoothness_loss, distortion_loss
-from voxnerf.model.samplers import OccGridSampler, OccupancyGrid, RayBundle, UniformSampler, VoxNeRFSampler
+from voxnerf.model.samplers import (
+    OccGridSampler,
+    OccupancyGrid,
+    RayBundle,
+    UniformSampler,
+    VoxNeRFSampler,
+    octree_misses_on,
+)
 from voxnerf.model.volume_rendering import volume_render
 from voxnerf.prior.octree import SparseVoxelOctree
 
@@ -170,7 +177,8 @@ class VoxNeRFModel:
         if self.config.sampling.sampler == "occgrid" or self.octree is None:
             return occ
         sampling = self.config.sampling
-        return VoxNeRFSampler(self.octree, int(sampling.n_importance), int(sampling.n_rest), occ)
+        misses = octree_misses_on(sampling.octree_misses, self.device)
+        return VoxNeRFSampler(self.octree, int(sampling.n_importance), int(sampling.n_rest), occ, misses)
 
     def ray_bundle(self, origins: Tensor, dirs: Tensor) -> RayBundle:
         """Rays [N, 3] (normalised units, unit dirs) clipped to the scene box. A ray that misses the box gets

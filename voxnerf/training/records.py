@@ -138,8 +138,10 @@ class TrainReport(BaseModel):
     ``scene``, ``prior`` and ``octree`` are the summaries of those stages' objects; ``warnings`` lists what the
     user should know (a prior that few pixels see, a sampler asking for a prior the scene lacks); ``pose_refinement``
     and ``appearance`` the size of the learnt per-image corrections (configs of those names); ``runtime`` how the
-process that trained computed (:func:`voxnerf.devices.compute_environment`). Fields that a
-    run never set (a prior-less scene has no ``prior``) stay out of the JSON.
+process that trained computed (:func:`voxnerf.devices.compute_environment`), with ``octree_misses``: how the
+    voxnerf sampler gave the rays that miss its octree their samples (:data:`voxnerf.model.samplers.OCTREE_MISSES`;
+    None without that sampler). Fields that a run never set (a prior-less scene has no ``prior``) stay out of the
+    JSON.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=False)

@@ -34,6 +34,7 @@ from voxnerf.devices import compute_environment, resolve_device
 from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.files import CHECKPOINT, REFINED_POSES, REPORT
 from voxnerf.model.losses import PAPER_BETA
+from voxnerf.model.samplers import VoxNeRFSampler
 from voxnerf.training import stages
 from voxnerf.training.budget import Budget, TrainingProgress
 from voxnerf.training.callbacks import (
@@ -201,7 +202,8 @@ def _optimise(run: Run, setup: SetupContext, progress_bar: bool) -> TrainReport:
     cfg, budget, built = run.cfg, run.budget, setup.built
     loop_started = budget.train_seconds
     step, compiled = _make_step(run, setup)
-    run.report.runtime = compute_environment(run.device)
+    misses = step.sampler.misses if isinstance(step.sampler, VoxNeRFSampler) else None
+    run.report.runtime = compute_environment(run.device) | {"octree_misses": misses}
     views = eval_views_of(setup.scene, built.transform)
     evaluate = _progress_evaluator(partial(progress_eval, built.model, views, cfg, run.report.history, budget))
     evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(views), run.events, run.report.warnings)
