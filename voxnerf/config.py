@@ -114,6 +114,11 @@ class SamplingConfig(_Section):
     """The samplers (paper III-C): which one, samples per ray, the octree's leaf and carving, the occupancy grid."""
 
     sampler: SamplerName = Field(default="voxnerf", json_schema_extra=JOB)
+    prior_file: bool = Field(
+        default=True,
+        description="use the scene's prior file; False trains as if the scene had none (the prior is then fused from "
+        "the training frames' depth maps where they have them, docs/engine.md)",
+    )
     n_importance: int | None = Field(json_schema_extra=JOB, default=None, ge=1)
     n_rest: int | None = Field(json_schema_extra=JOB, default=None, ge=1)
     octree_leaf: Literal["coverage", "sigma"] = Field(
