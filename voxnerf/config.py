@@ -65,7 +65,8 @@ class RunConfig(_Section):
     """How the command runs: its limits, device, seed, compilation, kernels, caches and checkpoints."""
 
     max_seconds: float | None = Field(json_schema_extra=JOB, default=None, gt=0,
-                                      description="wall-clock bound of the whole command")
+                                      description="seconds of training: the loop's steps, progress evaluations and "
+                                      "checkpoints (set-up, compilation and the final evaluation come on top)")
     max_iters: int | None = Field(json_schema_extra=JOB, default=None, gt=0)
     downscale: int = Field(json_schema_extra=JOB, default=1, ge=1, le=16)
     device: str = Field(default="auto", json_schema_extra=WORKER)
@@ -212,7 +213,7 @@ class ScheduleConfig(_Section):
     lr_schedule: LrSchedule = Field(
         default="iterations",
         description="'iterations': lr x 0.1 every lr_decay_iters steps; 'budget': lr x lr_final over the run's "
-        "limits (max_seconds less set-up and the final evaluation's share, or max_iters), whichever ends first",
+        "limits (the training seconds max_seconds leaves, or max_iters), whichever ends first",
     )
     lr_final: float = Field(default=0.1, gt=0, le=1, description="lr at the end over lr at the start ('budget')")
     field_weight_decay: Annotated[float, Field(ge=0, le=1e-2)] | Literal["auto"] = Field(
