@@ -118,9 +118,10 @@ def test_the_compile_stage_keeps_inductors_cache_beside_the_kernels_unless_told(
     assert stages.compile_stage(TrainConfig(max_iters=1, compile=False), lambda x: x).record.why.startswith("disabled")
 
 
-def test_inductors_default_set_by_importing_torch_counts_as_unset(monkeypatch, tmp_path):
-    """``import torch`` imports torch._dynamo, which sets TORCHINDUCTOR_CACHE_DIR to inductor's default under /tmp
-    before any stage runs: the compile stage must still move the cache beside the kernels."""
+def test_inductors_default_set_before_the_stage_counts_as_unset(monkeypatch, tmp_path):
+    """Building the model's Adam optimizer imports torch._dynamo, which sets TORCHINDUCTOR_CACHE_DIR to inductor's
+    default under /tmp before the compile stage runs: the compile stage must still move the cache beside the
+    kernels."""
     from torch._inductor.runtime.cache_dir_utils import default_cache_dir
 
     monkeypatch.setenv("VOXNERF_CACHE", str(tmp_path))
@@ -132,6 +133,7 @@ def test_inductors_default_set_by_importing_torch_counts_as_unset(monkeypatch, t
 def test_a_compiled_function_lands_in_the_persistent_cache(tmp_path):
     """In a fresh process, as ``voxnerf train`` runs: the compiled code is written under $VOXNERF_CACHE/inductor."""
     code = ("import torch\n"
+            "torch.optim.Adam([torch.zeros(1, requires_grad=True)])\n"  # as the set-up does: imports torch._dynamo
             "from voxnerf.config import TrainConfig\n"
             "from voxnerf.training import stages\n"
             "step = stages.compile_stage(TrainConfig(max_iters=1), lambda x: torch.sin(x) * 2 + 1).loss_fn\n"

@@ -35,9 +35,10 @@ class CompileStage:
 def use_inductor_cache_dir() -> None:
     """Point inductor's cache at :func:`inductor_cache_dir` unless the user chose one (``TORCHINDUCTOR_CACHE_DIR``).
 
-    Importing ``torch._dynamo`` (as ``import torch`` does) already sets the variable to inductor's default under the
-    temporary directory, so a value equal to that default counts as unset; inductor reads the variable each time
-    it opens its caches, so pointing it here before the first compilation is enough."""
+    Importing ``torch._dynamo`` sets the variable to inductor's default under the temporary directory, and the
+    set-up imports it before this stage (building the model's Adam optimizer does), so a value equal to that
+    default counts as unset; inductor reads the variable each time it opens its caches, so pointing it here
+    before the first compilation is enough."""
     from torch._inductor.runtime.cache_dir_utils import default_cache_dir
 
     current = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
