@@ -53,12 +53,15 @@ def rendered(monkeypatch):
     """render_pixels stubbed: each pixel's ground truth plus 0.1 (a PSNR of 20 dB), the pixels asked kept."""
     calls = []
 
-    def render_pixels(model, c2w, intrinsics, pixels, outputs=("rgb",), path="auto"):
-        calls.append(pixels.tolist())
-        truth = next(v.image for vs in VIEWS.values() for v in vs if v.intrinsics is intrinsics)
-        return {"rgb": truth.reshape(-1, 3)[pixels].float() / 255.0 + 0.1}
+    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto"):
+        calls.append([one.pixels.tolist() for one in sets])  # one pass over every view's pixels
+        out = []
+        for one in sets:
+            truth = next(v.image for vs in VIEWS.values() for v in vs if v.intrinsics is one.intrinsics)
+            out.append({"rgb": truth.reshape(-1, 3)[one.pixels].float() / 255.0 + 0.1})
+        return out
 
-    monkeypatch.setattr(evals, "render_pixels", render_pixels)
+    monkeypatch.setattr(evals, "render_pixel_sets", render_pixel_sets)
     return calls
 
 
@@ -67,8 +70,8 @@ def test_a_progress_evaluation_scores_its_rays_over_a_few_views_and_records_psnr
     cfg = TrainConfig(max_iters=1, eval_views=2)
     spent, per_ray = evals.progress_eval(None, VIEWS, cfg, history, Budget(None), 7, math.nan, 20)
     assert evaluated == []  # no whole views: 5 of each of the 4 progress views' 12 pixels
-    assert [len(p) for p in rendered] == [5] * 4 and rendered[0] == rendered[1] == evals.scored_pixels(
-        VIEWS["test"][0], 5).tolist()
+    (sets,) = rendered
+    assert [len(p) for p in sets] == [5] * 4 and sets[0] == sets[1] == evals.scored_pixels(VIEWS["test"][0], 5).tolist()
     (entry,) = history
     assert entry.to_json_dict().keys() == {"elapsed_s", "wall_s", "iteration", "loss", "psnr", "rays"}
     assert entry.iteration == 7 and entry.loss is None and entry.rays == 20
@@ -79,7 +82,7 @@ def test_a_progress_evaluation_scores_its_rays_over_a_few_views_and_records_psnr
 def test_a_progress_evaluation_that_affords_every_pixel_scores_whole_views(evaluated, rendered):
     history = []
     evals.progress_eval(None, VIEWS, TrainConfig(max_iters=1, eval_views=2), history, Budget(None), 7, 0.5, 1000)
-    assert rendered == [list(range(12))] * 4 and history[0].rays == 48
+    assert rendered == [[list(range(12))] * 4] and history[0].rays == 48
 
 
 def test_rays_are_shared_out_evenly_and_a_small_view_gives_what_it_cannot_take_to_the_others():
@@ -129,16 +132,20 @@ def test_a_warm_up_renders_a_few_pixels_first_and_stays_out_of_the_cost_per_ray(
 
     def render_pixels(model, c2w, intrinsics, pixels, outputs=("rgb",), path="auto"):
         calls.append(len(pixels))
-        if len(calls) == 1:
-            time.sleep(0.2)  # the cold render
+        time.sleep(0.2)  # the cold render
         return {"rgb": torch.zeros(len(pixels), 3)}
 
+    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto"):
+        calls.append([len(one.pixels) for one in sets])
+        return [{"rgb": torch.zeros(len(one.pixels), 3)} for one in sets]
+
     monkeypatch.setattr(evals, "render_pixels", render_pixels)
+    monkeypatch.setattr(evals, "render_pixel_sets", render_pixel_sets)
     big = {"test": [_view(i, width=64, height=48) for i in range(3)]}
     history = []
     cfg = TrainConfig(max_iters=1, eval_views=2)
     spent, per_ray = evals.progress_eval(None, big, cfg, history, Budget(None), 7, 0.1, 4000, warm_up=True)
-    assert calls == [evals.WARM_UP_RAYS, 2000, 2000]
+    assert calls == [evals.WARM_UP_RAYS, [2000, 2000]]
     assert len(history) == 1 and spent >= 0.2
     assert per_ray * 4000 < 0.1  # the timed pixels alone
 

@@ -121,6 +121,16 @@ def render_normalized(
     return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
 
 
+@dataclass
+class PixelSet:
+    """Some pixels of one view: its pose [4, 4] (normalised units), camera, and ``pixels`` [N], row-major indices
+    into the camera's image."""
+
+    c2w: Tensor
+    intrinsics: Intrinsics
+    pixels: Tensor
+
+
 @torch.no_grad()
 def render_pixels(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
                   outputs: Sequence[str] = ("rgb",), path: str = "auto") -> dict[str, Tensor]:
@@ -130,25 +140,45 @@ def render_pixels(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, pixe
     Returns the requested outputs, rgb [N, 3] and depth/opacity [N] (z-depth in normalised units), float32 on
     the model's device. RunError for an index outside the image.
     """
+    return render_pixel_sets(model, [PixelSet(c2w, intrinsics, pixels)], outputs, path)[0]
+
+
+@torch.no_grad()
+def render_pixel_sets(model: VoxNeRFModel, sets: Sequence[PixelSet], outputs: Sequence[str] = ("rgb",),
+                      path: str = "auto") -> list[dict[str, Tensor]]:
+    """:func:`render_pixels` of several views in one pass over all their rays (a pass has a fixed cost: a few
+    hundred pixels of each of many views cost little more than their rays); one dict per set, in order."""
     _check_outputs(outputs)
-    n_pixels = intrinsics.width * intrinsics.height
-    if pixels.numel() and (int(pixels.min()) < 0 or int(pixels.max()) >= n_pixels):
-        raise RunError(f"pixel indices must lie in [0, {n_pixels}) for a {intrinsics.width}x{intrinsics.height} "
-                       f"image, got {int(pixels.min())}..{int(pixels.max())}")
-    c2w = c2w.to(model.device, torch.float32)
-    pixels = pixels.to(model.device)
-    lens = None if intrinsics.lens is None else LensBatch.of([intrinsics.lens], model.device)
-    origins, dirs, z_per_t = camera_rays(model.view_pose(c2w), intrinsics.fl_x, intrinsics.fl_y, intrinsics.cx,
-                                         intrinsics.cy, pixels % intrinsics.width, pixels // intrinsics.width, lens)
-    if not pixels.numel():
-        return {name: origins.new_zeros((0, 3) if name == "rgb" else (0,)) for name in outputs}
-    parts = _render_chunks(model, origins, dirs, outputs, None, path, None)
-    result = {name: torch.cat(values)[: pixels.numel()] for name, values in parts.items()}
-    if "depth" in result:
-        result["depth"] = result["depth"] * z_per_t
-    if "rgb" in result:
-        result["rgb"] = model.view_colour(result["rgb"], c2w)
-    return result
+    rays, poses = [], []
+    for one in sets:
+        intr, pixels = one.intrinsics, one.pixels.to(model.device)
+        n_pixels = intr.width * intr.height
+        if pixels.numel() and (int(pixels.min()) < 0 or int(pixels.max()) >= n_pixels):
+            raise RunError(f"pixel indices must lie in [0, {n_pixels}) for a {intr.width}x{intr.height} image, got "
+                           f"{int(pixels.min())}..{int(pixels.max())}")
+        c2w = one.c2w.to(model.device, torch.float32)
+        lens = None if intr.lens is None else LensBatch.of([intr.lens], model.device)
+        rays.append(camera_rays(model.view_pose(c2w), intr.fl_x, intr.fl_y, intr.cx, intr.cy, pixels % intr.width,
+                                pixels // intr.width, lens))
+        poses.append(c2w)
+    total = sum(r[0].shape[0] for r in rays)
+    if total:
+        parts = _render_chunks(model, torch.cat([r[0] for r in rays]), torch.cat([r[1] for r in rays]), outputs,
+                               None, path, None)
+        every = {name: torch.cat(values)[:total] for name, values in parts.items()}
+    else:
+        every = {name: torch.zeros((0, 3) if name == "rgb" else (0,), device=model.device) for name in outputs}
+    results, start = [], 0
+    for (_, _, z_per_t), c2w in zip(rays, poses, strict=True):
+        end = start + z_per_t.shape[0]
+        result = {name: values[start:end] for name, values in every.items()}
+        if "depth" in result:
+            result["depth"] = result["depth"] * z_per_t
+        if "rgb" in result:
+            result["rgb"] = model.view_colour(result["rgb"], c2w)
+        results.append(result)
+        start = end
+    return results
 
 
 def _check_outputs(outputs: Sequence[str]) -> None:

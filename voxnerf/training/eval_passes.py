@@ -16,7 +16,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.data.scene import Scene, SceneTransform
 from voxnerf.inference.evaluation import EvaluationStopped, EvalView, evaluate_views, view_names
 from voxnerf.inference.metrics import psnr
-from voxnerf.inference.render import render_pixels
+from voxnerf.inference.render import PixelSet, render_pixel_sets, render_pixels
 from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.budget import Budget
 from voxnerf.training.records import EvalRecord
@@ -95,22 +95,17 @@ def pixels_per_view(views: EvalViews, rays: int) -> list[int]:
 
 def pixels_psnr(model: VoxNeRFModel, views: EvalViews, rays: int) -> dict[str, float]:
     """Mean PSNR (dB) per split over ``views``, each scored on its :func:`scored_pixels` (``rays`` shared out
-    by :func:`pixels_per_view`; a view given none is left out) rendered as the whole view would render them."""
+    by :func:`pixels_per_view`; a view given none is left out) rendered as the whole view would render them, all
+    views in one pass (:func:`render_pixel_sets`)."""
     shares = iter(pixels_per_view(views, rays))
-    out = {}
-    for split, split_views in views.items():
-        scores = []
-        for view in split_views:
-            n = next(shares)
-            if not n:
-                continue
-            pixels = scored_pixels(view, n)
-            rgb = render_pixels(model, view.c2w, view.intrinsics, pixels)["rgb"].float().cpu()
-            truth = view.image.reshape(-1, 3)[pixels].float() / 255.0
-            scores.append(psnr(rgb[None], truth[None]))
-        if scores:
-            out[split] = float(np.mean(scores))
-    return out
+    scored = [(split, view, scored_pixels(view, n)) for split, split_views in views.items() for view in split_views
+              if (n := next(shares))]
+    rendered = render_pixel_sets(model, [PixelSet(view.c2w, view.intrinsics, pixels) for _, view, pixels in scored])
+    scores: dict[str, list[float]] = {}
+    for (split, view, pixels), out in zip(scored, rendered, strict=True):
+        truth = view.image.reshape(-1, 3)[pixels].float() / 255.0
+        scores.setdefault(split, []).append(psnr(out["rgb"].float().cpu()[None], truth[None]))
+    return {split: float(np.mean(values)) for split, values in scores.items()}
 
 
 def progress_eval(
