@@ -401,8 +401,8 @@ def write_outputs(results: list[dict], out: Path, eval_at: list[float]) -> str:
         )
     lines += [
         "",
-        "PSNR dB / SSIM at each training time (training seconds: wall clock of the command minus "
-        "evaluations, set-up included; '-': that evaluation did not happen within the budget).",
+        "PSNR dB / SSIM at each training time (training seconds: the training loop's, set-up, compilation, "
+        "evaluations and checkpoints left out; '-': that evaluation did not happen within the budget).",
         "",
     ]
     lines += ratio_table(results, splits)

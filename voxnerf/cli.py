@@ -57,6 +57,7 @@ def train_config(args: argparse.Namespace) -> TrainConfig:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from voxnerf.training.budget import budget_line
     from voxnerf.training.run import train
 
     config = train_config(args)
@@ -72,6 +73,7 @@ def _train(args: argparse.Namespace) -> int:
         print(_metrics_line(name, m))
     print(f"{report.status}: {report.iteration} iterations in {report.train_seconds:.1f} s "
           f"({report.throughput['samples_per_s']:.0f} samples/s); report: {Path(args.out) / 'report.json'}")
+    print(budget_line(report.budget))
     return 0
 
 
@@ -510,7 +512,8 @@ def _add_train_command(sub: argparse._SubParsersAction) -> None:
 def _add_job_options(p: argparse.ArgumentParser) -> None:
     """The training flags a job takes, locally (``voxnerf train``) or on a service (``voxnerf remote train``,
     ``POST /scenes/{id}/jobs``): read by :func:`job_option_values`."""
-    p.add_argument("--max-seconds", type=float, help="wall-clock bound of the whole command")
+    p.add_argument("--max-seconds", type=float, help="seconds of training (set-up, compilation and the final "
+                   "evaluation come on top: docs/engine.md, 'The time budget')")
     p.add_argument("--max-iters", type=int)
     p.add_argument("--sampler", choices=["voxnerf", "occgrid", "uniform"], default="voxnerf")
     p.add_argument("--no-depth-loss", action="store_true", help="leave the depth terms out (as --depth-source none)")

@@ -68,7 +68,8 @@ class RunConfig(_Section):
     """How the command runs: its limits, device, seed, compilation, kernels, caches and checkpoints."""
 
     max_seconds: float | None = Field(json_schema_extra=JOB, default=None, gt=0,
-                                      description="wall-clock bound of the whole command")
+                                      description="seconds of training: the loop's steps, progress evaluations and "
+                                      "checkpoints (set-up, compilation and the final evaluation come on top)")
     max_iters: int | None = Field(json_schema_extra=JOB, default=None, gt=0)
     downscale: int = Field(json_schema_extra=JOB, default=1, ge=1, le=16)
     device: str = Field(default="auto", json_schema_extra=WORKER)
@@ -117,6 +118,11 @@ class SamplingConfig(_Section):
     """The samplers (paper III-C): which one, samples per ray, the octree's leaf and carving, the occupancy grid."""
 
     sampler: SamplerName = Field(default="voxnerf", json_schema_extra=JOB)
+    prior_file: bool = Field(
+        default=True,
+        description="use the scene's prior file; False trains as if the scene had none (the prior is then fused from "
+        "the training frames' depth maps where they have them, docs/engine.md)",
+    )
     n_importance: int | None = Field(json_schema_extra=JOB, default=None, ge=1)
     n_rest: int | None = Field(json_schema_extra=JOB, default=None, ge=1)
     octree_leaf: Literal["coverage", "sigma"] = Field(
@@ -217,7 +223,7 @@ class ScheduleConfig(_Section):
     lr_schedule: LrSchedule = Field(
         default="iterations",
         description="'iterations': lr x 0.1 every lr_decay_iters steps; 'budget': lr x lr_final over the run's "
-        "limits (max_seconds less set-up and the final evaluation's share, or max_iters), whichever ends first",
+        "limits (the training seconds max_seconds leaves, or max_iters), whichever ends first",
     )
     lr_final: float = Field(default=0.1, gt=0, le=1, description="lr at the end over lr at the start ('budget')")
     field_weight_decay: Annotated[float, Field(ge=0, le=1e-2)] | Literal["auto"] = Field(

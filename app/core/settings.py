@@ -202,8 +202,8 @@ class Settings(BaseSettings):
     )
     max_job_seconds: float = Field(
         default=86_400.0, gt=0,
-        description="wall-clock cap of every training job: the worker trains for min(max_seconds, this), a "
-        "max_iters-only job included",
+        description="cap of every training job's training seconds: the worker trains for min(max_seconds, this), a "
+        "max_iters-only job included (set-up, compilation and the final evaluation come on top, docs/engine.md)",
     )
     max_eval_at_seconds: float = Field(
         default=600.0, ge=0,

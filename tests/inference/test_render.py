@@ -13,7 +13,16 @@ from tiny_run import DEFAULT_INTRINSICS, DEPTH_UNIT_SCALE, write_tiny_run
 from voxnerf.cameras.rules import Intrinsics, Lens, validate_pose
 from voxnerf.errors import RenderStopped, RunError
 from voxnerf.inference.encoding import OUTPUT_NAMES
-from voxnerf.inference.render import CHECKPOINT, OUTPUTS, load_model, render, render_normalized
+from voxnerf.inference.render import (
+    CHECKPOINT,
+    OUTPUTS,
+    PixelSet,
+    load_model,
+    render,
+    render_normalized,
+    render_pixel_sets,
+    render_pixels,
+)
 
 
 @pytest.fixture(scope="module")
@@ -206,3 +215,44 @@ def test_the_full_path_renders_in_passes_of_the_device_s_chunk_unless_the_config
     monkeypatch.setattr(model.config.evaluation, "eval_chunk", 3000)
     render_normalized(model, torch.eye(4), camera, ("rgb",), path="full")
     assert passes == [3000, 1800]
+
+
+# ------------------------------------------------------------------------------------------- some pixels
+
+
+@pytest.mark.parametrize("path", ["fast", "full"])
+@pytest.mark.parametrize("lensed", [False, True])
+def test_some_pixels_render_as_they_do_in_the_whole_view(trained, trained_through_a_lens, path, lensed):
+    """render_pixels (the progress evaluations' renders): the same rays, pose and colour as the whole image's."""
+    model = (trained_through_a_lens[1] if lensed else trained).model
+    camera = Intrinsics(20.0, 18.0, 16.5, 11.0, 32, 24, lens=Lens("OPENCV", k1=-0.3, p1=0.01) if lensed else None)
+    c2w = torch.from_numpy(_pose()).float()
+    whole = render_normalized(model, c2w, camera, OUTPUT_NAMES, path=path)
+    pixels = torch.tensor([0, 5, 31, 32, 400, 767])
+    some = render_pixels(model, c2w, camera, pixels, OUTPUT_NAMES, path=path)
+    rows, cols = pixels // 32, pixels % 32
+    for name in OUTPUT_NAMES:
+        torch.testing.assert_close(some[name], whole[name][rows, cols], atol=1e-5, rtol=1e-5)
+    assert render_pixels(model, c2w, camera, pixels[:0])["rgb"].shape == (0, 3)
+
+
+@pytest.mark.parametrize("bad", [[-1, 3], [0, 768]])
+def test_pixels_outside_the_image_are_a_run_error(trained, bad):
+    with pytest.raises(RunError, match=r"pixel indices must lie in \[0, 768\) for a 32x24 image"):
+        render_pixels(trained.model, torch.eye(4), Intrinsics(20.0, 20.0, 16.0, 12.0, 32, 24), torch.tensor(bad))
+
+
+def test_the_pixels_of_several_views_render_in_one_pass_as_each_alone(trained_through_a_lens):
+    model = trained_through_a_lens[1].model
+    camera = Intrinsics(20.0, 18.0, 16.5, 11.0, 32, 24, lens=Lens("OPENCV", k1=-0.3, p1=0.01))
+    other = Intrinsics(15.0, 15.0, 8.0, 6.0, 16, 12)
+    near, far = torch.from_numpy(_pose(2.5)).float(), torch.from_numpy(_pose(3.5)).float()
+    sets = [PixelSet(near, camera, torch.tensor([3, 700, 40])), PixelSet(far, other, torch.tensor([0, 191])),
+            PixelSet(far, camera, torch.tensor([], dtype=torch.long))]
+    together = render_pixel_sets(model, sets, OUTPUT_NAMES, path="full")
+    for one, got in zip(sets, together, strict=True):
+        alone = render_pixels(model, one.c2w, one.intrinsics, one.pixels, OUTPUT_NAMES, path="full")
+        for name in OUTPUT_NAMES:
+            torch.testing.assert_close(got[name], alone[name], atol=1e-5, rtol=1e-5)
+    with pytest.raises(RunError, match=r"pixel indices must lie in \[0, 192\) for a 16x12 image"):
+        render_pixel_sets(model, [sets[0], PixelSet(far, other, torch.tensor([192]))])

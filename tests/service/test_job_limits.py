@@ -210,11 +210,12 @@ class Clock:
 def test_eval_at_evaluations_stop_once_their_time_cap_is_spent():
     clock = Clock()
     budget = Budget(None, clock=clock)
+    budget.start_training()
     warnings: list[str] = []
     done: list[bool] = []
 
-    def evaluate(_iteration: int, _loss: float, full: bool) -> tuple[float, float]:
-        done.append(full)
+    def evaluate(_iteration: int, _loss: float, rays: int | None) -> tuple[float, float]:
+        done.append(rays is None)  # a full evaluation
         clock.now += 4.0  # each full evaluation takes 4 s
         return 4.0, 1e-5
 

@@ -17,7 +17,9 @@ from voxnerf.config import TrainConfig
 from voxnerf.files import CHECKPOINT, REPORT
 from voxnerf.training.budget import Budget
 from voxnerf.training.callbacks import (
-    EARLY_EVAL_MAX_SHARE,
+    FIRST_PROGRESS_EVAL_RAYS,
+    MIN_PROGRESS_EVAL_RAYS,
+    PROGRESS_EVAL_SHARE,
     PROGRESS_EVALS_STAGE,
     ProgressEvaluation,
     ProgressEvents,
@@ -79,6 +81,7 @@ def test_a_series_needs_room_for_three_points():
 def test_progress_events_carry_the_series_and_the_report_keeps_it():
     clock, sent = FakeClock(100.0), []
     budget = Budget(None, clock=clock)
+    budget.start_training()
     report = TrainReport(config={}, device="cpu")
     events = ProgressEvents(sent.append, TrainConfig(max_iters=100), budget, report, clock=clock)
     for step in range(1, 9):  # 4 s of 0.5 s steps, the loss halving every second
@@ -92,7 +95,9 @@ def test_progress_events_carry_the_series_and_the_report_keeps_it():
 def test_without_a_listener_the_report_still_gets_the_series():
     clock = FakeClock()
     report = TrainReport(config={}, device="cpu")
-    events = ProgressEvents(None, TrainConfig(max_iters=10), Budget(None, clock=clock), report, clock=clock)
+    budget = Budget(None, clock=clock)
+    budget.start_training()
+    events = ProgressEvents(None, TrainConfig(max_iters=10), budget, report, clock=clock)
     clock.now = 2.0
     events.after_step(LoopState(1, last_loss=0.25))
     assert report.loss_series == [(2.0, 0.25)]
@@ -114,53 +119,90 @@ def test_long_lists_of_seconds_are_shortened():
     assert seconds_list(list(range(0, 1000, 60)), most=5) == "0, 60, 120, …, 960"
 
 
-def _evaluation(spent: float, report: TrainReport, every: float = 60.0):
+def _evaluation(report: TrainReport, per_ray: float, max_seconds: float | None = 1000.0, every: float = 60.0,
+                view_rays: int = 100_000):
+    """A progress evaluation on a fake clock whose evaluations take ``per_ray`` seconds per ray they score."""
     clock = FakeClock()
-    budget = Budget(1000.0, clock=clock)
+    budget = Budget(max_seconds, clock=clock)
+    budget.start_training()
     cfg = TrainConfig(max_iters=10, eval_every_s=every, compile=False)
     events = ProgressEvents(None, cfg, budget, report, clock=clock)
     calls = []
 
-    def evaluate(iteration, loss, full):  # takes `spent` seconds of the clock
-        calls.append(budget.train_seconds)
+    def evaluate(iteration, loss, rays):
+        calls.append((budget.train_seconds, rays))
+        spent = rays * per_ray
         clock.now += spent
-        return spent, 1e-4
+        return spent, per_ray
 
-    return ProgressEvaluation(evaluate, budget, cfg, 1000, events), calls, budget, clock
+    return ProgressEvaluation(evaluate, budget, cfg, view_rays, events), calls, budget, clock
 
 
-def _train_until(evaluation, budget, clock, train_seconds: float) -> None:
-    """Step the clock in 0.5 s steps until ``train_seconds`` of training time (paused time left out)."""
-    while budget.train_seconds < train_seconds:
+def _train_until(evaluation, budget, clock, train_seconds: float | None = None) -> None:
+    """Step the clock in 0.5 s steps until ``train_seconds`` of training time (paused time left out), or until the
+    budget is spent."""
+    while (budget.train_seconds < train_seconds) if train_seconds is not None else budget.remaining() > 0:
         evaluation.before_step(LoopState(1, last_loss=0.1))
         clock.now += 0.5
 
 
-def test_cheap_early_evaluations_all_run_and_the_stage_says_when_and_what_they_cost():
+def test_cheap_progress_evaluations_score_every_pixel_and_the_stage_says_when_and_what_they_cost():
     report = TrainReport(config={}, device="cpu")
-    evaluation, calls, budget, clock = _evaluation(0.5, report)
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-7, view_rays=10_000)
     _train_until(evaluation, budget, clock, 130.0)
-    assert [round(t) for t in calls] == [10, 20, 30, 45, 60, 120]
+    assert [round(t) for t, _ in calls] == [10, 20, 30, 45, 60, 120]
+    assert [rays for _, rays in calls] == [FIRST_PROGRESS_EVAL_RAYS] + [10_000] * 5
     (record,) = [s for s in report.stages if s.name == PROGRESS_EVALS_STAGE]
-    assert record.ran and record.seconds == pytest.approx(3.0)
-    assert record.why.startswith("6 progress evaluations of up to 4 views per split at 10, 20, 30, 45, 60, 120 s")
+    assert record.ran and record.seconds == round(1e-7 * (2048 + 50_000), 3)
+    assert record.why.startswith("6 progress evaluations at 10, 20, 30, 45, 60, 120 s of training, of 2048-10000 "
+                                 "rays over up to 4 views per split (10000 pixels): sized to 2% of max_seconds")
     assert "skipped" not in record.why
-    assert budget.paused == pytest.approx(3.0)
+    assert budget.parts["progress_evals"] == pytest.approx(1e-7 * (2048 + 50_000))
 
 
-def test_dear_early_evaluations_are_skipped_and_the_stage_says_so():
+def test_dear_progress_evaluations_are_subsampled_to_keep_within_their_share_of_the_budget():
+    """At 1e-4 s per ray every pixel of the progress views (10 s) would take five times the 2 s that 2 % of a
+    100 s budget allows: each scores about 4000 rays instead, and all of them fit in the share."""
     report = TrainReport(config={}, device="cpu")
-    evaluation, calls, budget, clock = _evaluation(2.0, report)  # 2 s each: at 20 s, 4 s > 15% of 20 s
-    _train_until(evaluation, budget, clock, 70.0)
-    assert EARLY_EVAL_MAX_SHARE == 0.15
-    assert [round(t) for t in calls] == [10, 30, 45, 60]  # at 30 s: 4 s <= 4.5 s; at 45 s: 6 s <= 6.75 s
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-4, max_seconds=100.0)
+    _train_until(evaluation, budget, clock)
+    assert [round(t) for t, _ in calls] == [10, 20, 30, 45, 60]
+    assert all(MIN_PROGRESS_EVAL_RAYS <= rays < 100_000 for _, rays in calls)
+    assert budget.parts["progress_evals"] <= PROGRESS_EVAL_SHARE * 100.0 + 1e-9
+    assert budget.parts["progress_evals"] > 0.9 * PROGRESS_EVAL_SHARE * 100.0  # the share is used, not wasted
+    assert budget.train_seconds >= (1 - PROGRESS_EVAL_SHARE) * 100.0 - 0.5  # the rest trained (0.5 s steps)
+
+
+def test_progress_evaluations_too_dear_even_when_subsampled_are_skipped_and_the_stage_says_so():
+    report = TrainReport(config={}, device="cpu")
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-3, max_seconds=100.0)
+    _train_until(evaluation, budget, clock)
+    assert calls == [(10.0, FIRST_PROGRESS_EVAL_RAYS)]  # 2.05 s: nothing of the 2 s share is left for the next
     (record,) = [s for s in report.stages if s.name == PROGRESS_EVALS_STAGE]
-    assert "early one(s) at 20 s skipped" in record.why and record.seconds == pytest.approx(8.0)
+    assert record.why.endswith("; at 20, 30, 45, 60 s skipped: fewer than 2048 rays were left within 2% of "
+                               "max_seconds")
+    assert budget.parts["progress_evals"] == pytest.approx(2.048)
+
+
+def test_a_scene_whose_progress_views_are_smaller_than_the_minimum_still_evaluates_them():
+    report = TrainReport(config={}, device="cpu")
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-5, max_seconds=60.0, view_rays=500)
+    _train_until(evaluation, budget, clock)
+    assert [rays for _, rays in calls] == [500] * 4  # 10, 20, 30 and 45 s, each 5 ms of the 1.2 s share
+
+
+def test_without_max_seconds_every_pixel_is_scored_however_dear():
+    report = TrainReport(config={}, device="cpu")
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-4, max_seconds=None)
+    _train_until(evaluation, budget, clock, 70.0)
+    assert [rays for _, rays in calls] == [100_000] * 5
+    (record,) = [s for s in report.stages if s.name == PROGRESS_EVALS_STAGE]
+    assert "every pixel of them (no max_seconds to size them to" in record.why
 
 
 def test_no_progress_evaluation_no_stage():
     report = TrainReport(config={}, device="cpu")
-    evaluation, calls, budget, clock = _evaluation(0.5, report)
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-7)
     _train_until(evaluation, budget, clock, 9.0)
     assert calls == [] and report.stages == []
 

@@ -217,3 +217,17 @@ def test_sensor_depth_without_depth_maps_is_refused_when_the_scene_loads(tmp_pat
     with pytest.raises(SceneError, match="depth_source 'sensor' needs depth maps"):
         stages.load_scene_stage(tmp_path, TrainConfig(max_iters=1, depth_source="sensor"))
     assert stages.load_scene_stage(tmp_path, TrainConfig(max_iters=1)).record.ran  # auto: no depth, no error
+
+
+def test_prior_file_false_leaves_the_prior_file_out_and_fuses_the_depth_maps(tmp_path_factory, tmp_path):
+    """As a capture without a prior file trains (issue #46's desk), on a scene that has one."""
+    from voxnerf.synthetic import RoomSpec, make_room_scene
+
+    room = make_room_scene(tmp_path_factory.mktemp("prior_and_depth") / "room",
+                           RoomSpec(width=48, height=36, n_frames=60, train_every=5, gap_len=15))
+    with_file = train(room, tmp_path / "file", TrainConfig(**TINY_TRAIN), progress_bar=False)
+    assert with_file.prior["kind"] == "points" and not (tmp_path / "file" / FUSED_PRIOR).exists()
+    without = train(room, tmp_path / "fused", TrainConfig(**TINY_TRAIN, prior_file=False), progress_bar=False)
+    why = {s.name: s.why for s in without.stages}
+    assert why["prior"].startswith("no prior file; ") and "prior.ply left out (prior_file: false)" in why["prior"]
+    assert without.prior["fused"]["source"] == "tsdf_fusion" and (tmp_path / "fused" / FUSED_PRIOR).is_file()

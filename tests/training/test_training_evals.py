@@ -6,6 +6,7 @@ import math
 from types import SimpleNamespace
 
 import pytest
+import torch
 
 from voxnerf.config import TrainConfig
 from voxnerf.training import evals
@@ -13,7 +14,9 @@ from voxnerf.training.budget import Budget
 
 
 def _view(i: int, width: int = 4, height: int = 3):
-    return SimpleNamespace(name=f"v{i}", rays=width * height)
+    image = torch.arange(width * height * 3, dtype=torch.uint8).reshape(height, width, 3)
+    return SimpleNamespace(name=f"v{i}", rays=width * height, c2w=torch.eye(4), image=image,
+                           intrinsics=SimpleNamespace(width=width, height=height))
 
 
 VIEWS = {"test": [_view(i) for i in range(5)], "extra": [_view(i) for i in range(2)]}
@@ -45,20 +48,61 @@ def test_progress_views_psnr_averages_the_progress_views_of_a_full_evaluation():
     assert evals.progress_views_psnr(metrics, VIEWS, 2) == {"test": pytest.approx((0.0 + 4.0) / 2)}
 
 
-def test_a_progress_evaluation_scores_a_few_views_and_records_psnr(evaluated):
+@pytest.fixture
+def rendered(monkeypatch):
+    """render_pixels stubbed: each pixel's ground truth plus 0.1 (a PSNR of 20 dB), the pixels asked kept."""
+    calls = []
+
+    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto"):
+        calls.append([one.pixels.tolist() for one in sets])  # one pass over every view's pixels
+        out = []
+        for one in sets:
+            truth = next(v.image for vs in VIEWS.values() for v in vs if v.intrinsics is one.intrinsics)
+            out.append({"rgb": truth.reshape(-1, 3)[one.pixels].float() / 255.0 + 0.1})
+        return out
+
+    monkeypatch.setattr(evals, "render_pixel_sets", render_pixel_sets)
+    return calls
+
+
+def test_a_progress_evaluation_scores_its_rays_over_a_few_views_and_records_psnr(evaluated, rendered):
     history = []
     cfg = TrainConfig(max_iters=1, eval_views=2)
-    spent, per_ray = evals.progress_eval(None, VIEWS, cfg, history, Budget(None), 7, math.nan, False)
-    assert evaluated == [{"views": {"test": ["v0", "v4"], "extra": ["v0", "v1"]}, "out_dir": None, "lpips": False}]
+    spent, per_ray = evals.progress_eval(None, VIEWS, cfg, history, Budget(None), 7, math.nan, 20)
+    assert evaluated == []  # no whole views: 5 of each of the 4 progress views' 12 pixels
+    (sets,) = rendered
+    assert [len(p) for p in sets] == [5] * 4 and sets[0] == sets[1] == evals.scored_pixels(VIEWS["test"][0], 5).tolist()
     (entry,) = history
-    assert entry.to_json_dict().keys() == {"elapsed_s", "wall_s", "iteration", "loss", "psnr"}
-    assert entry.iteration == 7 and entry.loss is None and entry.psnr == {"test": 22.0, "extra": 22.0}
-    assert spent >= 0 and per_ray == pytest.approx(spent / (4 * 12), abs=1e-4)
+    assert entry.to_json_dict().keys() == {"elapsed_s", "wall_s", "iteration", "loss", "psnr", "rays"}
+    assert entry.iteration == 7 and entry.loss is None and entry.rays == 20
+    assert entry.psnr == {"test": pytest.approx(20.0), "extra": pytest.approx(20.0)}
+    assert spent >= 0 and per_ray == pytest.approx(spent / 20, abs=1e-4)
+
+
+def test_a_progress_evaluation_that_affords_every_pixel_scores_whole_views(evaluated, rendered):
+    history = []
+    evals.progress_eval(None, VIEWS, TrainConfig(max_iters=1, eval_views=2), history, Budget(None), 7, 0.5, 1000)
+    assert rendered == [[list(range(12))] * 4] and history[0].rays == 48
+
+
+def test_rays_are_shared_out_evenly_and_a_small_view_gives_what_it_cannot_take_to_the_others():
+    views = {"a": [_view(0), _view(1)], "b": [_view(2, width=3, height=1)]}
+    assert evals.pixels_per_view(views, 20) == [9, 8, 3]
+    assert evals.pixels_per_view(views, 2) == [1, 0, 1]
+    assert evals.pixels_per_view(views, 100) == [12, 12, 3]
+
+
+def test_the_scored_pixels_are_fixed_sorted_and_nested():
+    view = _view(0, width=40, height=30)
+    few, more = evals.scored_pixels(view, 50), evals.scored_pixels(view, 300)
+    assert torch.equal(few, evals.scored_pixels(view, 50)) and bool((few[1:] > few[:-1]).all())
+    assert set(few.tolist()) <= set(more.tolist()) and len(set(more.tolist())) == 300
+    assert torch.equal(evals.scored_pixels(view, 5000), torch.arange(1200))
 
 
 def test_a_full_evaluation_scores_every_view_with_ssim_and_progress_psnr(evaluated):
     history = []
-    evals.progress_eval(None, VIEWS, TrainConfig(max_iters=1, eval_views=2), history, Budget(None), 7, 0.5, True)
+    evals.progress_eval(None, VIEWS, TrainConfig(max_iters=1, eval_views=2), history, Budget(None), 7, 0.5, None)
     assert evaluated[0]["views"]["test"] == [f"v{i}" for i in range(5)] and evaluated[0]["lpips"]
     entry = history[0].to_json_dict()
     assert entry["full"] and entry["loss"] == 0.5 and entry["ssim"] == {"test": 0.5, "extra": 0.5}
@@ -79,27 +123,31 @@ def test_view_rays_counts_every_pixel():
     assert evals.view_rays(VIEWS) == 7 * 12
 
 
-def test_a_warm_up_renders_one_view_first_and_stays_out_of_the_cost_per_ray(monkeypatch):
+def test_a_warm_up_renders_a_few_pixels_first_and_stays_out_of_the_cost_per_ray(monkeypatch):
     """The process's first evaluation pays for compiling the render (or a GPU's first kernels): that must not
-    size the final evaluation's reserve."""
+    size the later progress evaluations."""
     import time
 
     calls = []
 
-    def evaluate_views(model, views, cfg, out_dir=None, lpips=False, should_stop=None, half_image=False):
-        names = {k: [v.name for v in vs] for k, vs in views.items()}
-        calls.append(names)
-        if len(calls) == 1:
-            time.sleep(0.2)  # the cold render
-        return {k: {"psnr": 20.0, "ssim": 0.5, "lpips": None, "views": []} for k in views}
+    def render_pixels(model, c2w, intrinsics, pixels, outputs=("rgb",), path="auto"):
+        calls.append(len(pixels))
+        time.sleep(0.2)  # the cold render
+        return {"rgb": torch.zeros(len(pixels), 3)}
 
-    monkeypatch.setattr(evals, "evaluate_views", evaluate_views)
+    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto"):
+        calls.append([len(one.pixels) for one in sets])
+        return [{"rgb": torch.zeros(len(one.pixels), 3)} for one in sets]
+
+    monkeypatch.setattr(evals, "render_pixels", render_pixels)
+    monkeypatch.setattr(evals, "render_pixel_sets", render_pixel_sets)
+    big = {"test": [_view(i, width=64, height=48) for i in range(3)]}
     history = []
     cfg = TrainConfig(max_iters=1, eval_views=2)
-    spent, per_ray = evals.progress_eval(None, VIEWS, cfg, history, Budget(None), 7, 0.1, False, warm_up=True)
-    assert calls == [{"test": ["v0"]}, {"test": ["v0", "v4"], "extra": ["v0", "v1"]}]
+    spent, per_ray = evals.progress_eval(None, big, cfg, history, Budget(None), 7, 0.1, 4000, warm_up=True)
+    assert calls == [evals.WARM_UP_RAYS, [2000, 2000]]
     assert len(history) == 1 and spent >= 0.2
-    assert per_ray * 4 * 12 < 0.1  # the timed views alone
+    assert per_ray * 4000 < 0.1  # the timed pixels alone
 
 
 def test_only_the_first_progress_evaluation_of_a_process_warms_up():
@@ -107,7 +155,7 @@ def test_only_the_first_progress_evaluation_of_a_process_warms_up():
 
     seen = []
     evaluate = _progress_evaluator(lambda it, loss, full, warm_up: seen.append((it, warm_up)) or (1.0, 1e-3))
-    assert evaluate(1, 0.5, False) == (1.0, 1e-3)
-    evaluate(50, 0.4, True)
-    evaluate(90, 0.3, False)
+    assert evaluate(1, 0.5, 4096) == (1.0, 1e-3)
+    evaluate(50, 0.4, None)
+    evaluate(90, 0.3, 4096)
     assert seen == [(1, True), (50, False), (90, False)]

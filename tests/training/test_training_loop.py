@@ -83,12 +83,14 @@ def test_a_run_already_at_max_iters_takes_no_step():
     assert log == [] and math.isnan(state.last_loss)
 
 
-def test_the_time_budget_stops_the_loop_with_the_reserve_held_back():
+def test_the_time_budget_stops_the_loop_once_max_seconds_of_training_are_spent():
     clock, log = FakeClock(), []
-    limits = _limits(max_seconds=10.0, clock=clock, reserve=lambda: 4.0)
+    limits = _limits(max_seconds=10.0, clock=clock)
+    clock.now += 30.0  # the set-up: not charged
+    limits.budget.start_training()
     state = LoopState(0)
     assert run_loop(StubStep([1.0] * 100, log, clock), state, [], limits) == "succeeded"
-    assert state.iteration == 6  # 1 s per step; stops once 10 - 6 - 4 <= 0
+    assert state.iteration == 10 and limits.budget.train_seconds == 10.0  # 1 s per step, nothing held back
 
 
 def test_should_stop_cancels_between_steps():

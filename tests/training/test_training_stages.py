@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import random
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import numpy as np
@@ -114,6 +116,32 @@ def test_the_compile_stage_keeps_inductors_cache_beside_the_kernels_unless_told(
     stages.compile_stage(TrainConfig(max_iters=1), lambda x: x)
     assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine")
     assert stages.compile_stage(TrainConfig(max_iters=1, compile=False), lambda x: x).record.why.startswith("disabled")
+
+
+def test_inductors_default_set_before_the_stage_counts_as_unset(monkeypatch, tmp_path):
+    """Building the model's Adam optimizer imports torch._dynamo, which sets TORCHINDUCTOR_CACHE_DIR to inductor's
+    default under /tmp before the compile stage runs: the compile stage must still move the cache beside the
+    kernels."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    monkeypatch.setenv("VOXNERF_CACHE", str(tmp_path))
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", default_cache_dir())
+    stages.compile_stage(TrainConfig(max_iters=1), lambda x: x)
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "inductor")
+
+
+def test_a_compiled_function_lands_in_the_persistent_cache(tmp_path):
+    """In a fresh process, as ``voxnerf train`` runs: the compiled code is written under $VOXNERF_CACHE/inductor."""
+    code = ("import torch\n"
+            "torch.optim.Adam([torch.zeros(1, requires_grad=True)])\n"  # as the set-up does: imports torch._dynamo
+            "from voxnerf.config import TrainConfig\n"
+            "from voxnerf.training import stages\n"
+            "step = stages.compile_stage(TrainConfig(max_iters=1), lambda x: torch.sin(x) * 2 + 1).loss_fn\n"
+            "step(torch.ones(8))\n")
+    env = {**os.environ, "VOXNERF_CACHE": str(tmp_path)}
+    env.pop("TORCHINDUCTOR_CACHE_DIR", None)
+    subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, timeout=600)
+    assert any((tmp_path / "inductor").rglob("*.py")), sorted(p.name for p in tmp_path.rglob("*"))[:20]
 
 
 def test_the_training_mean_background_is_the_mean_colour_of_the_training_images():

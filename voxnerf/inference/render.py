@@ -11,7 +11,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from voxnerf.cameras.rays import Intrinsics, image_rays
+from voxnerf.cameras.lens import LensBatch
+from voxnerf.cameras.rays import Intrinsics, camera_rays, image_rays
 from voxnerf.cameras.rules import CameraError, validate_pose
 from voxnerf.data.scene import Scene, with_focal_scale
 from voxnerf.devices import resolve_device
@@ -114,15 +115,87 @@ def render_normalized(
     Returns:
         the requested outputs, rgb [H, W, 3] and depth/opacity [H, W], float32 on the model's device.
     """
+    _check_outputs(outputs)
+    c2w = c2w.to(model.device, torch.float32)
+    origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
+    parts = _render_chunks(model, origins, dirs, outputs, chunk, path, should_stop)
+    return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
+
+
+@dataclass
+class PixelSet:
+    """Some pixels of one view: its pose [4, 4] (normalised units), camera, and ``pixels`` [N], row-major indices
+    into the camera's image."""
+
+    c2w: Tensor
+    intrinsics: Intrinsics
+    pixels: Tensor
+
+
+@torch.no_grad()
+def render_pixels(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
+                  outputs: Sequence[str] = ("rgb",), path: str = "auto") -> dict[str, Tensor]:
+    """Render some pixels of one view, as :func:`render_normalized` renders them in the whole image (the same
+    rays, pose and colour corrections): ``pixels`` [N] are row-major indices into the ``intrinsics``' image.
+
+    Returns the requested outputs, rgb [N, 3] and depth/opacity [N] (z-depth in normalised units), float32 on
+    the model's device. RunError for an index outside the image.
+    """
+    return render_pixel_sets(model, [PixelSet(c2w, intrinsics, pixels)], outputs, path)[0]
+
+
+@torch.no_grad()
+def render_pixel_sets(model: VoxNeRFModel, sets: Sequence[PixelSet], outputs: Sequence[str] = ("rgb",),
+                      path: str = "auto") -> list[dict[str, Tensor]]:
+    """:func:`render_pixels` of several views in one pass over all their rays (a pass has a fixed cost: a few
+    hundred pixels of each of many views cost little more than their rays); one dict per set, in order."""
+    _check_outputs(outputs)
+    rays, poses = [], []
+    for one in sets:
+        intr, pixels = one.intrinsics, one.pixels.to(model.device)
+        n_pixels = intr.width * intr.height
+        if pixels.numel() and (int(pixels.min()) < 0 or int(pixels.max()) >= n_pixels):
+            raise RunError(f"pixel indices must lie in [0, {n_pixels}) for a {intr.width}x{intr.height} image, got "
+                           f"{int(pixels.min())}..{int(pixels.max())}")
+        c2w = one.c2w.to(model.device, torch.float32)
+        lens = None if intr.lens is None else LensBatch.of([intr.lens], model.device)
+        rays.append(camera_rays(model.view_pose(c2w), intr.fl_x, intr.fl_y, intr.cx, intr.cy, pixels % intr.width,
+                                pixels // intr.width, lens))
+        poses.append(c2w)
+    total = sum(r[0].shape[0] for r in rays)
+    if total:
+        parts = _render_chunks(model, torch.cat([r[0] for r in rays]), torch.cat([r[1] for r in rays]), outputs,
+                               None, path, None)
+        every = {name: torch.cat(values)[:total] for name, values in parts.items()}
+    else:
+        every = {name: torch.zeros((0, 3) if name == "rgb" else (0,), device=model.device) for name in outputs}
+    results, start = [], 0
+    for (_, _, z_per_t), c2w in zip(rays, poses, strict=True):
+        end = start + z_per_t.shape[0]
+        result = {name: values[start:end] for name, values in every.items()}
+        if "depth" in result:
+            result["depth"] = result["depth"] * z_per_t
+        if "rgb" in result:
+            result["rgb"] = model.view_colour(result["rgb"], c2w)
+        results.append(result)
+        start = end
+    return results
+
+
+def _check_outputs(outputs: Sequence[str]) -> None:
     unknown = set(outputs) - set(OUTPUTS)
     if unknown:
         raise RunError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
+
+
+def _render_chunks(model: VoxNeRFModel, origins: Tensor, dirs: Tensor, outputs: Sequence[str], chunk: int | None,
+                   path: str, should_stop: Callable[[], bool] | None) -> dict[str, list[Tensor]]:
+    """The rays rendered ``chunk`` at a time on the render ``path`` (see :func:`render_normalized`): each output's
+    chunks, in order (a compiled full path pads the last chunk, so the chunks may hold more rows than rays)."""
     fast = resolved_render_path(path, model.device) == "fast"
     chunk = chunk or (FAST_CHUNK if fast else model.config.evaluation.chunk_on(model.device.type))
     if fast and should_stop is not None:
         chunk = min(chunk, STOPPABLE_FAST_CHUNK)
-    c2w = c2w.to(model.device, torch.float32)
-    origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
     n = origins.shape[0]
     compiled = bool(model.config.run.compile) and not fast
     if compiled and n % chunk:  # pad with copies of the last ray so every chunk has the compiled shape
@@ -141,7 +214,7 @@ def render_normalized(
             out = model.render_rays(rays, sampler, compiled=compiled)
         for name, values in parts.items():
             values.append(out[name])
-    return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
+    return parts
 
 
 def resolved_render_path(path: str, device: torch.device) -> str:

@@ -20,18 +20,26 @@ from voxnerf.training.budget import Budget, Clock, TrainingProgress
 from voxnerf.training.loop import Callback, LoopState
 from voxnerf.training.records import LossSeries, ProgressEvent, StageRecord, TrainReport
 
-DEFAULT_EVAL_SECONDS_PER_RAY = 6e-6  # the final-evaluation cost per ray (fast path and metrics) until one is measured
+DEFAULT_EVAL_SECONDS_PER_RAY = 6e-6  # a progress evaluation's cost per ray until the first one measures it
+# The progress evaluations' share of max_seconds: each is sized from the measured cost per ray to its part of that
+# share (:class:`ProgressEvaluation`). A run that no max_seconds bounds evaluates every pixel of the progress views.
+PROGRESS_EVAL_SHARE = 0.02
+# Fewer rays than this (or than the progress views hold, when fewer) make too noisy a point: the evaluation is
+# skipped instead (about 0.1 dB of sampling noise on a split's PSNR at this size).
+MIN_PROGRESS_EVAL_RAYS = 2048
+# The first progress evaluation of a run with max_seconds, before any cost per ray is measured, scores at most this
+# many rays: a scene where rendering is dear then spends little on learning what it costs.
+FIRST_PROGRESS_EVAL_RAYS = 2048
 # Progress evaluations before the first ``eval_every_s`` (those below it), so that a short run's error curve has
-# points in its first minute; each runs only while the progress evaluations, it included (costed as the last
-# one), take at most EARLY_EVAL_MAX_SHARE of the training seconds so far. The first always runs.
+# points in its first minute.
 EARLY_EVAL_S = (10.0, 20.0, 30.0, 45.0)
-EARLY_EVAL_MAX_SHARE = 0.15
 PROGRESS_EVALS_STAGE = "progress_evals"
 COMPILE_RAN_WHY = "torch.compile of the training step (time of the first step)"
 COMPILE_DENSITY_WHY = ", the occupancy grid's density compiled before the first step included"
 COMPILE_NO_STEP_WHY = "no training step ran"
 ProgressCallback = Callable[[ProgressEvent], None]
-Evaluate = Callable[[int, float, bool], tuple[float, float]]  # (iteration, loss, full) -> (seconds, s per ray)
+# (iteration, loss, rays: a progress evaluation's size, None for a full one) -> (seconds, seconds per ray)
+Evaluate = Callable[[int, float, int | None], tuple[float, float]]
 
 
 class LearningRateSchedule(Callback):
@@ -169,9 +177,9 @@ class ProgressEvents(Callback):
         if cfg.run.max_iters:
             fractions.append(iteration / cfg.run.max_iters)
         if cfg.run.max_seconds:
-            fractions.append((budget.previous + budget.wall) / cfg.run.max_seconds)
+            fractions.append((budget.previous + budget.charged) / cfg.run.max_seconds)
         progress = min(1.0, max(fractions)) if fractions else 0.0
-        eta = budget.wall * (1 - progress) / progress if 0 < progress < 1 else None
+        eta = budget.charged * (1 - progress) / progress if 0 < progress < 1 and budget.charged > 0 else None
         return ProgressEvent(
             stage=stage, iteration=iteration, max_iters=cfg.run.max_iters, elapsed_s=budget.train_seconds,
             progress=1.0 if stage == "done" else progress, eta_s=eta,
@@ -188,6 +196,15 @@ def next_progress_eval(after: float, every: float) -> float:
     return early[0] if early else (math.floor(after / every) + 1) * every
 
 
+def progress_eval_times(first: float, every: float, until: float) -> list[float]:
+    """The progress-evaluation times from ``first`` (a :func:`next_progress_eval` time) up to ``until``
+    (training seconds, excluded); ``first`` alone when it is not below ``until``."""
+    times = [first]
+    while (t := next_progress_eval(times[-1], every)) < until:
+        times.append(t)
+    return times
+
+
 def seconds_list(times: Sequence[float], most: int = 8) -> str:
     """``10, 20, 30`` (seconds, rounded); a long list shows its first ones, then ``…`` and the last."""
     shown = [f"{t:.0f}" for t in times]
@@ -198,40 +215,40 @@ def seconds_list(times: Sequence[float], most: int = 8) -> str:
 
 class ProgressEvaluation(Callback):
     """Progress evaluations at the :func:`next_progress_eval` times and full ones at the ``eval_at`` times,
-    before a step. Their time is paused (not training time); a full one's is also not charged to the budget.
+    before a step. Their time is not training time (the budget's part ``progress_evals``, charged to
+    ``max_seconds``, or ``eval_at``, not charged).
 
-    They also measure the evaluation cost per ray, which sizes the final evaluation's reserve of the budget
-    (:meth:`final_eval_reserve`). So that the reserve is measured before it can end a short run, a progress
-    evaluation runs right after the first step (the step that compiles, when training is compiled) when the
-    budget could otherwise run out on the assumed cost before the first due one.
+    The progress evaluations together take at most :data:`PROGRESS_EVAL_SHARE` of ``max_seconds``: each is
+    sized to what that share has left over the evaluations still planned before the budget ends, at the cost
+    per ray the last one measured (the first one, with none measured, scores at most
+    :data:`FIRST_PROGRESS_EVAL_RAYS`). It scores that many rays spread over the progress views (``eval_views``
+    per split; every pixel of them where the share allows, else the same random subset of each view's pixels
+    every time), and is skipped when it can afford fewer than :data:`MIN_PROGRESS_EVAL_RAYS`; without
+    ``max_seconds`` it scores every pixel of them. The progress evaluations that ran, and those skipped, are the
+    stage ``progress_evals`` of the report (``events.report``), added at the first one and kept up to date.
 
-    An early progress evaluation (:data:`EARLY_EVAL_S`) after the first is skipped when the progress
-    evaluations, it included (costed as the last one), would take more than :data:`EARLY_EVAL_MAX_SHARE` of the
-    training seconds so far. The progress evaluations that ran, and those skipped, are the stage
-    ``progress_evals`` of the report (``events.report``), added at the first one and kept up to date.
-
-    The full ones may take ``cfg.evaluation.eval_at_max_seconds`` in all: once that is spent the later ``eval_at`` times
-    are skipped and ``warnings`` (the report's) says so.
+    The full ones may take ``cfg.evaluation.eval_at_max_seconds`` in all: once that is spent the later ``eval_at``
+    times are skipped and ``warnings`` (the report's) says so.
     """
 
-    def __init__(self, evaluate: Evaluate, budget: Budget, cfg: TrainConfig, final_eval_rays: int,
+    def __init__(self, evaluate: Evaluate, budget: Budget, cfg: TrainConfig, view_rays: int,
                  events: ProgressEvents | None = None, warnings: list[str] | None = None) -> None:
         self.evaluate, self.budget, self.events = evaluate, budget, events
-        self.every, self.final_eval = cfg.evaluation.eval_every_s, cfg.evaluation.final_eval
-        self.compiled = cfg.run.compile
+        self.every = cfg.evaluation.eval_every_s
         self.views_per_split = cfg.evaluation.eval_views
-        self.final_eval_rays = final_eval_rays
+        self.view_rays = view_rays  # the progress views' pixels: the most a progress evaluation scores
+        self.share_of = (None if budget.max_seconds is None
+                         else PROGRESS_EVAL_SHARE * max(budget.max_seconds - budget.previous, 0.0))
         self.next_at = next_progress_eval(budget.train_seconds, cfg.evaluation.eval_every_s)
         self.pending_full = sorted(t for t in cfg.evaluation.eval_at if t > budget.train_seconds)
         self.seconds_per_ray = DEFAULT_EVAL_SECONDS_PER_RAY
-        self.done = 0
         self.full_cap, self.full_spent = cfg.evaluation.eval_at_max_seconds, 0.0
         self.warnings = warnings if warnings is not None else []
         self.progress_times: list[float] = []  # training seconds of the progress evaluations that ran
-        self.progress_spent, self.last_progress_cost = 0.0, 0.0
-        self.skipped_early: list[float] = []
+        self.progress_rays: list[int] = []  # and the rays each scored
+        self.progress_spent = 0.0
+        self.skipped: list[float] = []
         self.record: StageRecord | None = None
-        self.first_step_done = False
 
     def _full_due(self) -> bool:
         """Whether an ``eval_at`` time has come; drops the pending ones once their time cap is spent."""
@@ -245,86 +262,96 @@ class ProgressEvaluation(Callback):
             return False
         return True
 
-    def _measure_first(self) -> bool:
-        """Whether to evaluate now although none is due: after the first step, with no cost per ray measured
-        yet, when the budget could run out on the assumed reserve before the next due evaluation."""
-        if self.done or not self.first_step_done or not self.final_eval:
-            return False
-        return self.budget.remaining() - self.final_eval_reserve() < self.next_at - self.budget.train_seconds
+    def allowance(self) -> float:
+        """Seconds the due progress evaluation may take: what the share has left, over the evaluations planned
+        from now to the end of the budget (training seconds so far plus ``remaining()``); unbounded where no
+        ``max_seconds`` bounds the run (the evaluations then take no training time from it)."""
+        budget = self.budget
+        if self.share_of is None:
+            return math.inf
+        end = budget.train_seconds + max(budget.remaining(), 0.0)
+        planned = len(progress_eval_times(self.next_at, self.every, end))
+        return (self.share_of - self.progress_spent) / planned
 
-    def _too_dear(self) -> bool:
-        """Whether the due progress evaluation is an early one that would take the progress evaluations over
-        their share of the training seconds so far (never the first one)."""
-        if self.next_at >= self.every or not self.progress_times:
-            return False
-        cost = self.progress_spent + self.last_progress_cost
-        return cost > EARLY_EVAL_MAX_SHARE * self.budget.train_seconds
+    def rays_now(self) -> int:
+        """Rays the due progress evaluation scores (:meth:`allowance` at the cost per ray, at most the progress
+        views' pixels); 0 when that is fewer than :data:`MIN_PROGRESS_EVAL_RAYS` (or than those pixels)."""
+        rays = int(min(self.allowance() / max(self.seconds_per_ray, 1e-12), self.view_rays))
+        if self.share_of is not None and not self.progress_times:
+            rays = min(rays, FIRST_PROGRESS_EVAL_RAYS)
+        return rays if rays >= min(MIN_PROGRESS_EVAL_RAYS, self.view_rays) and rays > 0 else 0
 
     def before_step(self, state: LoopState) -> None:
-        budget, pending = self.budget, self.pending_full
+        budget = self.budget
         full = self._full_due()
-        measure_now = self._measure_first()
-        self.first_step_done = True
-        if not (full or measure_now or budget.train_seconds >= self.next_at):
+        if not (full or budget.train_seconds >= self.next_at):
             return
-        if not full and self._too_dear():
-            self.skipped_early.append(self.next_at)
-            self.next_at = next_progress_eval(budget.train_seconds, self.every)
-            self._update_record()
-            return
-        if full:
-            pending.pop(0)
         at = budget.train_seconds
-        spent, per_ray = self.evaluate(state.iteration, state.last_loss, full)
-        self.done += 1
-        self.seconds_per_ray = per_ray
-        budget.paused += spent
         if full:
-            budget.excluded += spent
+            self.pending_full.pop(0)
+            spent, _ = self.evaluate(state.iteration, state.last_loss, None)  # its cost per ray has metrics in it
+            budget.add("eval_at", spent)
             self.full_spent += spent
+            self.next_at = next_progress_eval(at, self.every)  # a progress evaluation due now would repeat it
         else:
+            rays = self.rays_now()
+            self.next_at = next_progress_eval(at, self.every)
+            if not self.view_rays:  # no evaluation split: nothing to evaluate
+                return
+            if not rays:
+                self.skipped.append(at)
+                self._update_record()
+                return
+            spent, self.seconds_per_ray = self.evaluate(state.iteration, state.last_loss, rays)
+            budget.add("progress_evals", spent)
             self.progress_times.append(at)
+            self.progress_rays.append(rays)
             self.progress_spent += spent
-            self.last_progress_cost = spent
             self._update_record()
-        self.next_at = next_progress_eval(at, self.every)
         if self.events is not None:
             self.events.emit("train", state.iteration, state.last_loss)
 
     def _update_record(self) -> None:
-        """The stage ``progress_evals`` in the report: added at the first progress evaluation, then updated."""
-        if self.events is None or not self.progress_times:
+        """The stage ``progress_evals`` in the report: added at the first progress evaluation (or skip), then
+        updated."""
+        if self.events is None:
             return
         if self.record is None:
-            self.record = StageRecord(name=PROGRESS_EVALS_STAGE, ran=True, why="")
+            self.record = StageRecord(name=PROGRESS_EVALS_STAGE, ran=False, why="")
             self.events.report.stages.append(self.record)
         n = len(self.progress_times)
-        why = (f"{n} progress evaluation{'s' if n > 1 else ''} of up to {self.views_per_split} views per split at "
-               f"{seconds_list(self.progress_times)} s of training: not training time, but charged to max_seconds")
-        if self.skipped_early:
-            why += (f"; early one(s) at {seconds_list(self.skipped_early)} s skipped: they would have taken the "
-                    f"progress evaluations over {EARLY_EVAL_MAX_SHARE:.0%} of the training time")
-        self.record.why, self.record.seconds = why, round(self.progress_spent, 3)
-
-    def final_eval_reserve(self) -> float:
-        """Seconds kept back for the final evaluation: 1.5x its estimated cost plus 2 s."""
-        if not self.final_eval:
-            return 0.0
-        return 1.5 * self.seconds_per_ray * self.final_eval_rays + 2.0
+        bounded = self.share_of is not None
+        sizing = (f"sized to {PROGRESS_EVAL_SHARE:.0%} of max_seconds, to which they are charged (not training time)"
+                  if bounded else "every pixel of them (no max_seconds to size them to; not training time)")
+        parts = []
+        if n:
+            low, high = min(self.progress_rays), max(self.progress_rays)
+            parts.append(f"{n} progress evaluation{'s' if n > 1 else ''} at {seconds_list(self.progress_times)} s "
+                         f"of training, of {low if low == high else f'{low}-{high}'} rays over up to "
+                         f"{self.views_per_split} views per split ({self.view_rays} pixels): {sizing}")
+        if self.skipped:
+            parts.append(f"at {seconds_list(self.skipped)} s skipped: fewer than "
+                         f"{min(MIN_PROGRESS_EVAL_RAYS, self.view_rays)} rays were left within "
+                         f"{PROGRESS_EVAL_SHARE:.0%} of max_seconds")
+        why = "; ".join(parts)
+        self.record.ran, self.record.why, self.record.seconds = n > 0, why, round(self.progress_spent, 3)
 
 
 class Checkpointing(Callback):
     """Calls ``save(iteration)`` after a step once ``every_s`` seconds have passed since the last save (or
-    since the loop was set up)."""
+    since the loop was set up); the save's seconds are the budget's part ``checkpoints`` (not training time)."""
 
-    def __init__(self, save: Callable[[int], None], every_s: float, clock: Clock = time.perf_counter) -> None:
-        self.save, self.every_s, self.clock = save, every_s, clock
+    def __init__(self, save: Callable[[int], None], every_s: float, budget: Budget,
+                 clock: Clock = time.perf_counter) -> None:
+        self.save, self.every_s, self.budget, self.clock = save, every_s, budget, clock
         self.last = clock()
 
     def after_step(self, state: LoopState) -> None:
         if self.clock() - self.last >= self.every_s:
+            started = self.clock()
             self.save(state.iteration)
             self.last = self.clock()
+            self.budget.add("checkpoints", self.last - started)
 
 
 class ProgressBar(Callback):
@@ -353,21 +380,34 @@ class CompileTimer(Callback):
     ``torch.compile`` compiles a graph on its first call: the first step's time, from ``started``, is the step's
     compile time, and where the step alternates between graphs (pose refinement on every n-th step only) the
     first step of each other graph adds its own time (from its ``before_step``, so evaluations before it do not
-    count)."""
+    count). Those seconds go to the budget's part ``compile`` (not training time, not charged to ``max_seconds``):
+    what ran before the first step at :meth:`loop_starts`, each timed step's as it ends."""
 
-    def __init__(self, started: float, record: Callable[[StageRecord, int], None],
+    def __init__(self, started: float, record: Callable[[StageRecord, int], None], budget: Budget,
                  clock: Clock = time.perf_counter, steps: int = 1, density: bool = False) -> None:
-        self.started, self.record, self.clock, self.steps = started, record, clock, steps
+        self.started, self.record, self.budget, self.clock, self.steps = started, record, budget, clock, steps
         self.density = density  # the occupancy grid's density was compiled between ``started`` and the first step
         self.pending, self.timed, self.spent = True, 0, 0.0
+
+    def loop_starts(self) -> None:
+        """Right before the loop: the seconds since ``started`` (what was compiled before the first step, the
+        occupancy grid's density) are compile time from now on, so no callback of the first step counts them as
+        training."""
+        now = self.clock()
+        self._spend(now - self.started)
+        self.started = now
 
     def before_step(self, state: LoopState) -> None:
         if self.pending and self.timed:
             self.started = self.clock()
 
+    def _spend(self, seconds: float) -> None:
+        self.spent += seconds
+        self.budget.add("compile", seconds)
+
     def after_step(self, state: LoopState) -> None:
         if self.pending:
-            self.spent += self.clock() - self.started
+            self._spend(self.clock() - self.started)
             self.timed += 1
             if self.timed == self.steps:
                 self._record(True, self._ran_why(), state.iteration)
@@ -383,7 +423,9 @@ class CompileTimer(Callback):
 
     def _record(self, ran: bool, why: str, iteration: int) -> None:
         self.pending = False
-        seconds = self.spent if self.timed else self.clock() - self.started
+        if not self.timed:
+            self._spend(self.clock() - self.started)
+        seconds = self.spent
         self.record(StageRecord(name="compile", ran=ran, why=why, seconds=seconds), iteration)
 
 

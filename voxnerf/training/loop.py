@@ -44,25 +44,20 @@ class Step(Protocol):
     def apply(self) -> None: ...
 
 
-def no_reserve() -> float:
-    return 0.0
-
-
 @dataclass
 class Limits:
-    """When the loop stops: ``max_iters`` steps, the budget's time left minus ``reserve()`` (the final
-    evaluation's share) spent, or ``should_stop()`` (status "cancelled")."""
+    """When the loop stops: ``max_iters`` steps, the budget's time spent (``Budget.remaining()``), or
+    ``should_stop()`` (status "cancelled")."""
 
     max_iters: int | None
     budget: Budget
-    reserve: Callable[[], float] = no_reserve
     should_stop: Callable[[], bool] | None = None
 
     def status(self, iteration: int) -> str | None:
         """None to go on, else the run's status."""
         if self.max_iters is not None and iteration >= self.max_iters:
             return "succeeded"
-        if self.budget.remaining() - self.reserve() <= 0:
+        if self.budget.remaining() <= 0:
             return "succeeded"
         if self.should_stop is not None and self.should_stop():
             return "cancelled"

@@ -5,9 +5,9 @@ These pydantic models are the contract between the engine and its callers: ``tra
 :class:`ProgressEvent` objects, and the service's job store and REST schemas derive their fields from them.
 This module imports no torch, so the API process can use it.
 
-Units: seconds are wall-clock seconds; ``elapsed_s`` / ``train_seconds`` are training seconds (evaluation
-time excluded), ``wall_s`` / ``wall_seconds`` the command's wall clock; PSNR in dB. ``loss_series`` is
-the training loss against training seconds, bounded by :class:`LossSeries`.
+Units: seconds are wall-clock seconds; ``elapsed_s`` / ``train_seconds`` are training seconds (the training
+loop's, its evaluations, checkpoints and compilation excluded), ``wall_s`` / ``wall_seconds`` the command's wall
+clock; PSNR in dB. ``loss_series`` is the training loss against training seconds, bounded by :class:`LossSeries`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,9 @@ class StageRecord(BaseModel):
 class EvalRecord(BaseModel):
     """One evaluation during or after training: PSNR (dB) per split against training seconds.
 
-    ``full`` marks an ``--eval-at`` evaluation of every view (with ``ssim``, ``lpips``, ``half`` (the half-image
+    A progress evaluation scores ``rays`` pixels spread over a few views per split (a subsample of their pixels
+    where the whole views would cost more than the progress evaluations' share of the budget). ``full`` marks an
+    ``--eval-at`` evaluation of every view (with ``ssim``, ``lpips``, ``half`` (the half-image
     protocol's means per split) and ``progress_psnr``), ``final`` the final evaluation. ``progress_psnr`` is the
     mean PSNR over the views a progress evaluation uses, so one curve runs through progress and full evaluations
     alike. Keys that were never set stay out of the JSON.
@@ -56,6 +58,7 @@ class EvalRecord(BaseModel):
     lpips: dict[str, float | None] | None = None
     half: dict[str, dict[str, float | None]] | None = None
     progress_psnr: dict[str, float | None] | None = None
+    rays: int | None = Field(None, description="a progress evaluation's rays (pixels) scored, over all its views")
 
     def to_json_dict(self) -> dict[str, Any]:
         return self.model_dump(exclude_unset=True)
@@ -137,11 +140,12 @@ class TrainReport(BaseModel):
 
     ``scene``, ``prior`` and ``octree`` are the summaries of those stages' objects; ``warnings`` lists what the
     user should know (a prior that few pixels see, a sampler asking for a prior the scene lacks); ``pose_refinement``
-    and ``appearance`` the size of the learnt per-image corrections (configs of those names); ``runtime`` how the
-process that trained computed (:func:`voxnerf.devices.compute_environment`), with ``octree_misses``: how the
-    voxnerf sampler gave the rays that miss its octree their samples (:data:`voxnerf.model.samplers.OCTREE_MISSES`;
-    None without that sampler). Fields that a run never set (a prior-less scene has no ``prior``) stay out of the
-    JSON.
+    and ``appearance`` the size of the learnt per-image corrections (configs of those names); ``budget`` what
+    ``max_seconds`` charged, the share of it that trained and the command's seconds by part
+    (:meth:`voxnerf.training.budget.Budget.accounting`); ``runtime`` how the process that trained computed
+    (:func:`voxnerf.devices.compute_environment`), with ``octree_misses``: how the voxnerf sampler gave the rays
+    that miss its octree their samples (:data:`voxnerf.model.samplers.OCTREE_MISSES`; None without that sampler).
+    Fields that a run never set (a prior-less scene has no ``prior``) stay out of the JSON.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=False)
@@ -168,6 +172,7 @@ process that trained computed (:func:`voxnerf.devices.compute_environment`), wit
     train_seconds: float | None = None
     wall_seconds: float | None = None
     throughput: dict[str, int | float] | None = None
+    budget: dict[str, Any] | None = None
     runtime: dict[str, str | int | bool | None] | None = None
     checkpoint_kept: bool | None = None
 

@@ -52,7 +52,14 @@ from voxnerf.training.callbacks import (
     present,
 )
 from voxnerf.training.checkpoint import CheckpointWriter, load_previous, write_report
-from voxnerf.training.eval_passes import EvalViews, eval_views_of, final_eval, progress_eval, view_rays
+from voxnerf.training.eval_passes import (
+    EvalViews,
+    eval_views_of,
+    final_eval,
+    progress_eval,
+    progress_views,
+    view_rays,
+)
 from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.records import StageRecord, TrainReport
 from voxnerf.training.setup import SetupContext, run_setup
@@ -113,10 +120,11 @@ def train(
 ) -> TrainReport:
     """Train a model on ``scene_dir`` into ``run_dir`` and return the report (also written to report.json).
 
-    Stops at ``max_iters``, when ``max_seconds`` of wall clock would be exceeded (set-up, octree, pseudo depth
-    and the final evaluation included), or when ``should_stop()`` returns True (status "cancelled": asked
-    between set-up stages, at every step and between final-evaluation views; the checkpoint is saved once
-    training started). Raises TrainingDiverged if the loss or the weights become NaN/inf; the last good
+    Stops at ``max_iters``, when ``max_seconds`` of training are spent (the loop's steps and the progress
+    evaluations and checkpoints between them; the set-up, the step's compilation and the final evaluation come on
+    top and are reported by part: :mod:`voxnerf.training.budget`), or when ``should_stop()`` returns True (status
+    "cancelled": asked between set-up stages, at every step and between final-evaluation views; the checkpoint is
+    saved once training started). Raises TrainingDiverged if the loss or the weights become NaN/inf; the last good
     checkpoint is kept and the report says why. Raises LeaseLost, having written nothing more, as soon as
     ``may_write()`` (asked before each file) returns False.
     """
@@ -145,8 +153,7 @@ def _stopped_in_set_up(run: Run, previous: dict | None) -> TrainReport:
     report.stages.append(StageRecord(name="train", ran=False, why="cancelled during set-up", seconds=0.0))
     report.status, report.iteration = "cancelled", iteration
     report.train_seconds, report.wall_seconds = round(budget.train_seconds, 3), round(budget.wall, 3)
-    run.fence()
-    write_report(report, run.dir / REPORT)
+    _write_report(run)
     run.events.emit("done", iteration)
     return report
 
@@ -190,36 +197,38 @@ def _progress_evaluator(evaluate: Callable[..., tuple[float, float]]) -> Evaluat
     evaluation warmed up (``warm_up``)."""
     first = True
 
-    def progress(iteration: int, loss: float, full: bool) -> tuple[float, float]:
+    def progress(iteration: int, loss: float, rays: int | None) -> tuple[float, float]:
         nonlocal first
         warm_up, first = first, False
-        return evaluate(iteration, loss, full, warm_up=warm_up)
+        return evaluate(iteration, loss, rays, warm_up=warm_up)
 
     return progress
 
 
 def _optimise(run: Run, setup: SetupContext, progress_bar: bool) -> TrainReport:
     cfg, budget, built = run.cfg, run.budget, setup.built
-    loop_started = budget.train_seconds
+    budget.start_training()  # the set-up ends here: building and compiling the step are the loop's
     step, compiled = _make_step(run, setup)
     misses = step.sampler.misses if isinstance(step.sampler, VoxNeRFSampler) else None
     run.report.runtime = compute_environment(run.device) | {"octree_misses": misses}
     views = eval_views_of(setup.scene, built.transform)
     evaluate = _progress_evaluator(partial(progress_eval, built.model, views, cfg, run.report.history, budget))
-    evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(views), run.events, run.report.warnings)
+    evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(progress_views(views, cfg.evaluation.eval_views)),
+                                    run.events, run.report.warnings)
     save = _fenced(run, CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget,
                                          run.report.history, setup.scene))
-    saving = Checkpointing(save, cfg.run.checkpoint_every_s)
+    saving = Checkpointing(save, cfg.run.checkpoint_every_s, budget)
     grid = OccupancyGridUpdate.for_config(built.model, cfg, setup.octree is not None)
     timer = _compile_density_and_time(run, compiled, step, grid)
     bar = ProgressBar.create(cfg.run.max_iters, built.iteration, progress_bar)
-    progress = TrainingProgress(budget, cfg.run.max_iters, evaluation.final_eval_reserve)
+    progress = TrainingProgress(budget, cfg.run.max_iters)
     schedules = _schedules(cfg, built, step, progress)
     callbacks = present([evaluation, *schedules, timer, bar, grid, saving, run.events])
     state = LoopState(built.iteration)
+    if timer is not None:
+        timer.loop_starts()
     try:
-        status = run_loop(step, state, callbacks, Limits(cfg.run.max_iters, budget, evaluation.final_eval_reserve,
-                                                         run.should_stop))
+        status = run_loop(step, state, callbacks, Limits(cfg.run.max_iters, budget, run.should_stop))
     except TrainingDiverged as exc:
         bar.close()
         raise _diverged(run, exc, state.iteration) from None
@@ -228,7 +237,7 @@ def _optimise(run: Run, setup: SetupContext, progress_bar: bool) -> TrainReport:
     bar.close()
     if timer is not None:
         timer.finish(state.iteration)
-    return _finish(run, setup, views, save, status, state, loop_started)
+    return _finish(run, setup, views, save, status, state)
 
 
 def _compile_density_and_time(run: Run, compiled: stages.CompileStage, step: TrainStep,
@@ -239,7 +248,7 @@ def _compile_density_and_time(run: Run, compiled: stages.CompileStage, step: Tra
     if compiled.record is not None:
         return None
     density = grid is not None and grid.compile_density()
-    return CompileTimer(compiled.started, run.events.stage, steps=step.graphs, density=density)
+    return CompileTimer(compiled.started, run.events.stage, run.budget, steps=step.graphs, density=density)
 
 
 def _schedules(cfg: TrainConfig, built: stages.ModelStage, step: TrainStep,
@@ -270,21 +279,21 @@ def _fenced(run: Run, save: Callable[[int], None]) -> Callable[[int], None]:
 
 def _diverged(run: Run, exc: TrainingDiverged, iteration: int) -> TrainingDiverged:
     """Write the diverged report; the error to raise, saying whether a good checkpoint is kept."""
+    run.budget.end_training()
     ckpt_path = run.dir / CHECKPOINT
     kept = ckpt_path.is_file()
     report = run.report
     report.status, report.error, report.iteration, report.checkpoint_kept = "diverged", str(exc), iteration, kept
-    run.fence()
-    write_report(report, run.dir / REPORT)
+    _write_report(run)
     where = f"last good checkpoint kept at {ckpt_path}" if kept else "no checkpoint yet"
     return TrainingDiverged(f"{exc}; {where}")
 
 
 def _finish(run: Run, setup: SetupContext, views: EvalViews, save: Callable[[int], None], status: str,
-            state: LoopState, loop_started: float) -> TrainReport:
-    """The train stage, the last checkpoint, the final evaluation and the report (``loop_started``: the budget's
-    training seconds when the step was built, before its compilation)."""
+            state: LoopState) -> TrainReport:
+    """The train stage, the last checkpoint, the final evaluation and the report."""
     report, budget, iteration = run.report, run.budget, state.iteration
+    budget.end_training()
     train_seconds = budget.train_seconds
     report.stages.append(StageRecord(name="train", ran=iteration > 0, why=f"{status} at iteration {iteration}",
                                      seconds=train_seconds))
@@ -297,12 +306,18 @@ def _finish(run: Run, setup: SetupContext, views: EvalViews, save: Callable[[int
     use_patches, _, n_patch_rays = _patches(run.cfg, setup)
     report.status, report.iteration = status, iteration
     report.train_seconds, report.wall_seconds = round(train_seconds, 3), round(budget.wall, 3)
-    report.throughput = throughput(run.cfg, iteration - setup.built.iteration, train_seconds - loop_started,
-                                   report.stages, use_patches, n_patch_rays)
-    run.fence()
-    write_report(report, run.dir / REPORT)
+    report.throughput = throughput(run.cfg, iteration - setup.built.iteration, budget.this_command_training,
+                                   use_patches, n_patch_rays)
+    _write_report(run)
     run.events.emit("done", iteration, state.last_loss)
     return report
+
+
+def _write_report(run: Run) -> None:
+    """report.json, with the budget's accounting as it stands (:meth:`Budget.accounting`), behind the fence."""
+    run.report.budget = run.budget.accounting()
+    run.fence()
+    write_report(run.report, run.dir / REPORT)
 
 
 def _write_refined_poses(run: Run, setup: SetupContext) -> None:
@@ -337,6 +352,7 @@ def _final_eval_stage(run: Run, setup: SetupContext, views: EvalViews, status: s
     finally:
         shutil.rmtree(private, ignore_errors=True)
     seconds = time.perf_counter() - t0
+    run.budget.add("final_eval", seconds)
     if done is None:
         run.events.stage(StageRecord(name="final_eval", ran=False, why="run cancelled during the evaluation",
                                      seconds=seconds), iteration)
@@ -362,13 +378,11 @@ def _replace_eval_dir(run: Run, rendered: Path) -> None:
         rendered.rename(target)
 
 
-def throughput(cfg: TrainConfig, steps: int, loop_seconds: float, records: list[StageRecord], patches: bool,
-               patch_rays: int) -> dict:
-    """Rays per step, rays and samples per second of this command's ``steps`` over its ``loop_seconds`` (the
-    training loop's, set-up and evaluations left out) less the compile stage's."""
-    compile_s = next((s.seconds for s in records if s.name == "compile" and s.ran), 0.0)
+def throughput(cfg: TrainConfig, steps: int, train_seconds: float, patches: bool, patch_rays: int) -> dict:
+    """Rays per step, rays and samples per second of this command's ``steps`` over its ``train_seconds`` (the
+    training loop's, set-up, compilation, evaluations and checkpoints left out: :class:`Budget`)."""
     rays_per_step = int(cfg.schedule.rays_per_batch) + (patch_rays if patches else 0)
     rays = rays_per_step * steps
-    seconds = max(loop_seconds - compile_s, 1e-9)
+    seconds = max(train_seconds, 1e-9)
     return {"rays_per_step": rays_per_step, "rays_per_s": rays / seconds,
             "samples_per_s": rays * cfg.sampling.samples_per_ray / seconds, "seconds_excluding_compile": seconds}

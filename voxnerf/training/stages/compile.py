@@ -32,12 +32,27 @@ class CompileStage:
     record: StageRecord | None = None
 
 
+def use_inductor_cache_dir() -> None:
+    """Point inductor's cache at :func:`inductor_cache_dir` unless the user chose one (``TORCHINDUCTOR_CACHE_DIR``).
+
+    Importing ``torch._dynamo`` sets the variable to inductor's default under the temporary directory, and the
+    set-up imports it before this stage (building the model's Adam optimizer does), so a value equal to that
+    default counts as unset; inductor reads the variable each time it opens its caches, so pointing it here
+    before the first compilation is enough."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    current = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+    if current is None or os.path.abspath(current) == os.path.abspath(default_cache_dir()):
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(inductor_cache_dir())
+
+
 def compile_stage(cfg: TrainConfig, loss_fn: LossFn) -> CompileStage:
     """The step's loss function through ``torch.compile`` (unless disabled). Inductor's cache goes to
-    :func:`inductor_cache_dir` unless ``TORCHINDUCTOR_CACHE_DIR`` says otherwise, so a later run of the same
-    configuration loads the compiled step instead of compiling it again."""
+    :func:`inductor_cache_dir` (:func:`use_inductor_cache_dir`), so a later run of the same configuration, from
+    the command line or a service's worker of the same user, loads the compiled step instead of compiling it
+    again."""
     t0 = time.perf_counter()
     if cfg.run.compile:
-        os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(inductor_cache_dir()))
+        use_inductor_cache_dir()
         return CompileStage(torch.compile(loss_fn, dynamic=False), t0)
     return CompileStage(loss_fn, t0, stage_record("compile", False, "disabled (--no-compile)", t0))

@@ -30,12 +30,14 @@ class PriorStage:
 
 
 def prior_stage(scene: Scene, cfg: TrainConfig, run_dir: Path | None = None) -> PriorStage:
-    """The scene's prior file; without one, the TSDF fusion of the training frames' depth maps (written to
-    ``run_dir/prior_tsdf.ply`` when a run directory is given); without either, none."""
+    """The scene's prior file (unless ``prior_file`` is off); without one, the TSDF fusion of the training frames'
+    depth maps (written to ``run_dir/prior_tsdf.ply`` when a run directory is given); without either, none."""
     t0 = time.perf_counter()
     needs_prior = cfg.sampling.sampler == "voxnerf" or cfg.loss.depth_loss
     why_needed = "sets the scene box" + (" and guides sampling / depth" if needs_prior else " only (not needed else)")
-    if scene.prior_path is not None:
+    if scene.prior_path is not None and not cfg.sampling.prior_file:
+        why_needed += f"; the scene's {scene.prior_path.name} left out (prior_file: false)"
+    elif scene.prior_path is not None:
         prior = load_prior(scene.prior_path, scene.prior_sigma, seed=cfg.run.seed)
         why = why_needed
         if scene.prior_key == "ply_file_path":

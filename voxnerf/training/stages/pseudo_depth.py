@@ -57,7 +57,9 @@ def pseudo_depth_stage(cfg: TrainConfig, scene: Scene, prior_n: GeometryPrior | 
     valid = float(torch.isfinite(pseudo_t).float().mean())
     warning = None
     if valid < MIN_PRIOR_COVERAGE:
-        warning = (f"{scene.prior_path.name}: only {valid:.1%} of training pixels see the prior; check its units, "
-                   "placement and prior_sigma")
+        used_file = scene.prior_path is not None and cfg.sampling.prior_file
+        name = scene.prior_path.name if used_file else "the prior fused from the depth maps"
+        warning = (f"{name}: only {valid:.1%} of training pixels see the prior; check its units, placement and "
+                   "prior_sigma")
     why = f"depth loss: prior ray-cast for every training pixel ({valid:.1%} valid){FROM_CACHE if loaded else ''}"
     return PseudoDepthStage(stage_record("pseudo_depth", True, why, t0), pseudo_t, warning)
