@@ -13,7 +13,6 @@ import importlib.util
 import math
 import pickle
 import sys
-import time
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -22,6 +21,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from numpy.lib.stride_tricks import sliding_window_view
+from torch.utils.flop_counter import FlopCounterMode
 
 from voxnerf.inference.metrics import (
     LPIPS,
@@ -262,15 +262,14 @@ def test_lpips_published_vgg_value() -> None:
 
 @needs_lpips_weights
 @pytest.mark.parametrize(("height", "width"), [(48, 64), (120, 160)])
-def test_lpips_is_fast_on_cpu(model: LPIPS, height: int, width: int) -> None:
+def test_lpips_runs_the_network_once_at_the_images_own_size(model: LPIPS, height: int, width: int) -> None:
+    """What makes it cheap on a CPU, counted rather than timed: AlexNet's features of both images at their own
+    size (about 36-47 kFLOP a pixel), no resize to 224x224 or larger and no second pass."""
     gen = torch.Generator().manual_seed(6)
     a, b = torch.rand(height, width, 3, generator=gen), torch.rand(height, width, 3, generator=gen)
-    timings = []
-    for _ in range(3):  # best of three: the machine's cores are shared, one call may be descheduled
-        start = time.perf_counter()
+    with FlopCounterMode(display=False) as counter:
         value = lpips(a, b, model)
-        timings.append(time.perf_counter() - start)
-    assert min(timings) < 1.0, timings
+    assert counter.get_total_flops() <= 50_000 * height * width, counter.get_total_flops()
     assert math.isfinite(value) and value > 0
 
 
