@@ -494,7 +494,8 @@ def plot(results: list[dict], scenes: list[str], halves: dict[str, str], path: P
         return False
     by = {(r["scene"], r["config"]): split_scores(r["report"]["metrics"] or {}) for r in results}
     configs = [c for c in CONFIGS if c != BASELINE and any((s, c) in by for s in scenes)]
-    fig, axes = plt.subplots(1, len(SPLITS), figsize=(6 * len(SPLITS), 0.45 * len(configs) + 1.5), sharey=True)
+    height = 0.18 * len(configs) * max(len(scenes), 3) + 1.5  # a bar per scene and configuration
+    fig, axes = plt.subplots(1, len(SPLITS), figsize=(6 * len(SPLITS), height), sharey=True)
     width = 0.8 / max(len(scenes), 1)
     for ax, split in zip(axes, SPLITS, strict=True):
         for j, scene in enumerate(scenes):
@@ -508,7 +509,7 @@ def plot(results: list[dict], scenes: list[str], halves: dict[str, str], path: P
         ax.set_title(f"{split}: PSNR minus {BASELINE} (dB)")
         ax.set_yticks([i + 0.4 - width / 2 for i in range(len(configs))], configs)
         ax.invert_yaxis()
-    axes[-1].legend(fontsize="small")
+    axes[-1].legend(fontsize="small", loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
