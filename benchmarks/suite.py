@@ -2,12 +2,18 @@
 
 The suite is the synthetic rooms of :mod:`voxnerf.synthetic.suite` (varied layouts, sizes, fields of view,
 lighting and priors, some rendered like captures) plus, with ``--redkitchen``, the real 7-Scenes kitchen at
-``--downscale 2`` (``--scenes redkitchen`` runs it alone). Every (scene, configuration) pair is one ``voxnerf
-train`` command with ``--max-seconds BUDGET`` (set-up, compilation and the final evaluation included), run alone,
-one after the other, scene by scene: a scene's configurations run back to back, so the runs compared on a scene
-are minutes apart on a machine whose speed drifts over hours. A run whose report already holds the same command
-is reused, so rows can be added over several invocations and the table always covers every run under
-``--out``.
+``--downscale 2`` (``--scenes redkitchen`` runs it alone), and with ``--record3d-kitchen`` a capture importer's
+scene made from it (:func:`make_record3d_kitchen`, also at ``--downscale 2``). Every scene belongs to one half
+of a fixed split (:data:`HALVES`): the *tuning* half, on which a candidate configuration is chosen, and the
+*confirmation* half, on which it must hold; each candidate's verdict against ``defaults`` (:func:`verdict`: "adopt"
+only when it wins on the tuning half and no confirmation scene loses more than ``NOISE_DB``) is printed with both
+halves side by side.
+
+Every (scene, configuration) pair is one ``voxnerf train`` command with ``--max-seconds BUDGET`` (set-up,
+compilation and the final evaluation included), run alone, one after the other, scene by scene: a scene's
+configurations run back to back, so the runs compared on a scene are minutes apart on a machine whose speed
+drifts over hours. A run whose report already holds the same command is reused, so rows can be added over
+several invocations and the table always covers every run under ``--out``.
 
 Each run's report gives, for every evaluation split: PSNR / SSIM / LPIPS over all views, and the same by the
 half-image protocol (a colour gain and bias per channel fitted on each view's left half, scored on its right:
@@ -15,13 +21,19 @@ the honest score for runs that learn per-image exposure). ``--eval-at`` adds ful
 (their time is not charged to the budget); note that a schedule over the budget (``lr_schedule=budget``) is
 mid-way at such a point, so only the final evaluation is what a run of that length gives.
 
-Writes under ``--out``: ``runs/<scene>/<config>/`` (the runs), ``results.json`` and ``table.md`` (per
-configuration: the suite's mean and its worst scene against ``defaults``, then every scene), ``suite.png``
+``--max-iters N`` bounds every run by N training steps as well (a fixed amount of work, so that runs on a machine
+shared with other work still compare; the budget then only bounds the time).
+
+Writes under ``--out``: ``runs/<scene>/<config>/`` (the runs), ``results.json`` and ``table.md`` (per half and
+configuration: the mean and the worst scene against ``defaults``; each candidate's verdict; then every scene; the
+``defaults`` runs' set-up check of the sampler's window, ``window_check`` in their report.json), ``suite.png``
 (PSNR change against ``defaults`` per scene; needs matplotlib, the ``bench`` extra), and with ``--write-docs``
 the table into docs/benchmarks.md.
 
     .venv/bin/python benchmarks/suite.py --out OUT --budget 120 --redkitchen ../shared/data/redkitchen \\
         --configs defaults,lr-budget,distortion
+    .venv/bin/python benchmarks/suite.py --out OUT --budget 600 --max-iters 1000 \\
+        --redkitchen ../shared/data/redkitchen --configs defaults,sampler-grid        # the sampler alone
     .venv/bin/python benchmarks/suite.py --quick --out /tmp/suite-quick    # CI-sized smoke run
 """
 
@@ -33,6 +45,7 @@ import math
 import shlex
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -45,8 +58,30 @@ DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 DOCS_SECTION = "suite"
 REDKITCHEN = "redkitchen"
 REDKITCHEN_DOWNSCALE = 2
+RECORD3D = "record3d_kitchen"
+RECORD3D_FRAMES, RECORD3D_STRIDE = 100, 5
+"""The Record3D-like scene: every 5th of redkitchen's first 500 frames (each has depth), as
+benchmarks/phone_app_imports.py's training rows."""
+REAL_SCANS = (REDKITCHEN, RECORD3D)
 NOISE_DB = 0.3
 """A per-scene change smaller than this is read as noise (the issue's bar for "loses")."""
+TUNING, CONFIRMATION = "tuning", "confirmation"
+HALVES: dict[str, str] = {
+    "studio": TUNING, "office": TUNING, "capture_lounge": TUNING, "gallery": TUNING, "hall": TUNING,
+    "capture_bedroom": TUNING, REDKITCHEN: TUNING,
+    "loft": CONFIRMATION, "den": CONFIRMATION, "capture_kitchen": CONFIRMATION, "attic": CONFIRMATION,
+    "library": CONFIRMATION, "capture_study": CONFIRMATION, RECORD3D: CONFIRMATION,
+}
+"""The fixed split of the suite's scenes (issue #46). The six rooms measured before it keep the roles they had
+(studio, office, capture_lounge tuned on; loft, den, capture_kitchen checked a choice); redkitchen is tuning, since
+the defaults were chosen on it; the six new rooms are dealt so that each half holds both prior kinds (points and
+mesh), prior noise from 1 to 5 cm, fields of view from under 60 to 95-100 degrees, 160 x 120 to 200 x 150 pixels,
+two capture-like rooms and each kind of camera path (two gaps, one long gap, a dense path). The Record3D-like
+import is confirmation: other frames, other splits and the phone's depth, though of the kitchen the tuning half
+holds (a weak check of a choice made on redkitchen, and a cheap one)."""
+QUICK_HALVES: dict[str, str] = {"quick_plain": TUNING, "quick_capture": CONFIRMATION,
+                                **{scan: HALVES[scan] for scan in REAL_SCANS}}
+"""The quick suite's split (for tests): one tiny room per half, the real scans where they always are."""
 
 def _corrections(appearance: bool, pose_lr: float, pose_every: int, lambda_pose: float | None = None) -> dict:
     """The real-scan corrections' fields: pose refinement at ``pose_lr`` on every ``pose_every``-th step
@@ -109,6 +144,9 @@ CONFIGS: dict[str, dict] = {
     "weight-decay-1e-5": {"field_weight_decay": 1e-5},
     "depth-weight-1": {"lambda_depth": 1.0},
     "no-depth-loss": {"depth_loss": False},
+    # The sampler alone: the defaults (depth loss, corrections, budget) with the prior-seeded occupancy grid in place
+    # of the VoxNeRF sampler; the occgrid-* rows below also turn the depth loss off (the paper's Table II).
+    "sampler-grid": {"sampler": "occgrid"},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
     "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine
@@ -124,7 +162,26 @@ def config_flags(overrides: dict) -> list[str]:
 
 
 def scene_flags(scene: str) -> list[str]:
-    return ["--downscale", str(REDKITCHEN_DOWNSCALE)] if scene == REDKITCHEN else []
+    return ["--downscale", str(REDKITCHEN_DOWNSCALE)] if scene in REAL_SCANS else []
+
+
+def make_record3d_kitchen(out: Path) -> Path:
+    """The Record3D-like capture of redkitchen at ``out``, made once (reused while it holds a transforms.json):
+    :data:`RECORD3D_FRAMES` of the shared redkitchen's frames written in Record3D's export layout by the tests'
+    writer (``tests/phone_app_fixtures.py``: poses as quaternions, depth resampled to the phone's 256 x 192) and
+    imported with the paper's splits (``voxnerf import record3d --splits paper``)."""
+    if (out / "transforms.json").is_file():
+        return out
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from phone_app_fixtures import redkitchen_frames, write_record3d
+
+    from voxnerf.data.importers import PaperSplitRule
+    from voxnerf.data.importers.record3d import import_record3d
+
+    frames = redkitchen_frames(RECORD3D_FRAMES * RECORD3D_STRIDE)[::RECORD3D_STRIDE]
+    with tempfile.TemporaryDirectory() as tmp:
+        import_record3d(write_record3d(Path(tmp) / "export", frames), out, PaperSplitRule())
+    return out
 
 
 def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, eval_at: list[float],
@@ -148,7 +205,7 @@ def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, 
     _run(cmd)
     report = json.loads((run / "report.json").read_text())
     keep = {k: report.get(k) for k in ("history", "metrics", "throughput", "iteration", "stages", "train_seconds",
-                                        "wall_seconds")}
+                                        "wall_seconds", "window_check")}
     result = {"scene": scene, "config": config, "command": command, "wall_s": time.perf_counter() - t0,
               "report": keep}
     write_atomic(done, json.dumps(result).encode())
@@ -247,6 +304,73 @@ def summary_rows(results: list[dict], scenes: list[str], metric: str) -> list[st
     return rows
 
 
+def scene_changes(results: list[dict], scenes: list[str], config: str,
+                  metric: str = "psnr") -> dict[str, dict[str, float]]:
+    """``{scene: {split: change}}``: ``config``'s ``metric`` minus the baseline's on each of ``scenes`` where both
+    ran and scored every split (finite values only)."""
+    by = {(r["scene"], r["config"]): split_scores(r["report"]["metrics"] or {}) for r in results}
+    changes = {}
+    for scene in scenes:
+        ours, base = by.get((scene, config)), by.get((scene, BASELINE))
+        if ours is None or base is None:
+            continue
+        pairs = {split: (ours.get(split, {}).get(metric), base.get(split, {}).get(metric)) for split in SPLITS}
+        if all(v is not None and b is not None and math.isfinite(v) and math.isfinite(b) for v, b in pairs.values()):
+            changes[scene] = {split: v - b for split, (v, b) in pairs.items()}
+    return changes
+
+
+def verdict(results: list[dict], halves: dict[str, str], config: str) -> dict:
+    """Whether ``config`` should replace the baseline, by the suite's protocol (issue #46), from PSNR over all views.
+
+    It *wins on the tuning half* when the half's mean change, summed over interpolation and extrapolation, is
+    positive and neither split's mean falls by more than ``NOISE_DB``; it *holds on the confirmation half* when no
+    scene of that half loses more than ``NOISE_DB`` on either split. "adopt" needs both and a run of ``config`` and
+    of the baseline on every scene of both halves ("keep" otherwise, the reason in ``why``). ``halves`` maps each
+    scene of the invocation to its half. Returns ``{"config", "tuning": {...}, "confirmation": {...}, "verdict",
+    "why"}``, each half with its scene count, the scenes lacking a run, the mean change per split, and the
+    confirmation half its worst scene (``{"scene", "split", "change"}``)."""
+    summary: dict = {"config": config}
+    for half in (TUNING, CONFIRMATION):
+        scenes = [s for s, h in halves.items() if h == half]
+        changes = scene_changes(results, scenes, config)
+        part = {"scenes": len(changes), "missing": [s for s in scenes if s not in changes]}
+        part |= {split: _mean([c[split] for c in changes.values()]) for split in SPLITS}
+        if half == CONFIRMATION and changes:
+            scene, split = min(((s, sp) for s in changes for sp in SPLITS), key=lambda k: changes[k[0]][k[1]])
+            part["worst"] = {"scene": scene, "split": split, "change": changes[scene][split]}
+        summary[half] = part
+    tuning, confirmation = summary[TUNING], summary[CONFIRMATION]
+    missing = [s for half in (tuning, confirmation) for s in half["missing"]]
+    if not tuning["scenes"] or not confirmation["scenes"] or missing:
+        lacking = f"no run on {', '.join(missing)}" if missing else "a half has no scene in this run"
+        return summary | {"verdict": "keep", "why": f"incomplete: {lacking}"}
+    gain = tuning["interpolation"] + tuning["extrapolation"]
+    means = f"{tuning['interpolation']:+.2f} / {tuning['extrapolation']:+.2f} dB"
+    if gain <= 0 or min(tuning["interpolation"], tuning["extrapolation"]) < -NOISE_DB:
+        return summary | {"verdict": "keep", "why": f"does not win on the tuning half ({means})"}
+    worst = confirmation["worst"]
+    if worst["change"] < -NOISE_DB:
+        return summary | {"verdict": "keep", "why": f"wins on the tuning half ({means}) but {worst['scene']} loses "
+                                                    f"{-worst['change']:.2f} dB of {worst['split']}"}
+    return summary | {"verdict": "adopt", "why": f"wins on the tuning half ({means}) and no confirmation scene loses "
+                                                  f"more than {NOISE_DB:g} dB"}
+
+
+def verdict_rows(verdicts: list[dict]) -> list[str]:
+    """One markdown row per candidate: each half's mean change per split, the confirmation half's worst scene, the
+    verdict and why."""
+    rows = []
+    for v in verdicts:
+        t, c = v[TUNING], v[CONFIRMATION]
+        worst = c.get("worst")
+        worst_text = "-" if worst is None else f"{worst['scene']} {worst['split'][:6]}. {worst['change']:+.2f}"
+        rows.append(f"| {v['config']} | {t['scenes']} | {_signed(t['interpolation'])} | "
+                    f"{_signed(t['extrapolation'])} | {c['scenes']} | {_signed(c['interpolation'])} | "
+                    f"{_signed(c['extrapolation'])} | {worst_text} | **{v['verdict']}**: {v['why']} |")
+    return rows
+
+
 def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
     """Per configuration and scene: PSNR / SSIM / LPIPS per split, half-image PSNR, steps."""
     rows = []
@@ -263,7 +387,7 @@ def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
 
 
 SET_UP_STAGES = ("load_scene", "corrections", "weight_decay", "prior", "focal", "hash_kernel", "octree",
-                 "pseudo_depth", "depth_target", "first_hit_cache")
+                 "pseudo_depth", "depth_target", "octree_carving", "first_hit_cache", "window_check")
 
 
 def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:
@@ -284,17 +408,67 @@ def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:
     return rows
 
 
-def table(results: list[dict], scenes: list[str], synthetic: list[str], budget: float, command: str) -> str:
+def window_rows(results: list[dict], scenes: list[str], halves: dict[str, str]) -> list[str]:
+    """Per scene, the set-up check of the VoxNeRF sampler's window in its ``defaults`` run (``window_check`` of
+    report.json, :mod:`voxnerf.training.window_check`)."""
+    rows = []
+    for scene in scenes:
+        run = next((r for r in results if r["scene"] == scene and r["config"] == BASELINE), None)
+        check = (run or {}).get("report", {}).get("window_check")
+        if not check:
+            continue
+        samples = check.get("samples") or {}
+        near = samples.get("near_surface") or {}
+
+        def pct(value: float | None) -> str:
+            return "-" if value is None else f"{100 * value:.1f}%"
+
+        def cm(value: float | None) -> str:
+            return "-" if value is None else f"{100 * value:.1f}"
+
+        rows.append(f"| {scene} | {halves.get(scene, '-')} | {check['rays']} | {pct(check['miss'])} | "
+                    f"{pct(check['stop_short'])} | {pct(check['pass_through'])} | {cm(check['half_window_m'])} | "
+                    f"{cm(check.get('prior_noise_m'))} ({cm(check.get('prior_sigma_m'))}) | "
+                    f"{_fmt(check.get('window_over_noise'), 1)} | {pct(samples.get('outside_window'))} | "
+                    f"{pct(near.get('voxnerf'))} / {pct(near.get('occupancy_grid'))} |")
+    return rows
+
+
+def table(results: list[dict], scenes: list[str], halves: dict[str, str], budget: float, max_iters: int | None,
+          command: str) -> str:
     head = ("| config | scenes | interp. mean | vs defaults | worst scene | scenes losing > 0.3 | extrap. mean | "
             "vs defaults | worst scene | scenes losing > 0.3 |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- "
             "| --- |")
-    parts = [f"Budget {budget:g} s of `voxnerf train` per run (everything included), one run at a time. Command:\n\n"
+    bound = f"{budget:g} s" + (f" or {max_iters} steps, whichever comes first," if max_iters else "")
+    parts = [f"Budget {bound} of `voxnerf train` per run (everything included), one run at a time. Command:\n\n"
              f"    {command}\n"]
-    for label, group in (("the synthetic rooms", synthetic), ("every scene, redkitchen included", scenes)):
+    for half in (TUNING, CONFIRMATION):
+        group = [s for s in scenes if halves.get(s) == half]
         for metric, name in (("psnr", "PSNR (dB), all views"), ("half_psnr", "half-image PSNR (dB)")):
             rows = summary_rows(results, group, metric)
             if rows and group:
-                parts.append(f"**{name}, mean over {label}** ({len(group)}):\n\n{head}\n" + "\n".join(rows) + "\n")
+                parts.append(f"**{name}, mean over the {half} half** ({', '.join(group)}):\n\n{head}\n"
+                             + "\n".join(rows) + "\n")
+    ran = {r["config"] for r in results}
+    verdicts = [verdict(results, halves, c) for c in CONFIGS if c != BASELINE and c in ran]
+    if verdicts:
+        parts.append(f"**Verdicts against `{BASELINE}`** (PSNR change, all views, dB: interpolation / extrapolation; "
+                     "\"adopt\" only when a configuration wins on the tuning half and no confirmation scene loses "
+                     f"more than {NOISE_DB:g} dB):\n\n"
+                     "| config | tuning scenes | interp. | extrap. | confirmation scenes | interp. | extrap. | "
+                     "worst confirmation scene | verdict |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
+                     + "\n".join(verdict_rows(verdicts)) + "\n")
+    window = window_rows(results, scenes, halves)
+    if window:
+        parts.append(f"**The VoxNeRF sampler's window, checked at set-up** (the `{BASELINE}` run of each scene, "
+                     "training pixels with depth: rays whose octree first hit misses every leaf, stops short of the "
+                     "depth or passes it by more than the window's half-width; the half-width against the prior's "
+                     "noise along the ray, measured against the depth (stated sigma in brackets); the share of the "
+                     "sampler's samples outside its window; the share of samples within the half-width of the depth, "
+                     "VoxNeRF sampler / the prior-seeded occupancy grid at set-up):\n\n"
+                     "| scene | half | rays | miss | stop short | pass through | half-window (cm) | prior noise (cm) | "
+                     "window / noise | samples outside window | samples near the surface |\n"
+                     "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n" + "\n".join(window) + "\n")
     spent = budget_rows(results, scenes)
     if spent:
         parts.append(f"**Where the budget went** (seconds, the `{BASELINE}` run of each scene):\n\n"
@@ -307,7 +481,7 @@ def table(results: list[dict], scenes: list[str], synthetic: list[str], budget: 
     return "\n".join(parts)
 
 
-def plot(results: list[dict], scenes: list[str], path: Path) -> bool:
+def plot(results: list[dict], scenes: list[str], halves: dict[str, str], path: Path) -> bool:
     """PSNR change against ``defaults`` per configuration and scene, one panel per split (``path``, a PNG);
     False without matplotlib (the ``bench`` extra)."""
     try:
@@ -320,19 +494,22 @@ def plot(results: list[dict], scenes: list[str], path: Path) -> bool:
         return False
     by = {(r["scene"], r["config"]): split_scores(r["report"]["metrics"] or {}) for r in results}
     configs = [c for c in CONFIGS if c != BASELINE and any((s, c) in by for s in scenes)]
-    fig, axes = plt.subplots(1, len(SPLITS), figsize=(6 * len(SPLITS), 0.45 * len(configs) + 1.5), sharey=True)
+    height = 0.18 * len(configs) * max(len(scenes), 3) + 1.5  # a bar per scene and configuration
+    fig, axes = plt.subplots(1, len(SPLITS), figsize=(6 * len(SPLITS), height), sharey=True)
     width = 0.8 / max(len(scenes), 1)
     for ax, split in zip(axes, SPLITS, strict=True):
         for j, scene in enumerate(scenes):
             base = by.get((scene, BASELINE), {}).get(split, {}).get("psnr")
             deltas = [by.get((scene, c), {}).get(split, {}).get("psnr") for c in configs]
             values = [d - base if d is not None and base is not None else 0.0 for d in deltas]
-            ax.barh([i + j * width for i in range(len(configs))], values, height=width, label=scene)
+            ax.barh([i + j * width for i in range(len(configs))], values, height=width,
+                    label=f"{scene} ({halves.get(scene, '-')})", hatch="//" if halves.get(scene) == CONFIRMATION
+                    else None)
         ax.axvline(0.0, color="black", linewidth=0.8)
         ax.set_title(f"{split}: PSNR minus {BASELINE} (dB)")
         ax.set_yticks([i + 0.4 - width / 2 for i in range(len(configs))], configs)
         ax.invert_yaxis()
-    axes[-1].legend(fontsize="small")
+    axes[-1].legend(fontsize="small", loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -346,8 +523,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--scenes", help="comma-separated suite scene names (default: all); 'redkitchen' among them "
                    "stands for the --redkitchen scene (alone: no synthetic room)")
     p.add_argument("--redkitchen", type=Path, help="the 7-Scenes redkitchen scene directory, added to the suite")
+    p.add_argument("--record3d-kitchen", action="store_true",
+                   help=f"add {RECORD3D}: the shared redkitchen written as a Record3D export and imported (made once "
+                   "under the suite directory; confirmation half)")
     p.add_argument("--configs", default=",".join(CONFIGS), help=f"comma-separated, from {', '.join(CONFIGS)}")
     p.add_argument("--budget", type=float, default=300.0, help="--max-seconds of every run")
+    p.add_argument("--max-iters", type=int, help="also bound every run by this many training steps (a fixed amount "
+                   "of work: runs on a shared machine still compare)")
     p.add_argument("--eval-at", default="", help="full evaluations inside each run, e.g. 120")
     p.add_argument("--quick", action="store_true", help="the quick suite, 5 eager steps per run (for tests)")
     p.add_argument("--table-only", action="store_true",
@@ -359,6 +541,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         p.error(f"unknown configs {unknown}; known: {', '.join(CONFIGS)}")
     if REDKITCHEN in (args.scenes or "").split(",") and args.redkitchen is None:
         p.error("--scenes names redkitchen: give its scene directory with --redkitchen")
+    if RECORD3D in (args.scenes or "").split(",") and not args.record3d_kitchen:
+        p.error(f"--scenes names {RECORD3D}: add --record3d-kitchen")
+    if args.max_iters is not None and args.max_iters < 1:
+        p.error(f"--max-iters must be a positive number of steps, got {args.max_iters}")
     return args
 
 
@@ -367,14 +553,20 @@ def main(argv: list[str] | None = None) -> int:
 
     args = parse_args(argv)
     specs = QUICK_SUITE if args.quick else SUITE
-    names = [n for n in args.scenes.split(",") if n != REDKITCHEN] if args.scenes else list(specs)
+    halves = QUICK_HALVES if args.quick else HALVES
+    names = [n for n in args.scenes.split(",") if n not in REAL_SCANS] if args.scenes else list(specs)
     configs = list(QUICK_CONFIGS) if args.quick and args.configs == ",".join(CONFIGS) else args.configs.split(",")
     scene_dirs = ({name: None for name in names} if args.table_only
                   else make_suite(args.suite_dir or args.out / "scenes", names=names, suite=specs))
     if args.redkitchen is not None:
         scene_dirs[REDKITCHEN] = args.redkitchen
+    if args.record3d_kitchen:
+        suite_dir = args.suite_dir or args.out / "scenes"
+        scene_dirs[RECORD3D] = suite_dir / RECORD3D if args.table_only else make_record3d_kitchen(suite_dir / RECORD3D)
     eval_at = [float(t) for t in args.eval_at.split(",") if t]
     extra = list(QUICK_TRAIN_ARGS) if args.quick else []
+    if args.max_iters is not None:
+        extra += ["--max-iters", str(args.max_iters)]
     for scene, scene_dir in [] if args.table_only else scene_dirs.items():
         for config in configs:  # a scene's configurations back to back: compared runs minutes apart
             print(f"{config} on {scene} ...", flush=True)
@@ -382,11 +574,13 @@ def main(argv: list[str] | None = None) -> int:
     results = [json.loads(p.read_text()) for p in sorted((args.out / "runs").glob("*/*/suite-run.json"))]
     results = [r for r in results if r["config"] in CONFIGS and r["config"] in configs and r["scene"] in scene_dirs]
     scenes = list(dict.fromkeys([*scene_dirs, *(r["scene"] for r in results)]))
-    synthetic = [s for s in scenes if s != REDKITCHEN]
+    in_run = {scene: halves[scene] for scene in scenes}
     command = ".venv/bin/python benchmarks/suite.py " + shlex.join(sys.argv[1:] if argv is None else argv)
-    text = table(results, scenes, synthetic, args.budget, command)
-    publish(args.out, {"results": results, "command": command}, text, DOCS_PAGE, DOCS_SECTION, args.write_docs)
-    plot(results, scenes, args.out / "suite.png")
+    text = table(results, scenes, in_run, args.budget, args.max_iters, command)
+    verdicts = [verdict(results, in_run, c) for c in configs if c != BASELINE]
+    publish(args.out, {"results": results, "command": command, "halves": in_run, "verdicts": verdicts}, text,
+            DOCS_PAGE, DOCS_SECTION, args.write_docs)
+    plot(results, scenes, in_run, args.out / "suite.png")
     return 0
 
 

@@ -381,7 +381,13 @@ def test_suite_quick_runs_every_config_on_every_room_and_reuses_finished_runs(tm
             scores = suite.split_scores(r["report"]["metrics"])[split]
             assert _finite_psnr(str(scores["psnr"])) and _finite_psnr(str(scores["half_psnr"]))
     table = (out / "table.md").read_text()
-    assert "| distortion | 2 |" in table and "mean over the synthetic rooms" in table
+    assert "| distortion | 1 |" in table and "mean over the tuning half** (quick_plain)" in table
+    assert "mean over the confirmation half** (quick_capture)" in table and "| distortion | 1 | " in table
+    written = json.loads((out / "results.json").read_text())
+    assert written["halves"] == {"quick_plain": "tuning", "quick_capture": "confirmation"}
+    assert [v["config"] for v in written["verdicts"]] == ["distortion"]
+    said = written["verdicts"][0]["verdict"]
+    assert said in ("adopt", "keep") and f"| **{said}**: " in table
     placement_table = out / "placement.md"
     assert sample_placement.main(["--runs", str(out / "runs"), "--scene", "quick_plain", "--scene-dir",
                                   str(out / "scenes" / "quick_plain"), "--configs", "defaults,distortion",
@@ -415,16 +421,75 @@ def test_suite_summary_compares_with_defaults_and_counts_losing_scenes() -> None
     assert rows[1] == "| distortion | 2 | 27.50 | +0.00 | -1.00 | 1 | 19.30 | +0.30 | +0.10 | 0 |"
 
 
+def test_the_suite_split_is_fixed_and_each_half_spans_the_variety() -> None:
+    rooms = suite_rooms.SUITE
+    assert set(suite.HALVES) == {*rooms, suite.REDKITCHEN, suite.RECORD3D}
+    assert suite.HALVES == {
+        "studio": "tuning", "office": "tuning", "capture_lounge": "tuning", "gallery": "tuning", "hall": "tuning",
+        "capture_bedroom": "tuning", "redkitchen": "tuning",
+        "loft": "confirmation", "den": "confirmation", "capture_kitchen": "confirmation", "attic": "confirmation",
+        "library": "confirmation", "capture_study": "confirmation", "record3d_kitchen": "confirmation"}
+    for half in (suite.TUNING, suite.CONFIRMATION):
+        specs = [rooms[name] for name, h in suite.HALVES.items() if h == half and name in rooms]
+        assert len(specs) >= 6, half
+        assert {s.prior_kind for s in specs} == {"points", "mesh"}, half
+        assert sum(s.gi_bounces > 0 and s.noise_photons > 0 for s in specs) >= 2, half
+        sigmas = [s.prior_sigma for s in specs]
+        assert min(sigmas) <= 0.015 and max(sigmas) >= 0.04, half
+        fovs = [s.hfov_deg for s in specs]
+        assert min(fovs) < 60 and max(fovs) >= 95, half
+        assert {s.width for s in specs} >= {176, 192, 200}, half
+    assert set(suite.QUICK_HALVES) == {*suite_rooms.QUICK_SUITE, *suite.REAL_SCANS}
+    assert set(suite.QUICK_HALVES.values()) == {suite.TUNING, suite.CONFIRMATION}
+
+
+def _made_up(changes: dict[str, tuple[float, float]], config: str = "candidate") -> list[dict]:
+    """Runs of ``defaults`` (30 / 20 dB) and of ``config`` (changed by ``changes[scene]``) on each scene."""
+    def run(scene, name, interp, extrap):
+        metrics = {"interpolation": {"psnr": interp, "ssim": 0.5}, "extrapolation": {"psnr": extrap, "ssim": 0.5}}
+        return {"scene": scene, "config": name, "report": {"metrics": metrics, "iteration": 1}}
+
+    return [r for scene, (di, de) in changes.items()
+            for r in (run(scene, "defaults", 30.0, 20.0), run(scene, config, 30.0 + di, 20.0 + de))]
+
+
+HALVES = {"t1": "tuning", "t2": "tuning", "c1": "confirmation", "c2": "confirmation"}
+
+
+def test_the_verdict_adopts_only_a_tuning_win_that_holds_on_every_confirmation_scene() -> None:
+    wins = {"t1": (0.4, 0.6), "t2": (0.2, -0.1)}
+    adopt = suite.verdict(_made_up(wins | {"c1": (0.1, 0.5), "c2": (-0.29, 0.2)}), HALVES, "candidate")
+    assert adopt["verdict"] == "adopt" and adopt["why"].startswith("wins on the tuning half (+0.30 / +0.25 dB)")
+    assert adopt["tuning"]["interpolation"] == pytest.approx(0.3) and adopt["tuning"]["scenes"] == 2
+    assert adopt["confirmation"]["worst"] == {"scene": "c2", "split": "interpolation",
+                                              "change": pytest.approx(-0.29)}
+    loses = suite.verdict(_made_up(wins | {"c1": (0.1, 0.55), "c2": (0.3, -0.31)}), HALVES, "candidate")
+    assert loses["verdict"] == "keep" and loses["why"].endswith("but c2 loses 0.31 dB of extrapolation")
+    assert loses["confirmation"]["extrapolation"] == pytest.approx(0.12)  # a good mean does not save it
+    no_win = suite.verdict(_made_up({"t1": (0.5, -0.6), "t2": (0.0, 0.0), "c1": (1, 1), "c2": (1, 1)}), HALVES,
+                           "candidate")
+    assert no_win["verdict"] == "keep" and no_win["why"] == "does not win on the tuning half (+0.25 / -0.30 dB)"
+    split_loses = suite.verdict(_made_up({"t1": (2.0, -0.8), "t2": (2.0, -0.8), "c1": (1, 1), "c2": (1, 1)}),
+                                HALVES, "candidate")
+    assert split_loses["verdict"] == "keep"  # a gain on one split does not buy a loss beyond the noise on the other
+    missing = suite.verdict(_made_up(wins | {"c1": (0.1, 0.5)}), HALVES, "candidate")
+    assert missing["verdict"] == "keep" and missing["why"] == "incomplete: no run on c2"
+    rows = suite.verdict_rows([loses])
+    assert rows == ["| candidate | 2 | +0.30 | +0.25 | 2 | +0.20 | +0.12 | c2 extrap. -0.31 | **keep**: wins on the "
+                    "tuning half (+0.30 / +0.25 dB) but c2 loses 0.31 dB of extrapolation |"]
+
+
 def test_suite_geometry_needs_a_true_mesh(tmp_path: Path, capsys) -> None:
     assert suite_geometry.main(["--runs", str(tmp_path), "--scene", "x", "--scene-dir", str(tmp_path)]) == 2
     assert "gt_mesh.ply: no true mesh" in capsys.readouterr().err
 
 
 def test_suite_runs_scene_by_scene_and_redkitchen_by_name(tmp_path: Path, monkeypatch) -> None:
-    calls = []
+    calls, extras = [], []
 
     def fake_run_one(scene, scene_dir, config, run, budget, eval_at, extra):
         calls.append((scene, config))
+        extras.append(extra)
         metrics = {s: {"psnr": 20.0, "ssim": 0.5} for s in ("interpolation", "extrapolation")}
         run.mkdir(parents=True)
         (run / "suite-run.json").write_text(json.dumps({"scene": scene, "config": config, "command": "c",
@@ -442,12 +507,20 @@ def test_suite_runs_scene_by_scene_and_redkitchen_by_name(tmp_path: Path, monkey
     assert calls == [("redkitchen", "previous-defaults"), ("redkitchen", "defaults")]  # no synthetic room
     results = json.loads((tmp_path / "alone" / "results.json").read_text())["results"]
     assert {r["scene"] for r in results} == {"redkitchen"}
+    assert "incomplete: a half has no scene in this run" in (tmp_path / "alone" / "table.md").read_text()
+    extras.clear()
+    assert suite.main([*argv, "--out", str(tmp_path / "steps"), "--scenes", "redkitchen", "--max-iters", "7"]) == 0
+    assert extras and all(extra[-2:] == ["--max-iters", "7"] for extra in extras)
+    assert "or 7 steps, whichever comes first" in (tmp_path / "steps" / "table.md").read_text()
 
 
 def test_suite_needs_the_redkitchen_directory_when_its_scenes_name_it(capsys) -> None:
     with pytest.raises(SystemExit):
         suite.main(["--out", "/nonexistent", "--scenes", "studio,redkitchen"])
     assert "--scenes names redkitchen: give its scene directory with --redkitchen" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        suite.main(["--out", "/nonexistent", "--scenes", "studio,record3d_kitchen"])
+    assert "--scenes names record3d_kitchen: add --record3d-kitchen" in capsys.readouterr().err
 
 
 def test_suite_refuses_unknown_configs(capsys) -> None:

@@ -1,7 +1,9 @@
-"""The tuning suite: named synthetic rooms, different in seed, size, field of view, lighting, textures and prior,
-two of them capture-like (indirect light, soft shadows, sensor noise, exposure drift, sensor-like depth).
+"""The tuning suite: named synthetic rooms, different in seed, size, field of view, resolution, camera path,
+lighting, textures and prior (kind and noise), four of them capture-like (indirect light, soft shadows, sensor
+noise, exposure drift, sensor-like depth).
 
-``SUITE`` is what defaults are chosen on (with the real redkitchen); ``QUICK_SUITE`` holds tiny rooms that
+``SUITE`` is what defaults are chosen on (with the real scans; ``benchmarks/suite.py`` splits them into a tuning
+and a confirmation half); ``QUICK_SUITE`` holds tiny rooms that
 render in seconds, for tests. :func:`make_suite` writes rooms into ``OUT_DIR/<name>`` beside their spec
 ``OUT_DIR/<name>.spec.json`` and reuses a room whose stored spec equals the wanted one.
 
@@ -25,6 +27,10 @@ from voxnerf.synthetic.writer import RoomSpec, make_room_scene, written_by_this_
 
 # Splits: 18 training, 15 interpolation and 10 extrapolation views (n_frames 240, every 10th, 2 gaps of 30).
 _SPLITS = dict(n_frames=240, train_every=10, n_gaps=2, gap_len=30)
+# One long gap: 19 training, 17 interpolation and 9 extrapolation views, the extrapolation ones further from training.
+_ONE_GAP = dict(n_frames=240, train_every=10, n_gaps=1, gap_len=50)
+# A shorter path seen more densely: 17 training, 14 interpolation and 14 extrapolation views.
+_DENSE = dict(n_frames=200, train_every=8, n_gaps=2, gap_len=32)
 # Capture-like: indirect light with soft shadows, a dimmer ambient (the bounces light the shadows), and a sensor.
 _CAPTURE = dict(ambient=0.03, light_radius_m=0.1, shadow_rays=4, noise_photons=400.0, noise_read_std=0.003,
                 exposure_drift_ev=0.3, white_balance_drift_ev=0.05, vignetting=0.3, sensor_depth=True)
@@ -60,8 +66,41 @@ SUITE: dict[str, RoomSpec] = {
         prior_sigma=0.015, light_scale=0.85, light_temperature_k=6000.0, light_jitter_m=0.4, texture_scale=0.7,
         palette_shift=0.6, gi_bounces=1, gi_rays=4, **_CAPTURE,
     ),
+    # Issue #46: six more rooms, so that a tuning and a confirmation half each span the variety.
+    "gallery": RoomSpec(
+        **_ONE_GAP, width=200, height=150, seed=107, room_size=(7.0, 6.0, 3.5), hfov_deg=65.0, prior_kind="points",
+        prior_sigma=0.05, ambient=0.3, light_scale=1.8, light_temperature_k=6500.0, light_jitter_m=0.2,
+        texture_scale=2.0, palette_shift=0.1,
+    ),
+    "attic": RoomSpec(
+        **_DENSE, width=176, height=132, seed=108, room_size=(4.4, 4.0, 2.4), hfov_deg=95.0, prior_kind="mesh",
+        prior_sigma=0.042, ambient=0.1, light_scale=0.6, light_temperature_k=2400.0, light_jitter_m=0.1,
+        texture_scale=0.5, palette_shift=0.9,
+    ),
+    "hall": RoomSpec(
+        **_SPLITS, width=176, height=132, seed=109, room_size=(6.8, 4.2, 3.2), hfov_deg=100.0, prior_kind="mesh",
+        prior_sigma=0.035, ambient=0.2, light_scale=1.3, light_temperature_k=8500.0, light_jitter_m=0.45,
+        texture_scale=1.3, palette_shift=0.7,
+    ),
+    "library": RoomSpec(
+        **_ONE_GAP, width=192, height=144, seed=110, room_size=(6.2, 5.0, 3.0), hfov_deg=55.0, prior_kind="points",
+        prior_sigma=0.012, ambient=0.18, light_scale=1.1, light_temperature_k=9000.0, light_jitter_m=0.35,
+        texture_scale=1.8, palette_shift=0.0,
+    ),
+    "capture_bedroom": RoomSpec(
+        **_DENSE, width=192, height=144, seed=111, room_size=(4.5, 4.2, 2.6), hfov_deg=58.0, prior_kind="points",
+        prior_sigma=0.045, light_scale=0.7, light_temperature_k=2700.0, light_jitter_m=0.25, texture_scale=0.9,
+        palette_shift=0.25, gi_bounces=1, gi_rays=3,
+        **(_CAPTURE | dict(noise_photons=250.0, exposure_drift_ev=0.5)),
+    ),
+    "capture_study": RoomSpec(
+        **_SPLITS, seed=112, room_size=(5.0, 5.6, 2.8), hfov_deg=68.0, prior_kind="points", prior_sigma=0.038,
+        light_scale=0.9, light_temperature_k=4500.0, light_jitter_m=0.15, texture_scale=1.1, palette_shift=0.15,
+        gi_bounces=2, gi_rays=2, **(_CAPTURE | dict(vignetting=0.45, white_balance_drift_ev=0.1)),
+    ),
 }
-"""The full suite: 160 x 120 or 200 x 150 rooms; every room's splits are ``split_frames(**_SPLITS)``."""
+"""The full suite: 160 x 120 to 200 x 150 rooms (4:3), 17-19 training views each (``_SPLITS``, ``_ONE_GAP``,
+``_DENSE``); the first six rooms' specs are those of the measurements before issue #46 and stay as they are."""
 
 _QUICK = dict(width=48, height=36, n_frames=36, train_every=4, n_gaps=1, gap_len=12, supersample=1,
               prior_max_points=5_000)

@@ -140,9 +140,10 @@ class TrainReport(BaseModel):
 
     ``scene``, ``prior`` and ``octree`` are the summaries of those stages' objects; ``warnings`` lists what the
     user should know (a prior that few pixels see, a sampler asking for a prior the scene lacks); ``pose_refinement``
-    and ``appearance`` the size of the learnt per-image corrections (configs of those names); ``budget`` what
-    ``max_seconds`` charged, the share of it that trained and the command's seconds by part
-    (:meth:`voxnerf.training.budget.Budget.accounting`); ``runtime`` how the process that trained computed
+    and ``appearance`` the size of the learnt per-image corrections (configs of those names); ``window_check`` how
+    well the VoxNeRF sampler's window holds the depth maps' surface (:mod:`voxnerf.training.window_check`, measured
+    at set-up); ``budget`` what ``max_seconds`` charged, the share of it that trained and the command's seconds by
+    part (:meth:`voxnerf.training.budget.Budget.accounting`); ``runtime`` how the process that trained computed
     (:func:`voxnerf.devices.compute_environment`), with ``octree_misses``: how the voxnerf sampler gave the rays
     that miss its octree their samples (:data:`voxnerf.model.samplers.OCTREE_MISSES`; None without that sampler).
     Fields that a run never set (a prior-less scene has no ``prior``) stay out of the JSON.
@@ -164,6 +165,7 @@ class TrainReport(BaseModel):
     warnings: list[str] = []
     depth_beta: float | None = None
     depth: dict[str, Any] | None = None
+    window_check: dict[str, Any] | None = None
     pose_refinement: dict[str, Any] | None = None
     appearance: dict[str, Any] | None = None
     metrics: dict[str, Any] | None = None

@@ -31,6 +31,7 @@ from voxnerf.training.records import StageRecord, TrainReport
 from voxnerf.training.stages.corrections import corrections_stage
 from voxnerf.training.stages.focal import focal_stage
 from voxnerf.training.stages.weight_decay import weight_decay_stage
+from voxnerf.training.stages.window_check import window_check_stage
 
 
 @dataclass
@@ -178,6 +179,15 @@ def _first_hit(ctx: SetupContext) -> StageRecord:
     return hits.record
 
 
+def _window_check(ctx: SetupContext) -> StageRecord:
+    sensor_t = ctx.target.sensor_t if ctx.target is not None else None
+    checked = window_check_stage(ctx.cfg, ctx.built.model, ctx.pixels, sensor_t, ctx.built.prior_n,
+                                 ctx.built.transform.scale)
+    if checked.summary is not None:
+        ctx.report.window_check = checked.summary
+    return checked.record
+
+
 def _prior_rays(ctx: SetupContext) -> StageRecord:
     extra = stages.prior_rays_stage(ctx.cfg, ctx.built.prior_n, ctx.use_depth, ctx.octree, ctx.pixels,
                                     ctx.built.model, ctx.device)
@@ -198,6 +208,7 @@ SETUP_STAGES: tuple[SetupStage, ...] = (
     Stage("depth_target", _depth_target),
     Stage("octree_carving", _carving),
     Stage("first_hit_cache", _first_hit),
+    Stage("window_check", _window_check),  # the sampler's window against the depth maps (report.json window_check)
     Stage("prior_rays", _prior_rays),
 )
 
