@@ -5,7 +5,7 @@
 Starts the real service (uvicorn + Celery worker processes, loopback only) on a temporary data directory:
 first on the embedded default (filesystem queue + SQLite), then on a throw-away redis-server with the same
 data directory. One short training job provides the model. Every loop is bounded. With ``--write-docs`` the
-results replace the marked section of docs/service.md.
+results replace the marked section of docs/performance.md.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from service_fixtures import first_pose, start_redis, start_service, wait_for, z
 
 from voxnerf.synthetic import RoomSpec, make_room_scene  # noqa: E402
 
-DOC = REPO / "docs" / "service.md"
+DOC = REPO / "docs" / "performance.md"
 SECTION = "service-latency"  # the marked section of DOC that --write-docs replaces
 TRAIN = {"max_iters": 8, "compile": False}  # latency does not depend on how well the model fits
 
