@@ -12,6 +12,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import errno
+import functools
 import os
 import select
 import sys
@@ -19,6 +20,18 @@ from pathlib import Path
 
 # inotify(7): a file renamed into, or closed after writing in, the watched folder.
 _IN_MOVED_TO, _IN_CLOSE_WRITE = 0x80, 0x8
+
+
+@functools.cache
+def _libc() -> ctypes.CDLL | None:
+    """The C library with inotify's calls, loaded once per process (``find_library`` may run ``ldconfig``: not
+    for every render request); None where it lacks them."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        libc.inotify_init1, libc.inotify_add_watch  # noqa: B018 (AttributeError where they are missing)
+    except (OSError, AttributeError):
+        return None
+    return libc
 
 
 class FolderWatch:
@@ -33,11 +46,10 @@ class FolderWatch:
     def open(cls, folder: str | Path) -> FolderWatch | None:
         if not sys.platform.startswith("linux"):
             return None
-        try:
-            libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-            fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
-        except (OSError, AttributeError):
+        libc = _libc()
+        if libc is None:
             return None
+        fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
         if fd < 0:
             return None
         if libc.inotify_add_watch(fd, os.fsencode(folder), _IN_MOVED_TO | _IN_CLOSE_WRITE) < 0:
