@@ -147,6 +147,8 @@ CONFIGS: dict[str, dict] = {
     # The sampler alone: the defaults (depth loss, corrections, budget) with the prior-seeded occupancy grid in place
     # of the VoxNeRF sampler; the occgrid-* rows below also turn the depth loss off (the paper's Table II).
     "sampler-grid": {"sampler": "occgrid"},
+    # The VoxNeRF sampler's window centred where the ray passes its first leaf's point mean, not the leaf's entry.
+    "window-surface": {"window_centre": "surface"},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
     "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine

@@ -137,6 +137,13 @@ class SamplingConfig(_Section):
                     "noise beyond silhouettes, where a ray would stop short of its surface (voxnerf.prior.carving; "
                     "docs/engine.md, 'Pipeline', step 6)",
     )
+    window_centre: Literal["entry", "surface"] = Field(
+        default="entry",
+        description="where the voxnerf sampler centres its window on a ray: 'entry', the first occupied leaf's "
+        "entry (the paper's z, in front of the surface by up to a leaf diagonal), or 'surface', where the ray "
+        "passes the mean of the prior's points in that leaf (voxnerf.model.samplers.WINDOW_CENTRES; "
+        "docs/engine.md, 'The sampler's window')",
+    )
     occgrid_seed: bool = Field(
         default=True,
         description="start the occupancy grid from the prior's cells; False starts it all occupied and lets it "

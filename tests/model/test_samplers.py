@@ -8,6 +8,7 @@ import torch
 from voxnerf.model.samplers import (
     GRID_UPDATE_BATCH,
     OCTREE_MISSES,
+    WINDOW_CENTRES,
     OccGridSampler,
     OccupancyGrid,
     RayBundle,
@@ -15,6 +16,7 @@ from voxnerf.model.samplers import (
     VoxNeRFSampler,
     intervals_around_window,
     octree_misses_on,
+    window_centres,
 )
 from voxnerf.prior.octree import SparseVoxelOctree
 
@@ -65,6 +67,34 @@ def test_voxnerf_sampler_packs_importance_samples_in_window():
     near_z = torch.where((mids - z[:, None]).abs() <= sampler.half_window, mids - z[:, None], torch.nan)
     std = float(torch.nanmean(near_z**2).sqrt())
     assert 0.7 * math.sqrt(3) * octree.leaf_size < std < 1.1 * math.sqrt(3) * octree.leaf_size
+
+
+def test_the_window_centred_on_the_surface_sits_on_the_wall_and_on_the_entry_in_front_of_it():
+    """A wall x = 0.8 of points in leaves of 0.05: the 'entry' window centres on the first leaf's entry face,
+    x = 0.8 - 0.025 (the paper's z); the 'surface' window on the wall, where the ray passes the leaf's points."""
+    octree = _wall_octree(leaf=0.05)
+    rays = _rays(64, direction=(1.0, 0.05, -0.03))
+    x_at = {}
+    for centre in WINDOW_CENTRES:
+        sampler = VoxNeRFSampler(octree, 16, 8, OccGridSampler(OccupancyGrid(16), 24), centre=centre)
+        z, hit = sampler.first_hits(rays)
+        assert bool(hit.all())
+        x_at[centre] = rays.origins[:, 0] + z * rays.dirs[:, 0]
+        _check_intervals(*sampler(rays, stratified=True), rays, 24)
+    leaf = octree.leaf_size
+    torch.testing.assert_close(x_at["entry"], torch.full_like(x_at["entry"], 0.8 - leaf / 2), atol=leaf / 2 + 1e-4,
+                               rtol=0)
+    assert bool((x_at["entry"] < 0.8 - 1e-3).all())
+    torch.testing.assert_close(x_at["surface"], torch.full_like(x_at["surface"], 0.8), atol=2e-3, rtol=0)
+
+
+def test_a_window_centre_is_one_of_the_known_rules():
+    octree = _wall_octree()
+    with pytest.raises(ValueError, match="window centre 'middle'"):
+        VoxNeRFSampler(octree, 16, 8, OccGridSampler(OccupancyGrid(16), 24), centre="middle")
+    rays = _rays(4)
+    with pytest.raises(ValueError, match="window centre 'middle'"):
+        window_centres(octree, "middle", rays.origins, rays.dirs, rays.near, rays.far)
 
 
 def test_voxnerf_importance_intervals_tile_the_window():

@@ -156,3 +156,17 @@ def test_a_second_run_of_a_scene_loads_its_casts_and_trains_alike(cache, tmp_pat
     uncached = train(room, tmp_path / "run3", micro_config(final_eval=False, setup_cache=False),
                      progress_bar=False)
     assert all(FROM_CACHE not in s.why for s in uncached.stages)
+
+
+def test_the_window_centre_rule_keys_its_cast_and_puts_the_centre_nearer_the_depth(cache, tmp_path_factory, tmp_path):
+    """A run centring the sampler's window on the prior's surface casts its own first hits (the entry run's cached
+    ones are not reused) and its centres lie nearer the depth maps' surface than the leaf entries do."""
+    room = make_micro_scene(tmp_path_factory, "setup-cache")
+    reports = {centre: train(room, tmp_path / centre, micro_config(final_eval=False, window_centre=centre),
+                             progress_bar=False) for centre in ("entry", "surface")}
+    whys = {centre: {s.name: s.why for s in r.stages} for centre, r in reports.items()}
+    assert "window centre: entry" in whys["entry"]["first_hit_cache"]
+    assert "window centre: surface" in whys["surface"]["first_hit_cache"]
+    assert FROM_CACHE not in whys["surface"]["first_hit_cache"]
+    offsets = {centre: r.window_check["first_hit_offset_m"]["p50"] for centre, r in reports.items()}
+    assert offsets["entry"] < 0 and abs(offsets["surface"]) < abs(offsets["entry"]), offsets

@@ -9,7 +9,9 @@ Every sampler returns the same number ``S`` of sorted, non-overlapping intervals
   crosses (inverse transform sampling of the ray's occupancy), so empty space gets almost none.
 - :class:`VoxNeRFSampler` (paper III-C): ``n_importance`` samples from ``N(z, 3 v^2)`` truncated to
   ``z +- 3 sqrt(3) v`` around the first occupied octree leaf ``z``, ``n_rest`` uniform on the rest of
-  ``[near, far]``; rays that hit no leaf fall back to the occupancy grid, by one of :data:`OCTREE_MISSES`
+  ``[near, far]``. ``z`` is where the ray passes the leaf's point mean or the leaf's entry, one of
+  :data:`WINDOW_CENTRES` (:func:`window_centres` is the one rule, for training's cache and for renders);
+  rays that hit no leaf fall back to the occupancy grid, by one of :data:`OCTREE_MISSES`
   (:func:`octree_misses_on` picks it per device).
 """
 
@@ -34,6 +36,25 @@ _PHI_HI = 1.0 - _PHI_LO
 # - "mask": the fallback samples every ray and ``torch.where`` keeps its intervals where the ray missed (fixed
 #   shapes, nothing read on the host: on a GPU the batch queues without waiting, and it can be compiled whole).
 OCTREE_MISSES = ("gather", "mask")
+
+# Where the VoxNeRF sampler centres its window along a ray that hits the octree:
+# - "entry": the first occupied leaf's entry (the paper's z), in front of the surface by up to a leaf diagonal;
+# - "surface": where the ray passes the mean of the prior's points in that leaf, inside the leaf
+#   (SparseVoxelOctree.surface_hit); an octree saved without leaf means falls back to the entry.
+WINDOW_CENTRES = ("entry", "surface")
+
+
+def window_centres(
+    octree: SparseVoxelOctree, centre: str, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
+    t_hint: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The window centre z [N] (normalised ray distance; ``far`` where the ray misses) and hit [N] of rays
+    [N, 3] by the :data:`WINDOW_CENTRES` rule ``centre``; ``t_hint`` [N] (NaN: none) only saves work."""
+    if centre == "surface":
+        return octree.surface_hit(origins, dirs, near, far, t_hint=t_hint)
+    if centre == "entry":
+        return octree.first_hit(origins, dirs, near, far, t_hint=t_hint)
+    raise ValueError(f"window centre {centre!r}: expected one of {', '.join(WINDOW_CENTRES)}")
 
 
 def octree_misses_on(choice: str, device: torch.device | str) -> str:
@@ -234,7 +255,7 @@ class VoxNeRFSampler:
 
     def __init__(
         self, octree: SparseVoxelOctree, n_importance: int, n_rest: int, fallback: OccGridSampler,
-        misses: str = "gather",
+        misses: str = "gather", centre: str = "entry",
     ) -> None:
         self.octree, self.n_importance, self.n_rest, self.fallback = octree, n_importance, n_rest, fallback
         if fallback.n_samples != n_importance + n_rest:
@@ -242,6 +263,9 @@ class VoxNeRFSampler:
         if misses not in OCTREE_MISSES:
             raise ValueError(f"octree misses {misses!r}: expected one of {', '.join(OCTREE_MISSES)}")
         self.misses = misses  # how the rays that miss the octree get the fallback's intervals (OCTREE_MISSES)
+        if centre not in WINDOW_CENTRES:
+            raise ValueError(f"window centre {centre!r}: expected one of {', '.join(WINDOW_CENTRES)}")
+        self.centre = centre  # where the window sits on a ray that hits (WINDOW_CENTRES)
 
     @property
     def half_window(self) -> float:
@@ -249,9 +273,11 @@ class VoxNeRFSampler:
         return 3.0 * math.sqrt(3.0) * self.octree.leaf_size
 
     def first_hits(self, rays: RayBundle) -> tuple[Tensor, Tensor]:
+        """Window centres z [R] and hit [R]: the bundle's cached ones (the trainer's, cast by the same rule) or
+        :func:`window_centres`."""
         if rays.hit_t is not None and rays.hit is not None:
             return rays.hit_t, rays.hit
-        return self.octree.first_hit(rays.origins, rays.dirs, rays.near, rays.far)
+        return window_centres(self.octree, self.centre, rays.origins, rays.dirs, rays.near, rays.far)
 
     def sample_points(self, rays: RayBundle, z: Tensor, stratified: bool) -> Tensor:
         """Sorted sample distances [R, n_importance + n_rest] around first hits ``z`` [R]."""

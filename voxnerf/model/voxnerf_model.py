@@ -178,7 +178,8 @@ class VoxNeRFModel:
             return occ
         sampling = self.config.sampling
         misses = octree_misses_on(sampling.octree_misses, self.device)
-        return VoxNeRFSampler(self.octree, int(sampling.n_importance), int(sampling.n_rest), occ, misses)
+        return VoxNeRFSampler(self.octree, int(sampling.n_importance), int(sampling.n_rest), occ, misses,
+                              sampling.window_centre)
 
     def ray_bundle(self, origins: Tensor, dirs: Tensor) -> RayBundle:
         """Rays [N, 3] (normalised units, unit dirs) clipped to the scene box. A ray that misses the box gets

@@ -109,6 +109,10 @@ class _TraversalTables:
 
 # Leaf sides tried by :func:`coverage_octree`, in units of the prior's sigma, and how many more rays (as a
 # fraction) than through the coarsest of them may slip through the chosen one.
+# Leaves around a leaf whose points give its surface (SparseVoxelOctree.leaf_means): a ray's first occupied leaf
+# is often one the prior's noise reached in front of the surface, holding a few points near its back; the 3x3x3
+# block around it also holds the surface's leaves behind it, so their mean lies near the surface, not the noise.
+SURFACE_REACH = 1
 COVERAGE_LEAF_SCALES = (1.0, 1.5, 2.0, 3.0)
 COVERAGE_MISS_TOLERANCE = 0.01
 
@@ -124,6 +128,10 @@ class SparseVoxelOctree:
         leaf_size: side of a leaf voxel (same units).
         levels: depth of the leaves (1..21).
         leaf_size_requested: the ``leaf_size`` asked for; larger ``leaf_size`` means depth was clamped.
+        leaf_means: [L, 3] float32 (order of ``codes[-1]``), the mean of the points the octree was built from in
+            the 3x3x3 leaves around each leaf (:data:`SURFACE_REACH`): where :meth:`surface_hit` puts the surface.
+            None for an octree saved before it was kept (:meth:`surface_hit` then answers the leaf's entry, like
+            :meth:`first_hit`).
     """
 
     codes: list[Tensor]
@@ -131,11 +139,15 @@ class SparseVoxelOctree:
     leaf_size: float
     levels: int
     leaf_size_requested: float
+    leaf_means: Tensor | None = None
     _tables: _TraversalTables = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if len(self.codes) != self.levels + 1:
             raise ValueError(f"expected {self.levels + 1} code levels, got {len(self.codes)}")
+        if self.leaf_means is not None and self.leaf_means.shape != (self.codes[-1].numel(), 3):
+            raise ValueError(f"leaf_means must be [{self.codes[-1].numel()}, 3] like the leaves, "
+                             f"got {tuple(self.leaf_means.shape)}")
         self._tables = _TraversalTables.build(self.codes, self.origin, self.leaf_size)
 
     @property
@@ -177,7 +189,9 @@ class SparseVoxelOctree:
         codes = [torch.unique(morton_encode(ijk))]
         for _ in range(levels):
             codes.append(torch.unique_consecutive(codes[-1] >> 3))
-        return cls(codes[::-1], origin, float(leaf), levels, float(leaf_size))
+        octree = cls(codes[::-1], origin, float(leaf), levels, float(leaf_size))
+        octree.leaf_means = octree.means_of(points, reach=SURFACE_REACH)
+        return octree
 
     def state_dict(self) -> dict:
         """What :meth:`from_state_dict` restores: codes and scalars (traversal tables are derived)."""
@@ -187,16 +201,19 @@ class SparseVoxelOctree:
             "leaf_size": self.leaf_size,
             "levels": self.levels,
             "leaf_size_requested": self.leaf_size_requested,
+            "leaf_means": self.leaf_means,
         }
 
     @classmethod
     def from_state_dict(cls, state: dict) -> SparseVoxelOctree:
+        means = state.get("leaf_means")  # absent from octrees saved before leaf means were kept
         return cls(
             [c.to(torch.int64) for c in state["codes"]],
             state["origin"].to(torch.float32),
             float(state["leaf_size"]),
             int(state["levels"]),
             float(state["leaf_size_requested"]),
+            None if means is None else means.to(torch.float32),
         )
 
     def to(self, device: torch.device | str) -> SparseVoxelOctree:
@@ -204,6 +221,7 @@ class SparseVoxelOctree:
         moved = copy.copy(self)
         moved.codes = [c.to(device) for c in self.codes]
         moved.origin = self.origin.to(device)
+        moved.leaf_means = None if self.leaf_means is None else self.leaf_means.to(device)
         moved._tables = self._tables.to(torch.device(device))
         return moved
 
@@ -228,10 +246,12 @@ class SparseVoxelOctree:
             raise ValueError(f"keep must be a bool tensor of shape {tuple(self.codes[-1].shape)}")
         if not bool(keep.any()):
             raise ValueError("keep_leaves would leave the octree empty")
-        codes = [self.codes[-1][keep.to(self.device)]]
+        keep = keep.to(self.device)
+        codes = [self.codes[-1][keep]]
         for _ in range(self.levels):
             codes.append(torch.unique_consecutive(codes[-1] >> 3))
-        return SparseVoxelOctree(codes[::-1], self.origin, self.leaf_size, self.levels, self.leaf_size_requested)
+        means = None if self.leaf_means is None else self.leaf_means[keep]
+        return SparseVoxelOctree(codes[::-1], self.origin, self.leaf_size, self.levels, self.leaf_size_requested, means)
 
     def leaf_ijk(self, points: Tensor) -> Tensor:
         """Integer leaf coordinates [N, 3] (int64, may lie outside [0, 2**levels)) of points [N, 3]."""
@@ -247,18 +267,33 @@ class SparseVoxelOctree:
         pos = torch.searchsorted(leaves, codes).clamp_(max=leaves.numel() - 1)
         return pos, inside & (leaves[pos] == codes)
 
-    def leaf_means(self, points: Tensor) -> Tensor:
-        """Mean [L, 3] float32 of the points falling in each occupied leaf (order of ``codes[-1]``); a leaf
-        none of ``points`` falls in gets its centre."""
+    def means_of(self, points: Tensor, reach: int = 0) -> Tensor:
+        """Mean [L, 3] float32 of the points falling in each occupied leaf (order of ``codes[-1]``), or with
+        ``reach`` r > 0 in the (2r + 1)^3 leaves around it (each point counted once per leaf whose block holds
+        it); a leaf none of ``points`` falls in gets its centre."""
+        device = points.device
         pos, found = self.leaf_index(points)
         pos, pts = pos[found], points[found].to(torch.float64)
-        n_leaves = self.codes[-1].numel()
-        sums = torch.zeros(n_leaves, 3, dtype=torch.float64, device=points.device).index_add_(0, pos, pts)
-        counts = torch.zeros(n_leaves, dtype=torch.float64, device=points.device).index_add_(
+        leaves = self.codes[-1].to(device)
+        n_leaves = leaves.numel()
+        sums = torch.zeros(n_leaves, 3, dtype=torch.float64, device=device).index_add_(0, pos, pts)
+        counts = torch.zeros(n_leaves, dtype=torch.float64, device=device).index_add_(
             0, pos, torch.ones_like(pos, dtype=torch.float64)
         )
-        centres = morton_decode(self.codes[-1].to(points.device)).double() + 0.5
-        centres = self.origin.to(points.device).double() + centres * self.leaf_size
+        ijk = morton_decode(leaves)
+        if reach > 0:
+            own_sums, own_counts = sums, counts
+            sums, counts = torch.zeros_like(own_sums), torch.zeros_like(own_counts)
+            steps = torch.arange(-reach, reach + 1, device=device)
+            for offset in torch.cartesian_prod(steps, steps, steps):
+                other = ijk + offset
+                inside = ((other >= 0) & (other < 2**self.levels)).all(dim=1)
+                codes = morton_encode(other.clamp(0, 2**self.levels - 1))
+                at = torch.searchsorted(leaves, codes).clamp_(max=n_leaves - 1)
+                occupied = (inside & (leaves[at] == codes)).to(torch.float64)
+                sums += own_sums[at] * occupied[:, None]
+                counts += own_counts[at] * occupied
+        centres = self.origin.to(device).double() + (ijk.double() + 0.5) * self.leaf_size
         means = torch.where(counts[:, None] > 0, sums / counts.clamp_min(1)[:, None], centres)
         return means.to(torch.float32)
 
@@ -340,6 +375,38 @@ class SparseVoxelOctree:
             self._descend(root, rays, tables, best, chunk)
         hit = torch.isfinite(best)
         return torch.where(hit, best, t_max), hit
+
+    def surface_hit(
+        self, origins: Tensor, dirs: Tensor, t_min: Tensor | float, t_max: Tensor | float, *,
+        t_hint: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Where each ray meets the surface at its first occupied leaf: the distance at which it passes the
+        leaf's point mean (``leaf_means``; the plane through the mean across the ray), clamped to a leaf diagonal
+        past the leaf's entry. :meth:`first_hit` answers the leaf's entry, which lies in front of the surface by up to
+        a leaf diagonal (half a leaf's chord on average).
+
+        Args and returns as :meth:`first_hit` (``t_hint`` likewise only saves work); t [N] float32 is
+        ``t_max`` where a ray hits no leaf, and the leaf's entry where the octree keeps no means.
+        """
+        t_entry, hit = self.first_hit(origins, dirs, t_min, t_max, t_hint=t_hint)
+        if self.leaf_means is None:
+            return t_entry, hit
+        device = origins.device
+        n = origins.shape[0]
+        t_max = torch.as_tensor(t_max, dtype=torch.float32, device=device).expand(n)
+        o = origins.to(torch.float32)
+        d = dirs.to(torch.float32)
+        norm2 = (d * d).sum(-1)
+        step = 1e-3 * self.leaf_size / norm2.sqrt().clamp_min(_TINY_DIR)  # just inside the entered leaf
+        inside = o + (t_entry + step)[:, None] * d
+        pos, found = self.leaf_index(inside)
+        mean = self.leaf_means.to(device)[pos]
+        t_mean = ((mean - o) * d).sum(-1) / norm2.clamp_min(_TINY_DIR)
+        # A leaf diagonal past the entry bounds the ray's segment in the leaf; a ray clipping the leaf's corner
+        # leaves it sooner, but passes the mean's plane, its surface, within the diagonal.
+        t_last = torch.minimum(t_entry + math.sqrt(3.0) * self.leaf_size / norm2.sqrt().clamp_min(_TINY_DIR), t_max)
+        t = torch.minimum(torch.maximum(t_mean, t_entry), torch.maximum(t_last, t_entry))
+        return torch.where(hit & found, t, t_entry), hit
 
     def _root_segments(
         self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor

@@ -9,8 +9,8 @@ and the depth loss would pull the surface forward.
 
 from __future__ import annotations
 
+import copy
 import functools
-import math
 
 import numpy as np
 import torch
@@ -95,13 +95,13 @@ class PriorDepthRenderer:
 
     def __init__(self, prior: GeometryPrior, svo: SparseVoxelOctree) -> None:
         """``prior`` and ``svo`` must be in the same frame as the rays later passed in."""
-        self.svo = svo
         self._caster: MeshCaster | None = None
-        self._leaf_means: Tensor | None = None
-        if prior.kind != "mesh" or prior.mesh is None:
-            self._leaf_means = svo.leaf_means(torch.from_numpy(prior.points).float().to(svo.device))
-        else:
+        if prior.kind == "mesh" and prior.mesh is not None:
             self._caster = MeshCaster(np.asarray(prior.mesh.vertices), np.asarray(prior.mesh.faces))
+        elif svo.leaf_means is None:
+            svo = copy.copy(svo)  # an octree restored without its means: the prior's points give them
+            svo.leaf_means = svo.means_of(torch.from_numpy(prior.points).float().to(svo.device))
+        self.svo = svo
 
     def ray_distance(
         self, origins: Tensor, dirs: Tensor, t_min: Tensor | float, t_max: Tensor | float
@@ -130,13 +130,4 @@ class PriorDepthRenderer:
         self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor
     ) -> tuple[Tensor, Tensor]:
         """Where each ray passes the mean of its first occupied leaf's points, within the leaf: t [N], hit [N]."""
-        t_entry, hit = self.svo.first_hit(origins, dirs, t_min, t_max)
-        norm2 = (dirs * dirs).sum(-1)
-        step = 1e-3 * self.svo.leaf_size / norm2.sqrt()  # just inside the leaf the ray enters
-        inside = origins + (t_entry + step)[:, None] * dirs
-        mean, found = self.svo.lookup_leaf(self._leaf_means.to(origins.device), inside)
-        t_mean = ((mean - origins) * dirs).sum(-1) / norm2
-        # The ray's segment in a leaf is at most a leaf diagonal long.
-        t_exit = torch.minimum(t_entry + math.sqrt(3.0) * self.svo.leaf_size / norm2.sqrt(), t_max)
-        t = torch.where(found & hit, torch.minimum(torch.maximum(t_mean, t_entry), t_exit), t_entry)
-        return torch.where(hit, t, t_max), hit
+        return self.svo.surface_hit(origins, dirs, t_min, t_max)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from voxnerf.model.samplers import RayBundle
+from voxnerf.model.samplers import RayBundle, window_centres
 from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.prior.octree import SparseVoxelOctree
 from voxnerf.prior.pseudo_depth import PriorDepthRenderer
@@ -58,15 +58,16 @@ def camera_centre_rays(centres: Tensor, n: int, gen: torch.Generator) -> tuple[T
 def prior_ray_bank(centres: Tensor, model: VoxNeRFModel, renderer: PriorDepthRenderer,
                    octree: SparseVoxelOctree | None, n: int, seed: int = 0) -> PriorRayBank:
     """``n`` rays from the camera ``centres`` [C, 3] (normalised) kept where the prior is hit inside the scene
-    box; their targets and (with ``octree``) first hits. May hold fewer than ``n`` rays (none when the prior is
-    never hit). ``unseen`` is left for :func:`seen_by`."""
+    box; their targets and (with ``octree``) window centres (``samplers.window_centres``). May hold fewer than
+    ``n`` rays (none when the prior is never hit). ``unseen`` is left for :func:`seen_by`."""
     gen = torch.Generator(device=centres.device).manual_seed(seed)
     rays = model.ray_bundle(*camera_centre_rays(centres, n, gen))
     t, ok = renderer.ray_distance(rays.origins, rays.dirs, rays.near, rays.far)
     kept = rays.take(ok & torch.isfinite(t))
     target_t = t[ok & torch.isfinite(t)]
     if octree is not None and len(kept):
-        kept.hit_t, kept.hit = octree.first_hit(kept.origins, kept.dirs, kept.near, kept.far, t_hint=target_t)
+        kept.hit_t, kept.hit = window_centres(octree, model.config.sampling.window_centre, kept.origins, kept.dirs,
+                                              kept.near, kept.far, target_t)
     return PriorRayBank(kept, target_t)
 
 
