@@ -149,6 +149,7 @@ CONFIGS: dict[str, dict] = {
     "sampler-grid": {"sampler": "occgrid"},
     # The VoxNeRF sampler's window centred where the ray passes its first leaf's point mean, not the leaf's entry.
     "window-surface": {"window_centre": "surface"},
+    "window-surface-half": {"window_centre": "surface", "window_width": 0.5},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
     "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine

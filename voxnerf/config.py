@@ -142,7 +142,12 @@ class SamplingConfig(_Section):
         description="where the voxnerf sampler centres its window on a ray: 'entry', the first occupied leaf's "
         "entry (the paper's z, in front of the surface by up to a leaf diagonal), or 'surface', where the ray "
         "passes the mean of the prior's points in that leaf (voxnerf.model.samplers.WINDOW_CENTRES; "
-        "docs/engine.md, 'The sampler's window')",
+        "docs/engine.md, 'Samplers')",
+    )
+    window_width: float = Field(
+        default=1.0, gt=0.0,
+        description="the voxnerf sampler's window in multiples of the paper's: half-width 3 sqrt(3) v and "
+        "Gaussian std sqrt(3) v around the window's centre, v the octree's leaf (docs/engine.md, 'Samplers')",
     )
     occgrid_seed: bool = Field(
         default=True,

@@ -88,6 +88,27 @@ def test_the_window_centred_on_the_surface_sits_on_the_wall_and_on_the_entry_in_
     torch.testing.assert_close(x_at["surface"], torch.full_like(x_at["surface"], 0.8), atol=2e-3, rtol=0)
 
 
+def test_a_narrower_window_packs_its_samples_closer_to_the_centre():
+    octree = _wall_octree()
+    rays = _rays(256, direction=(1.0, 0.05, -0.03))
+    spread = {}
+    for width in (1.0, 0.5):
+        sampler = VoxNeRFSampler(octree, 16, 8, OccGridSampler(OccupancyGrid(16), 24), width=width)
+        assert math.isclose(sampler.half_window, 3 * math.sqrt(3) * octree.leaf_size * width)
+        z, _ = sampler.first_hits(rays)
+        t = sampler.sample_points(rays, z, stratified=True)
+        inside = ((t - z[:, None]).abs() <= sampler.half_window + 1e-5)
+        assert bool((inside.sum(-1) >= 16).all())
+        spread[width] = float(torch.where(inside, t - z[:, None], torch.nan).pow(2).nanmean().sqrt())
+    assert 0.4 < spread[0.5] / spread[1.0] < 0.6
+
+
+@pytest.mark.parametrize("width", [0.0, -1.0, math.inf, math.nan])
+def test_a_window_width_is_a_positive_finite_multiple(width):
+    with pytest.raises(ValueError, match="window width"):
+        VoxNeRFSampler(_wall_octree(), 16, 8, OccGridSampler(OccupancyGrid(16), 24), width=width)
+
+
 def test_a_window_centre_is_one_of_the_known_rules():
     octree = _wall_octree()
     with pytest.raises(ValueError, match="window centre 'middle'"):

@@ -255,7 +255,7 @@ class VoxNeRFSampler:
 
     def __init__(
         self, octree: SparseVoxelOctree, n_importance: int, n_rest: int, fallback: OccGridSampler,
-        misses: str = "gather", centre: str = "entry",
+        misses: str = "gather", centre: str = "entry", width: float = 1.0,
     ) -> None:
         self.octree, self.n_importance, self.n_rest, self.fallback = octree, n_importance, n_rest, fallback
         if fallback.n_samples != n_importance + n_rest:
@@ -266,11 +266,14 @@ class VoxNeRFSampler:
         if centre not in WINDOW_CENTRES:
             raise ValueError(f"window centre {centre!r}: expected one of {', '.join(WINDOW_CENTRES)}")
         self.centre = centre  # where the window sits on a ray that hits (WINDOW_CENTRES)
+        if not (math.isfinite(width) and width > 0):
+            raise ValueError(f"window width must be a positive multiple of the paper's, got {width}")
+        self.width = width  # the window's half-width and the Gaussian's std, in multiples of the paper's
 
     @property
     def half_window(self) -> float:
-        """3 * sqrt(3) * v: half the importance window (normalised units)."""
-        return 3.0 * math.sqrt(3.0) * self.octree.leaf_size
+        """3 * sqrt(3) * v (the paper's) times ``width``: half the importance window (normalised units)."""
+        return 3.0 * math.sqrt(3.0) * self.octree.leaf_size * self.width
 
     def first_hits(self, rays: RayBundle) -> tuple[Tensor, Tensor]:
         """Window centres z [R] and hit [R]: the bundle's cached ones (the trainer's, cast by the same rule) or
@@ -282,8 +285,8 @@ class VoxNeRFSampler:
     def sample_points(self, rays: RayBundle, z: Tensor, stratified: bool) -> Tensor:
         """Sorted sample distances [R, n_importance + n_rest] around first hits ``z`` [R]."""
         device, r = rays.origins.device, len(rays)
-        std = math.sqrt(3.0) * self.octree.leaf_size
         half = self.half_window
+        std = half / 3.0
         rows = r if stratified else 1  # bin centres are the same for every ray: [1, n], broadcast
         # Truncated normal by inverse CDF of stratified quantiles in [Phi(-3), Phi(3)].
         u = _stratified_unit(rows, self.n_importance, stratified, device)

@@ -179,7 +179,7 @@ class VoxNeRFModel:
         sampling = self.config.sampling
         misses = octree_misses_on(sampling.octree_misses, self.device)
         return VoxNeRFSampler(self.octree, int(sampling.n_importance), int(sampling.n_rest), occ, misses,
-                              sampling.window_centre)
+                              sampling.window_centre, float(sampling.window_width))
 
     def ray_bundle(self, origins: Tensor, dirs: Tensor) -> RayBundle:
         """Rays [N, 3] (normalised units, unit dirs) clipped to the scene box. A ray that misses the box gets
