@@ -168,5 +168,6 @@ def test_the_window_centre_rule_keys_its_cast_and_puts_the_centre_nearer_the_dep
     assert "window centre: entry" in whys["entry"]["first_hit_cache"]
     assert "window centre: surface" in whys["surface"]["first_hit_cache"]
     assert FROM_CACHE not in whys["surface"]["first_hit_cache"]
+    assert {c: r.window_check["window"]["centre"] for c, r in reports.items()} == {c: c for c in reports}
     offsets = {centre: r.window_check["first_hit_offset_m"]["p50"] for centre, r in reports.items()}
     assert offsets["entry"] < 0 and abs(offsets["surface"]) < abs(offsets["entry"]), offsets

@@ -45,7 +45,8 @@ def window_check_stage(cfg: TrainConfig, model: VoxNeRFModel, pixels: TrainingPi
     with torch.no_grad():
         summary = _check(cfg, model, sampler, pixels, depth_t, prior_n, scale)
     near = summary["samples"]["near_surface"]
-    why = (f"{summary['rays']} training rays with depth: first hit misses every leaf on {summary['miss']:.1%}, "
+    why = (f"window centred on the {sampler.centre}: {summary['rays']} training rays with depth: first hit misses "
+           f"every leaf on {summary['miss']:.1%}, "
            f"stops short on {summary['stop_short']:.1%}, passes the surface on {summary['pass_through']:.1%}; "
            f"half-window {100 * summary['half_window_m']:.1f} cm"
            + (f" against the prior's measured noise {100 * summary['prior_noise_m']:.1f} cm"
@@ -78,6 +79,7 @@ def _check(cfg: TrainConfig, model: VoxNeRFModel, sampler: VoxNeRFSampler, pixel
     grid_mid = (0.5 * (starts + ends)).cpu().numpy()
     sampled_true = true_t[:SAMPLED_RAYS]
     band = sampler.half_window
+    summary["window"] = {"centre": sampler.centre, "width": sampler.width}  # the rule checked (config's sampling)
     summary["samples"] = {
         "rays": len(rays_idx),
         "band_m": float(band / scale),
