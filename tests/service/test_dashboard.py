@@ -37,8 +37,9 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
         scene = client.post(
             "/scenes", files={"file": ("room.zip", zip_scene(small_room), "application/zip")}
         ).json()
+        # progress evaluations at 4 (and 8) s of training, then the final one: the plot's two points at least
         job = client.post(
-            f"/scenes/{scene['id']}/jobs", json={"max_seconds": 25, "compile": False, "eval_every_s": 8.0}
+            f"/scenes/{scene['id']}/jobs", json={"max_seconds": 12, "compile": False, "eval_every_s": 4.0}
         ).json()
 
     csp = csp_reports(page)

@@ -218,7 +218,7 @@ RUNNING_PAGE_SHOWS_PROGRESS = """() => document.body.dataset.state === 'running'
 def test_the_job_page_follows_a_running_job_from_its_events_without_polling(service, small_room):
     with service.client() as client:
         scene = upload_scene(client, small_room)
-        job = client.post(f"/scenes/{scene['id']}/jobs", json={"max_seconds": 20, "compile": False,
+        job = client.post(f"/scenes/{scene['id']}/jobs", json={"max_seconds": 10, "compile": False,
                                                                  "downscale": 4}).json()
     with browser_page(1200, 800) as page:
         csp = csp_reports(page)

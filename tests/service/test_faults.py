@@ -54,6 +54,7 @@ SERVICE_SETTINGS = {
     "VOXNERF_RENDER_TIMEOUT_S": "20",
     "OMP_NUM_THREADS": "1",  # three torch processes share two cores
 }
+SHORT_RENDER_TIMEOUT_S = 8  # the render timeout of the 429 test's API
 RECEIVED = re.compile(r"Task voxnerf\.train\[[0-9a-f-]+\] received")
 
 
@@ -262,6 +263,10 @@ def test_api_restart_keeps_jobs_scenes_and_renders(service, client, trained, sma
 
 
 def test_renders_above_the_limit_are_refused_with_429(service, redis, trained, small_room):
+    # The module's last test: the API restarts with a shorter render timeout, the wait for the renders it lets
+    # time out (the module's 20 s are for the first render of a cold worker), still several seconds for the refusals.
+    service.env["VOXNERF_RENDER_TIMEOUT_S"] = str(SHORT_RENDER_TIMEOUT_S)
+    service.restart_api()
     service.kill("render")  # renders now wait in the queue: they stay in progress until they time out
     body = _render_body(trained, small_room)
     queue = redis_client.Redis(port=redis.port)

@@ -1,7 +1,7 @@
 """The job and scene pages in a real headless browser (playwright driving Debian's /usr/bin/chromium, as
-tests/service/test_dashboard.py does): from the dashboard's job row to the job page of a 60 s job, whose error plot has
-more than one PSNR point per split while the job still runs (the front-loaded progress evaluations from 10 s of
-training on; the default eval_every_s of 60 s alone would give none before the final evaluation) and a
+tests/service/test_dashboard.py does): from the dashboard's job row to the job page of a 35 s job, whose error plot has
+more than one PSNR point per split while the job still runs (the front-loaded progress evaluations at 10, 20 and
+30 s of training; the default eval_every_s of 60 s alone would give none before the final evaluation) and a
 training-loss curve; once it succeeded, the stages with their reasons, the final metrics, the per-view table
 with each render beside its ground truth, the resolved config and the report download; then the scene page.
 Screenshots are saved under the test's temporary directory."""
@@ -19,7 +19,7 @@ from service_fixtures import start_service, zip_scene
 pytestmark = pytest.mark.slow
 
 TOKEN = "job-page-token"
-JOB_SECONDS = 60
+JOB_SECONDS = 35  # the progress evaluations at 10 and 20 s are drawn with 10 s of training still to come
 SET_UP_STAGES = ("load_scene", "prior", "octree", "pseudo_depth", "first_hit_cache")
 
 # Checked in one go in the page: the page follows the job's events, so the next one (the final state, when a loaded

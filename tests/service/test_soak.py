@@ -15,8 +15,8 @@ At the end:
 - the API process's resident memory grew by less than ``API_RSS_GROWTH`` over the run (from when the first
   upload had been served).
 
-Its figures are printed (``-s``) and recorded in docs/stability.md. The durations are bounded: ``LOAD_S`` of
-load, at most ``DRAIN_S`` to drain.
+Its figures are printed (``-s``); docs/stability.md records a run of its earlier 90 s form. The durations are
+bounded: ``LOAD_S`` of load, at most ``DRAIN_S`` to drain.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ pytestmark = pytest.mark.slow
 
 MiB = 1024 * 1024
 CLIENTS = 3
-LOAD_S = 90.0
+LOAD_S = 45.0
 DRAIN_S = 360.0
 JOBS_PER_CLIENT = 4
 VIDEOS_PER_CLIENT = 2
@@ -48,19 +48,19 @@ SCENES_PER_CLIENT = 2
 API_RSS_GROWTH = 64 * MiB
 TINY = {"max_iters": 3, "compile": False, "downscale": 2}
 VIDEO = {"path": "orbit", "frames": 2, "width": 16, "height": 12}
-LONG_JOB = {"max_seconds": 30, "compile": False, "downscale": 2}  # training when its worker is killed
-LONG_VIDEO = {"path": "orbit", "frames": 600, "width": 32, "height": 24}  # running when its worker is killed
+LONG_JOB = {"max_seconds": 12, "compile": False, "downscale": 2}  # training when its worker is killed
+LONG_VIDEO = {"path": "orbit", "frames": 300, "width": 32, "height": 24}  # running when its worker is killed
 FINAL = ("succeeded", "failed", "cancelled")
 SETTINGS = {
     "VOXNERF_HEARTBEAT_S": "1",
     "VOXNERF_STALE_AFTER_S": "8",  # a killed worker's job is requeued this soon
     "VOXNERF_RESEND_QUEUED_AFTER_S": "20",  # a message lost in a broker restart is sent again
-    "VOXNERF_RENDER_TIMEOUT_S": "20",
+    "VOXNERF_RENDER_TIMEOUT_S": "10",  # the render the killed render worker held is answered 504 this soon
     "VOXNERF_CHECKPOINT_EVERY_S": "1",
     "OMP_NUM_THREADS": "1",
 }
 # (seconds into the load, what happens): each worker is killed once, redis-server restarts once.
-CHAOS = [(15.0, "kill train"), (35.0, "restart redis"), (55.0, "kill outputs"), (70.0, "kill render")]
+CHAOS = [(6.0, "kill train"), (16.0, "restart redis"), (26.0, "kill outputs"), (36.0, "kill render")]
 DOWN_S = 3.0  # how long a killed process or the stopped broker stays down
 RUNNING_WAIT_S = 15.0  # how long the chaos thread waits for work to interrupt before killing a worker anyway
 

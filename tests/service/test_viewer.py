@@ -205,7 +205,7 @@ def _trained_job(svc, scene_dir) -> str:
     with svc.client() as client:
         scene = client.post("/scenes", files={"file": ("room.zip", zip_scene(scene_dir), "application/zip")})
         assert scene.status_code == 201, scene.text
-        job = client.post(f"/scenes/{scene.json()['id']}/jobs", json={"max_seconds": 15, "compile": False}).json()
+        job = client.post(f"/scenes/{scene.json()['id']}/jobs", json={"max_seconds": 8, "compile": False}).json()
         wait_for(lambda: client.get(f"/jobs/{job['id']}").json()["state"] in ("succeeded", "failed"), 600,
                  "the job to finish", 1.0)
         assert client.get(f"/jobs/{job['id']}").json()["state"] == "succeeded", svc.logs()
