@@ -49,6 +49,7 @@ def create_celery(settings: Settings, include: Sequence[str] = (), queues: Seque
         },
         task_default_queue=TRAIN_QUEUE,
         worker_prefetch_multiplier=1,
+        worker_lost_wait=settings.worker_lost_wait_s,
         worker_send_task_events=False,
         broker_connection_retry_on_startup=True,
         worker_hijack_root_logger=False,

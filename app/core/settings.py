@@ -194,6 +194,11 @@ class Settings(BaseSettings):
         description="a training or output job whose worker died this many times while running it (killed, out of "
         "memory, crashed) is failed naming why, not requeued again",
     )
+    worker_lost_wait_s: float = Field(
+        default=10.0, gt=0,
+        description="how long a worker waits for the result of a task whose process died before it counts the task "
+        "lost (Celery's worker_lost_wait): the death is then recorded against the job",
+    )
     resend_queued_after_s: float = Field(
         default=300.0, gt=0,
         description="a job or output job queued this long since its message was sent has the message sent again "

@@ -49,6 +49,11 @@ def test_the_app_routes_by_task_name_on_the_configured_broker(settings):
     assert redis.conf.broker_url == "redis://127.0.0.1:1/0"
 
 
+def test_a_worker_counts_a_dead_task_lost_after_the_configured_wait(settings):
+    assert create_celery(settings).conf.worker_lost_wait == 10.0  # Celery's own default
+    assert create_celery(settings.model_copy(update={"worker_lost_wait_s": 1.5})).conf.worker_lost_wait == 1.5
+
+
 def test_send_train_and_send_render_land_in_their_queues(settings):
     celery = create_celery(settings)
     send(celery, jobstore.JOBS, "j" * 32)

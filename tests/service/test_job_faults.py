@@ -33,6 +33,7 @@ JOB_TIMEOUT_S = 240
 RESEND_AFTER_S = 3
 SETTINGS = {
     "VOXNERF_RESEND_QUEUED_AFTER_S": str(RESEND_AFTER_S),
+    "VOXNERF_WORKER_LOST_WAIT_S": "1",  # a SIGKILLed worker is counted dead 1 s after, not 10
     "OMP_NUM_THREADS": "1",
 }
 
