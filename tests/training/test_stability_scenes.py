@@ -312,7 +312,7 @@ GRACEFUL: dict[str, tuple[Edit, Callable[[TrainReport], None]]] = {
     "planar_prior": (_prior(lambda p: p[p[:, 2] < 0.05] * [1.0, 1.0, 0.0]),
                      lambda r: r.prior["points"] > 1000),
     "prior_1km_from_cameras": (_prior(lambda p: p + [1000.0, 0.0, 0.0]),
-                               lambda r: "(0.0% hit)" in _why(r, "first_hit_cache")),
+                               lambda r: "(0.0% hit;" in _why(r, "first_hit_cache")),
     "nan_and_inf_vertices": (_prior(_nonfinite_vertices), lambda r: r.prior["nonfinite_removed"] == len(
         range(0, r.prior["input_points"], 10)) + len(range(5, r.prior["input_points"], 10))),
     "sigma_10x_too_small": (lambda root, meta: meta.update(prior_sigma=meta["prior_sigma"] / 10),
