@@ -126,7 +126,8 @@ CONFIGS: dict[str, dict] = {
     "prior-rays-colour": {"prior_rays": 256, "prior_ray_colour": 0.5},
     "no-weight-decay": NO_DECAY,
     "no-corrections": NO_CORRECTIONS | NO_DECAY,
-    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0], "octree_carving": False}
+    "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0], "octree_carving": False,
+                          "window_centre": "entry"}
     | NO_CORRECTIONS | NO_DECAY | STATED_FOCAL,
     "stated-focal": STATED_FOCAL,
     "no-carving": {"octree_carving": False},
@@ -147,9 +148,10 @@ CONFIGS: dict[str, dict] = {
     # The sampler alone: the defaults (depth loss, corrections, budget) with the prior-seeded occupancy grid in place
     # of the VoxNeRF sampler; the occgrid-* rows below also turn the depth loss off (the paper's Table II).
     "sampler-grid": {"sampler": "occgrid"},
-    # The VoxNeRF sampler's window centred where the ray passes its first leaf's point mean, not the leaf's entry.
-    "window-surface": {"window_centre": "surface"},
-    "window-surface-half": {"window_centre": "surface", "window_width": 0.5},
+    # The VoxNeRF sampler's window centred on its first leaf's entry (the paper's z; the default before issue #46's
+    # window measurement), and the default window at half the paper's width.
+    "window-entry": {"window_centre": "entry"},
+    "window-half": {"window_width": 0.5},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
     "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine

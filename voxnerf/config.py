@@ -138,11 +138,11 @@ class SamplingConfig(_Section):
                     "docs/engine.md, 'Pipeline', step 6)",
     )
     window_centre: Literal["entry", "surface"] = Field(
-        default="entry",
-        description="where the voxnerf sampler centres its window on a ray: 'entry', the first occupied leaf's "
-        "entry (the paper's z, in front of the surface by up to a leaf diagonal), or 'surface', where the ray "
-        "passes the mean of the prior's points in that leaf (voxnerf.model.samplers.WINDOW_CENTRES; "
-        "docs/engine.md, 'Samplers')",
+        default="surface",
+        description="where the voxnerf sampler centres its window on a ray: 'surface', where the ray passes the "
+        "mean of the prior's points around its first occupied leaf, or 'entry', that leaf's entry (the paper's z, "
+        "in front of the surface by up to a leaf diagonal) (voxnerf.model.samplers.WINDOW_CENTRES; docs/engine.md, "
+        "'Samplers'; chosen on the suite's halves, docs/benchmarks.md)",
     )
     window_width: float = Field(
         default=1.0, gt=0.0,
