@@ -415,6 +415,7 @@ def test_coverage_octree_grows_the_leaf_only_for_sparse_priors(points_per_sigma2
     rng = np.random.default_rng(6)
     plane = np.c_[rng.uniform(-1, 1, (n, 2)), rng.normal(0, sigma, n)]
     svo, misses = coverage_octree(torch.from_numpy(plane).float(), sigma, *_plane_rays(4000, 7))
+    assert svo.leaf_means is not None and svo.leaf_means.shape == (svo.codes[-1].numel(), 3)  # the kept tree
     assert set(misses) == {"1", "1.5", "2", "3"}
     chosen = svo.leaf_size_requested / sigma
     assert misses[f"{chosen:g}"] <= min(misses.values()) + 0.01

@@ -160,13 +160,14 @@ class SparseVoxelOctree:
 
     @classmethod
     def from_points(
-        cls, points: Tensor, leaf_size: float, *, max_levels: int = MAX_LEVELS
+        cls, points: Tensor, leaf_size: float, *, max_levels: int = MAX_LEVELS, with_means: bool = True
     ) -> SparseVoxelOctree:
         """Voxelise points [N, 3] with leaves of side ``leaf_size`` (paper: v = max sigma).
 
         The root's min corner is the points' min corner minus ``leaf_size / 2``; ``levels`` is the smallest
         depth whose root covers the points, clamped to [1, max_levels]. When clamped, the leaf grows to
-        ``extent / 2**max_levels`` (recorded against ``leaf_size_requested``).
+        ``extent / 2**max_levels`` (recorded against ``leaf_size_requested``). ``with_means``: keep
+        ``leaf_means`` of ``points`` (False leaves them None, for a candidate tree that may be thrown away).
         """
         if points.dim() != 2 or points.shape[1] != 3 or points.shape[0] == 0:
             raise ValueError(f"points must be a non-empty [N, 3] tensor, got shape {tuple(points.shape)}")
@@ -190,7 +191,8 @@ class SparseVoxelOctree:
         for _ in range(levels):
             codes.append(torch.unique_consecutive(codes[-1] >> 3))
         octree = cls(codes[::-1], origin, float(leaf), levels, float(leaf_size))
-        octree.leaf_means = octree.means_of(points, reach=SURFACE_REACH)
+        if with_means:
+            octree.leaf_means = octree.means_of(points, reach=SURFACE_REACH)
         return octree
 
     def state_dict(self) -> dict:
@@ -635,9 +637,10 @@ def coverage_octree(
     misses: dict[str, float] = {}
     trees: dict[float, SparseVoxelOctree] = {}
     for scale in scales:
-        trees[scale] = SparseVoxelOctree.from_points(points, sigma * scale)
+        trees[scale] = SparseVoxelOctree.from_points(points, sigma * scale, with_means=False)
         _, hit = trees[scale].first_hit(origins, dirs, t_min, t_max)
         misses[f"{scale:g}"] = float(1.0 - hit.float().mean())
     best = min(misses.values())
-    chosen = next(s for s in scales if misses[f"{s:g}"] <= best + tolerance)
-    return trees[chosen], misses
+    chosen = trees[next(s for s in scales if misses[f"{s:g}"] <= best + tolerance)]
+    chosen.leaf_means = chosen.means_of(points, reach=SURFACE_REACH)  # only the kept tree's
+    return chosen, misses

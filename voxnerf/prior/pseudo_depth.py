@@ -2,9 +2,9 @@
 
 A mesh prior is ray-cast exactly (open3d's Embree-backed ``RaycastingScene``, or trimesh's Embree intersector
 where open3d is not installed). A point-cloud prior has no surface: the ray's first occupied octree leaf stands
-in for it, and the depth is where the ray passes the mean of that leaf's points (clamped to the ray's segment
-inside the leaf). The leaf's entry point alone would be biased towards the camera by half a leaf on average,
-and the depth loss would pull the surface forward.
+in for it, and the depth is where the ray passes the mean of the points in the 3x3x3 leaves around it
+(``SparseVoxelOctree.surface_hit``, the voxnerf sampler's window centre too). The leaf's entry point alone would
+be biased towards the camera by half a leaf on average, and the depth loss would pull the surface forward.
 """
 
 from __future__ import annotations
