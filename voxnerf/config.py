@@ -219,6 +219,13 @@ class LossConfig(_Section):
         description="weight of a colour term pulling the prior rays whose surface point no training view sees "
         "towards the training images' mean colour (a neutral guess for what no image shows); 0 leaves it out",
     )
+    pixel_jitter: bool = Field(
+        default=False,
+        description="each training ray passes through a uniform random point of its pixel instead of its centre "
+        "(instant-ngp's training rays): a pixel's colour is the mean over its footprint, and the field learns it "
+        "over the footprint rather than at the one point a centre ray reads; the per-pixel depth and first hit "
+        "stay the centre's (voxnerf/training/pixels.py, TrainingPixels.rays)",
+    )
     train_background: Literal["fixed", "random"] = Field(
         default="random",
         description="the colour behind each training ray: 'random' a uniform random colour per ray and step, so a "

@@ -216,3 +216,69 @@ def test_direction_tables_of_mixed_sizes_equal_the_inverse_model_inside_each_ima
     computed = TrainingPixels(images, poses, intr, lens, sizes=sizes).rays(img, py, px)
     for a, b in zip(looked_up, computed, strict=True):
         torch.testing.assert_close(a, b, atol=2e-6, rtol=0)
+
+
+def test_an_offset_moves_a_pinhole_ray_to_that_point_of_its_pixel():
+    from voxnerf.cameras.rays import camera_rays
+
+    pixels = _pixels()
+    img, py, px = torch.tensor([0, 2]), torch.tensor([1, 4]), torch.tensor([2, 6])
+    offset = torch.tensor([[0.25, -0.4], [-0.5, 0.49]])
+    _, dirs = pixels.rays(img, py, px, offset)
+    k = pixels.intr[img]
+    _, expected, _ = camera_rays(pixels.c2w[img], k[:, 0], k[:, 1], k[:, 2], k[:, 3], px + offset[:, 1],
+                                 py + offset[:, 0])
+    torch.testing.assert_close(dirs, expected)
+    _, centre = pixels.rays(img, py, px, torch.zeros(2, 2))
+    torch.testing.assert_close(centre, pixels.rays(img, py, px)[1])
+    assert not torch.allclose(dirs, centre)
+
+
+@pytest.mark.parametrize("sizes", [None, torch.tensor([[12, 16], [11, 13]])])
+def test_an_offset_through_a_direction_table_follows_the_lens_between_pixel_centres(sizes):
+    """The table's bilinear mix at a point between centres is the lens's own ray there (within a small angle),
+    and an offset past an image's last centre stays inside that image's table."""
+    from voxnerf.cameras.lens import LensBatch
+    from voxnerf.cameras.rules import Lens
+    from voxnerf.training.pixels import direction_table
+
+    n, h, w = 2, 12, 16
+    intr = torch.tensor([[14.0, 15.0, 8.2, 5.9], [14.0, 15.0, 8.2, 5.9]])
+    lens = LensBatch.of([Lens("OPENCV", k1=-0.2, k2=0.03, p1=0.002), Lens("OPENCV_FISHEYE", k1=0.05, k2=-0.01)])
+    table = direction_table(intr, lens, h, w, sizes)
+    images, poses = torch.zeros(n, h, w, 3, dtype=torch.uint8), torch.eye(4).repeat(n, 1, 1)
+    g = torch.Generator().manual_seed(3)
+    img = torch.randint(0, n, (300,), generator=g)
+    rows = torch.full((300,), h) if sizes is None else sizes[img, 0]
+    cols = torch.full((300,), w) if sizes is None else sizes[img, 1]
+    py, px = (torch.rand(300, generator=g) * rows).long(), (torch.rand(300, generator=g) * cols).long()
+    offset = torch.rand(300, 2, generator=g) - 0.5
+    _, looked_up = TrainingPixels(images, poses, intr, lens, directions=table, sizes=sizes).rays(img, py, px, offset)
+    _, computed = TrainingPixels(images, poses, intr, lens, sizes=sizes).rays(img, py, px, offset)
+    inside = ((py + offset[:, 0] >= 0) & (py + offset[:, 0] <= rows - 1) & (px + offset[:, 1] >= 0)
+              & (px + offset[:, 1] <= cols - 1))
+    cos = (looked_up * computed).sum(-1)
+    assert torch.isfinite(looked_up).all() and bool(inside.any()) and bool((~inside).any())
+    assert float(cos[inside].min()) > np.cos(np.radians(0.2))  # bilinear between centres: a small angle
+    assert float(cos.min()) > np.cos(np.radians(3.0))  # clamped at the image's edge: the edge centre's ray
+
+
+def test_pixel_jitter_draws_training_rays_through_their_pixels_not_their_centres():
+    from voxnerf.training.step import TrainStep
+
+    pixels = _pixels(n=2, h=9, w=11)
+    k = pixels.intr[0]
+
+    def pixel_of(dirs):  # where a ray through the camera at the origin (identity pose) crosses the image
+        return (dirs[:, 1] / dirs[:, 2] * k[1] + k[3] - 0.5, -dirs[:, 0] / dirs[:, 2] * k[0] + k[2] - 0.5)
+
+    for jitter in (False, True):
+        cfg = TrainConfig(max_iters=1, rays_per_batch=256, pixel_jitter=jitter)
+        step = TrainStep.__new__(TrainStep)
+        step.cfg, step.pixels, step.gen = cfg, pixels, torch.Generator().manual_seed(4)
+        img, py, px = sample_batch(pixels, cfg, False, torch.Generator().manual_seed(4))
+        _, dirs = pixels.rays(img, py, px, step._pixel_offsets(len(img)))
+        y, x = pixel_of(dirs)
+        dy, dx = y - py, x - px.float()
+        assert float(dy.abs().max()) <= 0.5 + 1e-4 and float(dx.abs().max()) <= 0.5 + 1e-4
+        assert (float(dx.abs().max()) > 0.3) == jitter and (float(dy.std()) > 0.1) == jitter

@@ -155,16 +155,45 @@ class TrainingPixels:
         total = self.images.float().sum((0, 1, 2))  # the padding is black: it adds nothing
         return total / (255.0 * self.pixel_count)
 
-    def rays(self, img: torch.Tensor, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Rays of the given pixels (through their frame's lens): origins, dirs [R, 3], normalised units."""
+    def rays(self, img: torch.Tensor, py: torch.Tensor, px: torch.Tensor,
+             offset: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        """Rays of the given pixels (through their frame's lens): origins, dirs [R, 3], normalised units.
+
+        ``offset`` (float32 [R, 2], pixels, each in [-0.5, 0.5): row then column) moves each ray from its pixel's
+        centre to that point of the pixel; None: through the centres. Through a lens's direction table the
+        direction at such a point is the bilinear mix of the four nearest pixel centres' (clamped to the image)."""
         if self.directions is not None:
-            d_cam = self.directions.dirs[self.directions.camera[img], py, px]
+            d_cam = (self.directions.dirs[self.directions.camera[img], py, px] if offset is None
+                     else self._table_between(img, py, px, offset))
             dirs = torch.einsum("nij,nj->ni", self.c2w[img, :3, :3], d_cam)
             return self.c2w[img, :3, 3].contiguous(), dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)
         k = self.intr[img]
         lens = None if self.lens is None else self.lens.select(img)
+        if offset is not None:
+            py, px = py.to(torch.float32) + offset[:, 0], px.to(torch.float32) + offset[:, 1]
         origins, dirs, _ = camera_rays(self.c2w[img], k[:, 0], k[:, 1], k[:, 2], k[:, 3], px, py, lens)
         return origins, dirs
+
+    def _table_between(self, img: torch.Tensor, py: torch.Tensor, px: torch.Tensor,
+                       offset: torch.Tensor) -> torch.Tensor:
+        """float32 [R, 3] the direction table's bilinear mix at ``(py, px) + offset`` (pixels), its four pixel
+        centres clamped to each image's own pixels."""
+        n, h, w = self.shape
+        if self.sizes is None:
+            last_y, last_x = torch.full_like(py, h - 1), torch.full_like(px, w - 1)
+        else:
+            last_y, last_x = self.sizes[img, 0] - 1, self.sizes[img, 1] - 1
+        y, x = py.to(torch.float32) + offset[:, 0], px.to(torch.float32) + offset[:, 1]
+        y0, x0 = y.floor(), x.floor()
+        fy, fx = (y - y0)[:, None], (x - x0)[:, None]
+        y0, x0 = y0.long(), x0.long()
+        y1, x1 = torch.minimum(y0 + 1, last_y).clamp_min(0), torch.minimum(x0 + 1, last_x).clamp_min(0)
+        y0, x0 = y0.clamp(min=0).minimum(last_y), x0.clamp(min=0).minimum(last_x)
+        table = self.directions.dirs
+        camera = self.directions.camera[img]
+        top = table[camera, y0, x0] * (1 - fx) + table[camera, y0, x1] * fx
+        bottom = table[camera, y1, x0] * (1 - fx) + table[camera, y1, x1] * fx
+        return top * (1 - fy) + bottom * fy
 
 
 def padded_stack(arrays: list[np.ndarray], fill) -> np.ndarray:
