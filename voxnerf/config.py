@@ -117,7 +117,12 @@ class ModelConfig(_Section):
 class SamplingConfig(_Section):
     """The samplers (paper III-C): which one, samples per ray, the octree's leaf and carving, the occupancy grid."""
 
-    sampler: SamplerName = Field(default="voxnerf", json_schema_extra=JOB)
+    sampler: SamplerName = Field(
+        default="voxnerf", json_schema_extra=JOB,
+        description="'voxnerf' (the paper's window around the prior's first hit), 'occgrid' (an occupancy grid, "
+        "seeded from the prior where there is one) or 'uniform'; the VoxNeRF sampler against the seeded grid with "
+        "everything else equal, per scene at 300 s: docs/benchmarks.md, 'The sampler alone'",
+    )
     prior_file: bool = Field(
         default=True,
         description="use the scene's prior file; False trains as if the scene had none (the prior is then fused from "
