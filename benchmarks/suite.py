@@ -131,6 +131,7 @@ CONFIGS: dict[str, dict] = {
     | NO_CORRECTIONS | NO_DECAY | STATED_FOCAL,
     "stated-focal": STATED_FOCAL,
     "pixel-jitter": {"pixel_jitter": True},
+    "cone": {"cone_radius": "auto"},
     "no-carving": {"octree_carving": False},
     "background-mean": {"train_background": "fixed", "background": "training_mean"},
     "background-gray": {"train_background": "fixed", "background": [0.5, 0.5, 0.5]},

@@ -113,6 +113,12 @@ class ModelConfig(_Section):
         "the mean colour of the training images, fixed when training starts. It is what a view shows where it "
         "looks at space no training view saw (docs/benchmarks.md, 'The tuning suite')",
     )
+    cone_radius: Annotated[float, Field(ge=0.0, le=0.1)] | Literal["auto"] | None = Field(
+        default=None,
+        description="read the field over each pixel's cone instead of at points (Zip-NeRF's feature downweighting): "
+        "a sample's footprint radius is its distance times this (radians), 'auto' a training pixel's (1 / (sqrt(3) "
+        "f), fixed when training starts); None reads points",
+    )
 
 class SamplingConfig(_Section):
     """The samplers (paper III-C): which one, samples per ray, the octree's leaf and carving, the occupancy grid."""

@@ -30,9 +30,10 @@ SMALL = dict(compile=False, hash_kernel=False, hash_levels=4, hash_log2_size=12,
 EXACT = FastSettings(min_transmittance=1e-30, min_weight=0.0, skip_empty=False, precision="float32", block=7)
 
 
-def _model(sampler: str = "voxnerf", density_bias: float = 0.0, seed: int = 0) -> VoxNeRFModel:
+def _model(sampler: str = "voxnerf", density_bias: float = 0.0, seed: int = 0,
+           cone_radius: float | None = None) -> VoxNeRFModel:
     torch.manual_seed(seed)
-    cfg = TrainConfig(max_iters=1, sampler=sampler, **SMALL)
+    cfg = TrainConfig(max_iters=1, sampler=sampler, cone_radius=cone_radius, **SMALL)
     points = torch.rand(400, 3) * 1.2 - 0.6
     octree = SparseVoxelOctree.from_points(points, 0.05) if sampler == "voxnerf" else None
     model = VoxNeRFModel.create(cfg, SceneTransform((0.0, 0.0, 0.0), 1.0), BOX * 0.8, octree, torch.device("cpu"))
@@ -50,8 +51,9 @@ def _rays(model: VoxNeRFModel, n: int = 64, seed: int = 1):
 
 
 @pytest.mark.parametrize("sampler", ["voxnerf", "occgrid", "uniform"])
-def test_without_skipping_the_fast_path_is_the_full_path(sampler):
-    model = _model(sampler)
+@pytest.mark.parametrize("cone_radius", [None, 0.02])
+def test_without_skipping_the_fast_path_is_the_full_path(sampler, cone_radius):
+    model = _model(sampler, cone_radius=cone_radius)
     rays = _rays(model)
     full = model.render_rays(rays, model.sampler())
     fast = render_rays_fast(model, rays, model.sampler(), EXACT)

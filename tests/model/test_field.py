@@ -1,5 +1,7 @@
 """Hash encoding and field: shapes, interpolation, dense/hash levels, bounded density."""
 
+import math
+
 import pytest
 import torch
 
@@ -71,6 +73,39 @@ def test_level_weights_scale_each_levels_features_on_both_paths():
     assert grad[3:].abs().sum() == 0 and grad[:2].abs().sum() > 0
     enc.set_active_levels(6.0)
     torch.testing.assert_close(enc(x), full)
+
+
+def test_footprint_weights_fall_with_the_footprint_and_the_level_and_a_point_keeps_every_level():
+    enc = HashEncoding(levels=6, features=2, log2_size=10, base_resolution=4, max_resolution=128)
+    radii = torch.tensor([0.0, 1e-3, 1e-2, 1e-1])
+    w = enc.footprint_weights(radii).view(4, 6, 2)
+    torch.testing.assert_close(w[0], torch.ones(6, 2))  # a point
+    assert torch.all(w[:, :, 0] == w[:, :, 1])  # one weight per level
+    assert torch.all(w[1:, 1:, 0] <= w[1:, :-1, 0]) and torch.all(w[3, 1:, 0] < w[3, :-1, 0])  # finer levels less
+    assert torch.all(w[2:, :, 0] <= w[1:-1, :, 0]) and torch.all(w[3, :, 0] < w[2, :, 0])  # and wider footprints
+    # Zip-NeRF's erf(1 / sqrt(8 r^2 n^2)): a footprint of 1/10 at the finest level (n = 127) keeps about 3 %
+    n = float(enc.resolution[-1])
+    assert n == 127 and abs(float(w[3, 5, 0]) - math.erf(1.0 / math.sqrt(8 * (0.1 * n) ** 2))) < 1e-6
+    assert float(w[3, 5, 0]) < 0.035 and float(w[1, 0, 0]) > 0.999
+
+
+def test_the_field_read_over_footprints_scales_the_features_on_both_paths_and_passes_gradients():
+    field = RadianceField(levels=4, log2_size=12, max_resolution=64, hidden_dim=16)
+    with torch.no_grad():
+        field.encoding.table.uniform_(-1, 1)
+    x = torch.rand(32, 3) * 2 - 1
+    radii = torch.rand(32) * 0.05  # normalised units: the encoding's [0, 1] radii are half of these
+    expected = field.encoding.encode((x + 1) * 0.5) * field.encoding.footprint_weights(radii * 0.5)
+    for use_kernel in (False, True):
+        field.encoding.use_kernel = use_kernel and hash_kernel.available()
+        torch.testing.assert_close(field.features(x, radii), expected)
+        torch.testing.assert_close(field.features(x), field.encoding.encode((x + 1) * 0.5))
+    dirs = torch.nn.functional.normalize(torch.randn(32, 3), dim=-1)
+    density, _ = field(x, dirs, radii)
+    torch.testing.assert_close(density, field.density(x, radii))
+    torch.testing.assert_close(field.geometry(x, radii)[0], density)
+    density.sum().backward()
+    assert field.encoding.table.grad.abs().sum() > 0
 
 
 @pytest.mark.parametrize("bands", [1, 2, 3, 4])

@@ -149,7 +149,7 @@ def test_depth_weight_schedule_writes_lambda_d_times_final_to_the_fraction():
 class StubModel:
     def __init__(self) -> None:
         self.updates: list[tuple[object, bool]] = []
-        self.field = SimpleNamespace(density="eager density")
+        self.grid_density = "eager density"  # VoxNeRFModel.grid_density: the field's density as the grid reads it
         self.grid = SimpleNamespace(update=lambda density, warmup: self.updates.append((density, warmup)),
                                     prepare=lambda density: self.updates.append((density, "prepared")))
 

@@ -188,6 +188,16 @@ def test_weight_decay_shrinks_features_no_image_asks_for(micro_room, decay, shri
     assert bool((table < 1.0).all()) is shrinks and bool((table == 1.0).all()) is not shrinks
 
 
+def test_the_auto_cone_is_a_training_pixel_s_footprint_and_the_model_keeps_the_number(micro_room):
+    scene = load_scene(micro_room)
+    k = scene.intrinsics(scene.train_indices[0])
+    expected = 1.0 / (3**0.5 * (k.fl_x * k.fl_y) ** 0.5)
+    assert stages.training_pixel_cone(scene) == pytest.approx(expected)
+    built = _model_stage(micro_room, cone_radius="auto", field_weight_decay=0.0)
+    assert built.model.config.model.cone_radius == pytest.approx(expected)
+    assert _model_stage(micro_room, field_weight_decay=0.0).model.cone_radius is None
+
+
 def test_a_resumed_run_decays_as_its_command_says(micro_room, tmp_path):
     from voxnerf.training.run import train
 

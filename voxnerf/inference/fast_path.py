@@ -79,19 +79,25 @@ class FieldRunner:
     activations are cast to ``dtype``; density and colour come back as float32.
     """
 
-    def __init__(self, field, dtype: torch.dtype) -> None:
-        self.field, self.dtype = field, dtype
+    def __init__(self, field, dtype: torch.dtype, cone_radius: float | None = None) -> None:
+        self.field, self.dtype, self.cone_radius = field, dtype, cone_radius
         self.density_layers = _cast_linears(field.density_mlp, dtype)
         (first_w, first_b), *self.color_layers = _cast_linears(field.color_mlp, dtype)
         n_sh = first_w.shape[1] - field.GEO_FEATURES
         self.color_dir = (first_w[:, :n_sh].contiguous(), first_b)
         self.color_geo_t = first_w[:, n_sh:].t().contiguous()
 
-    def geometry(self, positions: Tensor) -> tuple[Tensor, Tensor]:
-        """[N, 3] normalised positions -> (density [N] float32, geometry features [N, 15] in ``dtype``)."""
-        x = self.field.encoding((positions + 1.0) * 0.5).to(self.dtype)
+    def geometry(self, positions: Tensor, radii: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """[N, 3] normalised positions (footprint radii [N], normalised units, or None: points) -> (density [N]
+        float32, geometry features [N, 15] in ``dtype``)."""
+        x = self.field.features(positions, radii).to(self.dtype)
         h = _mlp(x, self.density_layers)
         return trunc_exp(h[:, 0].float()), h[:, 1:]
+
+    def radii(self, distances: Tensor) -> Tensor | None:
+        """Footprint radii [N] of samples at ``distances`` [N] (normalised units), or None where the field reads
+        points (as :meth:`voxnerf.model.voxnerf_model.VoxNeRFModel.sample_radii`)."""
+        return None if self.cone_radius is None else distances * self.cone_radius
 
     def direction_features(self, dirs: Tensor) -> Tensor:
         """[R, 3] unit directions -> [R, hidden] in ``dtype``: the direction part of the colour MLP's first
@@ -154,7 +160,7 @@ def field_runner(model, precision: str = "auto") -> FieldRunner:
     kept one went stale when training changed the weights between two evaluations (the optimiser's updates do
     not all advance the parameters' version counters).
     """
-    return FieldRunner(model.field, getattr(torch, resolve_precision(precision, model.device)))
+    return FieldRunner(model.field, getattr(torch, resolve_precision(precision, model.device)), model.cone_radius)
 
 
 @torch.no_grad()
@@ -239,7 +245,7 @@ class _Composite:
         if idx is not None and idx.numel() == 0:
             return
         t = _take(0.5 * (start + end), idx)
-        density, geo = runner.geometry(_take(origins, idx) + t[:, None] * _take(dirs, idx))
+        density, geo = runner.geometry(_take(origins, idx) + t[:, None] * _take(dirs, idx), runner.radii(t))
         tau = torch.nan_to_num(density * _take(end - start, idx).clamp_min(0.0), nan=0.0, posinf=MAX_OPTICAL_DEPTH)
         tau = tau.clamp_(0.0, MAX_OPTICAL_DEPTH)
         weight = torch.exp(-_take(self.optical, idx)) * -torch.expm1(-tau)

@@ -84,15 +84,27 @@ class HashEncoding(nn.Module):
     def out_dim(self) -> int:
         return self.levels * self.features
 
-    def forward(self, x: Tensor) -> Tensor:
-        """[N, 3] positions in [0, 1] -> [N, levels * features] features.
+    def forward(self, x: Tensor, radii: Tensor | None = None) -> Tensor:
+        """[N, 3] positions in [0, 1] -> [N, levels * features] features; with ``radii`` [N] (each position's
+        footprint radius, same units) each level's features scaled by :meth:`footprint_weights`.
 
         Separable form: each axis contributes its lower/upper grid coordinate once ([N, L, 3, 2]); the 8 corner
         indices are their sums (dense levels) or XORs (hashed levels), and the trilinear blend is three lerps.
         """
         if self.use_kernel and x.device.type == "cpu" and x.dtype == torch.float32:
-            return hash_encode(x, self.table, self.resolution, self.dense_levels) * self.level_weight
-        return self.encode(x) * self.level_weight
+            features = hash_encode(x, self.table, self.resolution, self.dense_levels) * self.level_weight
+        else:
+            features = self.encode(x) * self.level_weight
+        return features if radii is None else features * self.footprint_weights(radii)
+
+    def footprint_weights(self, radii: Tensor) -> Tensor:
+        """[N] footprint radii in [0, 1] units -> [N, levels * features] weights in (0, 1]: Zip-NeRF's feature
+        downweighting, ``erf(1 / sqrt(8 r^2 n^2))`` for a level of resolution ``n``: about 1 where a level's cells
+        are wider than the footprint, towards 0 where many cells fall inside it (their mean over an isotropic
+        Gaussian of that radius is about zero). A zero radius gives 1 (a point)."""
+        scaled = radii[:, None] * self.resolution[None, :] * math.sqrt(8.0)
+        weight = torch.erf(1.0 / scaled.clamp_min(1e-12))
+        return weight.repeat_interleave(self.features, dim=1)
 
     def set_active_levels(self, active: float) -> None:
         """Coarse-to-fine: weight 1 for levels below ``floor(active)``, a smooth ramp (1 - cos) / 2 of the fraction
@@ -171,6 +183,8 @@ class RadianceField(nn.Module):
     paper's 16 coefficients; 1, a constant, leaves the colour independent of the direction).
 
     ``forward(positions [N, 3] normalised, dirs [N, 3] unit) -> (density [N] per normalised unit, rgb [N, 3])``.
+    Every reading takes optional ``radii`` [N]: each position's footprint radius in normalised units (a pixel's
+    cone at the sample's distance); None reads points. See :meth:`HashEncoding.footprint_weights`.
     """
 
     GEO_FEATURES = 15
@@ -192,13 +206,17 @@ class RadianceField(nn.Module):
         self.density_mlp = _mlp(self.encoding.out_dim, hidden_dim, 1 + self.GEO_FEATURES, 2)
         self.color_mlp = _mlp(sh_bands * sh_bands + self.GEO_FEATURES, hidden_dim, 3, 3)
 
-    def density(self, positions: Tensor) -> Tensor:
+    def features(self, positions: Tensor, radii: Tensor | None = None) -> Tensor:
+        """[N, 3] normalised positions (and footprint radii [N], normalised units) -> the encoding's features."""
+        return self.encoding((positions + 1.0) * 0.5, None if radii is None else radii * 0.5)
+
+    def density(self, positions: Tensor, radii: Tensor | None = None) -> Tensor:
         """[N, 3] normalised positions -> [N] densities (per normalised unit of length)."""
-        h = self.density_mlp(self.encoding((positions + 1.0) * 0.5))
+        h = self.density_mlp(self.features(positions, radii))
         return trunc_exp(h[:, 0])
 
-    def forward(self, positions: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
-        h = self.density_mlp(self.encoding((positions + 1.0) * 0.5))
+    def forward(self, positions: Tensor, dirs: Tensor, radii: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        h = self.density_mlp(self.features(positions, radii))
         density = trunc_exp(h[:, 0])
         sh = spherical_harmonics(dirs, self.sh_bands)
         rgb = torch.sigmoid(self.color_mlp(torch.cat([sh, h[:, 1:]], dim=-1)))
@@ -207,9 +225,9 @@ class RadianceField(nn.Module):
     # The same field split for inference (voxnerf.inference.fast_path): the colour MLP's first layer is linear in
     # cat([SH(d), geo]), so its direction part is computed once per ray instead of once per sample.
 
-    def geometry(self, positions: Tensor) -> tuple[Tensor, Tensor]:
+    def geometry(self, positions: Tensor, radii: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """[N, 3] normalised positions -> (density [N], geometry features [N, GEO_FEATURES])."""
-        h = self.density_mlp(self.encoding((positions + 1.0) * 0.5))
+        h = self.density_mlp(self.features(positions, radii))
         return trunc_exp(h[:, 0]), h[:, 1:]
 
     def direction_features(self, dirs: Tensor) -> Tensor:

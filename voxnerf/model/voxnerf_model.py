@@ -181,6 +181,30 @@ class VoxNeRFModel:
         return VoxNeRFSampler(self.octree, int(sampling.n_importance), int(sampling.n_rest), occ, misses,
                               sampling.window_centre, float(sampling.window_width))
 
+    @property
+    def cone_radius(self) -> float | None:
+        """A pixel's cone radius per unit of distance (radians) where the field is read over cones, else None
+        (points). ``'auto'`` is resolved to a number by the trainer (:func:`voxnerf.training.stages.model_stage`;
+        checkpoints hold the number)."""
+        cone = self.config.model.cone_radius
+        if cone == "auto":
+            raise ValueError("VoxNeRFModel: resolve cone_radius 'auto' from the training cameras first")
+        return cone or None
+
+    def sample_radii(self, distances: Tensor) -> Tensor | None:
+        """Footprint radii (normalised units) of samples at ``distances`` along their rays (normalised units,
+        any shape, flattened), or None where the field reads points."""
+        cone = self.cone_radius
+        return None if cone is None else distances.reshape(-1) * cone
+
+    def grid_density(self, positions: Tensor) -> Tensor:
+        """Densities [N] at [N, 3] positions for the occupancy grid's updates: read over a footprint of half a grid
+        cell where the field reads cones (a cell's mean, not its finest levels), at points otherwise."""
+        if self.cone_radius is None:
+            return self.field.density(positions)
+        half_cell = 1.0 / self.grid.resolution  # normalised units: the grid spans [-1, 1]
+        return self.field.density(positions, positions.new_full(positions.shape[:1], half_cell))
+
     def ray_bundle(self, origins: Tensor, dirs: Tensor) -> RayBundle:
         """Rays [N, 3] (normalised units, unit dirs) clipped to the scene box. A ray that misses the box gets
         an empty range at its near bound (it renders as background)."""
@@ -196,7 +220,8 @@ class VoxNeRFModel:
         r, s = starts.shape
         mids = 0.5 * (starts + ends)
         positions = origins[:, None, :] + mids[..., None] * dirs[:, None, :]
-        density, rgb = self.field(positions.reshape(-1, 3), dirs[:, None, :].expand(r, s, 3).reshape(-1, 3))
+        density, rgb = self.field(positions.reshape(-1, 3), dirs[:, None, :].expand(r, s, 3).reshape(-1, 3),
+                                  self.sample_radii(mids))
         bg = self.background if background is None else background
         return volume_render(density.view(r, s), rgb.view(r, s, 3), starts, ends, bg)
 
@@ -288,10 +313,10 @@ class VoxNeRFModel:
         return self._compiled["render_samples"]
 
     def compiled_density(self):
-        """``field.density`` through ``torch.compile`` (built once per model; callers keep shapes fixed, as
+        """:meth:`grid_density` through ``torch.compile`` (built once per model; callers keep shapes fixed, as
         :meth:`OccupancyGrid.update` does)."""
         if "density" not in self._compiled:
-            self._compiled["density"] = torch.compile(self.field.density, dynamic=False)
+            self._compiled["density"] = torch.compile(self.grid_density, dynamic=False)
         return self._compiled["density"]
 
     def render_rays(self, rays: RayBundle, sampler, stratified: bool = False, compiled: bool = False) -> dict:

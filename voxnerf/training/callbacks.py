@@ -134,7 +134,7 @@ class OccupancyGridUpdate(Callback):
     def after_step(self, state: LoopState) -> None:
         iteration = state.iteration
         if iteration % self.every == 0:
-            density = self.model.compiled_density() if self.compiled else self.model.field.density
+            density = self.model.compiled_density() if self.compiled else self.model.grid_density
             self.model.grid.update(density, warmup=iteration <= 2 * self.every)
 
 

@@ -30,7 +30,14 @@ from voxnerf.training.stages.depth_target import (
 from voxnerf.training.stages.first_hit_cache import FirstHitStage, first_hit_stage
 from voxnerf.training.stages.hash_kernel import hash_kernel_stage
 from voxnerf.training.stages.load_scene import SceneStage, check_sensor_depth, load_scene_stage
-from voxnerf.training.stages.model import APPEARANCE_LR_SCALE, ModelStage, model_stage, scene_box, training_mean_colour
+from voxnerf.training.stages.model import (
+    APPEARANCE_LR_SCALE,
+    ModelStage,
+    model_stage,
+    scene_box,
+    training_mean_colour,
+    training_pixel_cone,
+)
 from voxnerf.training.stages.octree import COVERAGE_RAYS, OctreeStage, octree_stage, sampler_octree
 from voxnerf.training.stages.octree_carving import (
     CARVE_FREE_RAYS,
@@ -53,5 +60,6 @@ __all__ = [
     "inductor_cache_dir", "load_scene_stage", "measure_noise_against", "model_stage", "octree_key",
     "octree_stage", "pinhole_depth", "pixel_rays_key", "prior_depth_octree", "prior_depth_renderer",
     "prior_key", "prior_rays_stage", "prior_stage", "pseudo_depth_stage", "sampler_octree", "scene_box",
-    "seed_everything", "training_depth_views", "training_mean_colour", "training_rays_key",
+    "seed_everything", "training_depth_views", "training_mean_colour", "training_pixel_cone",
+    "training_rays_key",
 ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,6 +63,14 @@ def training_mean_colour(scene: Scene) -> tuple[float, float, float]:
     return (float(mean[0]), float(mean[1]), float(mean[2]))
 
 
+def training_pixel_cone(scene: Scene) -> float:
+    """A training pixel's cone radius per unit of distance (radians): mip-NeRF's ``2 / sqrt(12)`` of a pixel's
+    width at unit distance, ``1 / (sqrt(3) f)`` for a focal length ``f`` in pixels (the geometric mean of fl_x and
+    fl_y), the median over the training frames at the loaded resolution."""
+    cones = [1.0 / (math.sqrt(3.0) * math.sqrt(k.fl_x * k.fl_y)) for k in map(scene.intrinsics, scene.train_indices)]
+    return float(np.median(cones))
+
+
 APPEARANCE_LR_SCALE = 0.1  # the per-image corrections learn at a tenth of the field's rate
 
 
@@ -91,6 +100,8 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
     prior_n = prior.transformed(np.asarray(transform.center), transform.scale) if prior is not None else None
     if cfg.model.background == "training_mean":
         cfg = cfg.updated(background=training_mean_colour(scene))
+    if cfg.model.cone_radius == "auto":
+        cfg = cfg.updated(cone_radius=training_pixel_cone(scene))
     model = VoxNeRFModel.create(cfg, transform, torch.from_numpy(aabb).float(), None, device)
     if prior_n is not None and cfg.sampling.sampler != "uniform" and cfg.sampling.occgrid_seed:
         model.grid.seed_from_points(torch.from_numpy(prior_n.points).float().to(device))
