@@ -1,4 +1,4 @@
-"""The settings table of docs/service.md against the ``Settings`` model (app/core/settings.py): one row per
+"""The settings table of docs/settings.md against the ``Settings`` model (app/core/settings.py): one row per
 field, named by its environment variable, with the field's default, and no row for a setting that is gone."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 from app.core.settings import Settings
 
-DOC = Path(__file__).resolve().parents[2] / "docs" / "service.md"
+DOC = Path(__file__).resolve().parents[2] / "docs" / "settings.md"
 PREFIX = Settings.model_config["env_prefix"]
 UNITS = {"KiB": 2**10, "MiB": 2**20, "GiB": 2**30}
 
@@ -55,8 +55,8 @@ def _same(documented: Any, default: Any) -> bool:
 def test_the_table_names_every_setting_and_nothing_else():
     documented = set(_table())
     expected = {f"{PREFIX}{name.upper()}" for name in Settings.model_fields}
-    assert not expected - documented, f"settings missing from docs/service.md: {sorted(expected - documented)}"
-    assert not documented - expected, f"docs/service.md documents unknown settings: {sorted(documented - expected)}"
+    assert not expected - documented, f"settings missing from docs/settings.md: {sorted(expected - documented)}"
+    assert not documented - expected, f"docs/settings.md documents unknown settings: {sorted(documented - expected)}"
 
 
 @pytest.mark.parametrize("name", sorted(Settings.model_fields))
