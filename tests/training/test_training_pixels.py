@@ -264,7 +264,7 @@ def test_an_offset_through_a_direction_table_follows_the_lens_between_pixel_cent
 
 
 def test_pixel_jitter_draws_training_rays_through_their_pixels_not_their_centres():
-    from voxnerf.training.step import TrainStep
+    from voxnerf.training.step import pixel_offsets
 
     pixels = _pixels(n=2, h=9, w=11)
     k = pixels.intr[0]
@@ -274,10 +274,8 @@ def test_pixel_jitter_draws_training_rays_through_their_pixels_not_their_centres
 
     for jitter in (False, True):
         cfg = TrainConfig(max_iters=1, rays_per_batch=256, pixel_jitter=jitter)
-        step = TrainStep.__new__(TrainStep)
-        step.cfg, step.pixels, step.gen = cfg, pixels, torch.Generator().manual_seed(4)
         img, py, px = sample_batch(pixels, cfg, False, torch.Generator().manual_seed(4))
-        _, dirs = pixels.rays(img, py, px, step._pixel_offsets(len(img)))
+        _, dirs = pixels.rays(img, py, px, pixel_offsets(cfg, len(img), torch.Generator().manual_seed(4)))
         y, x = pixel_of(dirs)
         dy, dx = y - py, x - px.float()
         assert float(dy.abs().max()) <= 0.5 + 1e-4 and float(dx.abs().max()) <= 0.5 + 1e-4

@@ -187,8 +187,8 @@ class TrainingPixels:
         y0, x0 = y.floor(), x.floor()
         fy, fx = (y - y0)[:, None], (x - x0)[:, None]
         y0, x0 = y0.long(), x0.long()
-        y1, x1 = torch.minimum(y0 + 1, last_y).clamp_min(0), torch.minimum(x0 + 1, last_x).clamp_min(0)
-        y0, x0 = y0.clamp(min=0).minimum(last_y), x0.clamp(min=0).minimum(last_x)
+        y0, y1 = (v.clamp(min=0).minimum(last_y) for v in (y0, y0 + 1))
+        x0, x1 = (v.clamp(min=0).minimum(last_x) for v in (x0, x0 + 1))
         table = self.directions.dirs
         camera = self.directions.camera[img]
         top = table[camera, y0, x0] * (1 - fx) + table[camera, y0, x1] * fx

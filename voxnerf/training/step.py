@@ -44,6 +44,14 @@ def divergence_guard(losses: Losses, iteration: int) -> float:
     return loss
 
 
+def pixel_offsets(cfg: TrainConfig, n: int, gen: torch.Generator) -> torch.Tensor | None:
+    """float32 [n, 2] a uniform random point of each of ``n`` rays' pixels (row, column; pixels from its centre)
+    drawn from ``gen`` when ``pixel_jitter`` is on, else None (the rays pass through the centres)."""
+    if not cfg.loss.pixel_jitter:
+        return None
+    return torch.rand(n, 2, generator=gen, device=gen.device) - 0.5
+
+
 class TrainStep:
     """The step, split where the divergence guard looks: ``batch()``, ``losses(batch)`` (forward and
     backward) and ``apply()`` (the optimiser update, only after the guard passed). With pose refinement, every
@@ -64,7 +72,7 @@ class TrainStep:
     def batch(self) -> Batch:
         pixels = self.pixels
         img, py, px = sample_batch(pixels, self.cfg, self.use_patches, self.gen)
-        rays = self.model.ray_bundle(*pixels.rays(img, py, px, self._pixel_offsets(len(img))))
+        rays = self.model.ray_bundle(*pixels.rays(img, py, px, pixel_offsets(self.cfg, len(img), self.gen)))
         if pixels.hit_t is not None:
             rays.hit_t, rays.hit = pixels.hit_t[img, py, px], pixels.hit[img, py, px]
         with torch.no_grad():
@@ -96,13 +104,6 @@ class TrainStep:
             return None
         corrections = poses.corrections()
         return corrections if self.batches % self.cfg.corrections.pose_every == 0 else corrections.detach()
-
-    def _pixel_offsets(self, n: int) -> torch.Tensor | None:
-        """float32 [n, 2] a uniform random point of each ray's pixel (row, column; pixels from its centre) when
-        ``pixel_jitter`` is on, else None (the rays pass through the centres)."""
-        if not self.cfg.loss.pixel_jitter:
-            return None
-        return torch.rand(n, 2, generator=self.gen, device=self.gen.device) - 0.5
 
     def _random_background(self, n: int) -> torch.Tensor | None:
         """[n, 3] a uniform random colour behind each ray when ``train_background`` is 'random' (else None: the
