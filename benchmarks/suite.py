@@ -447,7 +447,8 @@ def table(results: list[dict], scenes: list[str], halves: dict[str, str], budget
             "vs defaults | worst scene | scenes losing > 0.3 |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- "
             "| --- |")
     bound = f"{budget:g} s" + (f" or {max_iters} steps, whichever comes first," if max_iters else "")
-    parts = [f"Budget {bound} of `voxnerf train` per run (everything included), one run at a time. Command:\n\n"
+    parts = [f"Budget {bound} of training per `voxnerf train` run (`--max-seconds`; set-up, compilation and the "
+             "final evaluation come on top, as the budget table shows), one run at a time. Command:\n\n"
              f"    {command}\n"]
     for half in (TUNING, CONFIRMATION):
         group = [s for s in scenes if halves.get(s) == half]
