@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -150,6 +151,59 @@ def test_sequential_matching_reports_against_the_pairs_it_really_compares(ten_ph
     assert f"extracting features: {n} of {n} images" in seen
     assert [step for step in seen if step.startswith("matching")][-1] == (
         f"matching features (sequential): {sequential_pairs(n)} of {sequential_pairs(n)} image pairs")
+
+
+@needs_redkitchen
+def test_the_same_photos_give_the_same_poses(ten_photos, tmp_path):
+    """One extraction thread (the photos' image ids in name order), seeded verification and a seeded,
+    single-threaded mapper: two runs on the same photos agree to the last bit."""
+    poses = []
+    for run in range(2):
+        work = tmp_path / f"work{run}"
+        work.mkdir()
+        result = run_sfm(stage_photos(sorted(ten_photos.iterdir()), work), work, "exhaustive", ten_photos)
+        poses.append({image.name: image.cam_from_world().matrix().tolist() for image in result.recon.images.values()})
+    assert len(poses[0]) == 10 and poses[0] == poses[1]
+
+
+class _Model:
+    def __init__(self, registered: int, points: int) -> None:
+        self.registered, self.points = registered, points
+
+    def num_reg_images(self) -> int:
+        return self.registered
+
+    def num_points3D(self) -> int:  # noqa: N802 - pycolmap's name
+        return self.points
+
+
+@pytest.mark.parametrize(("by_seed", "tried", "kept"), [
+    ({0: [(10, 500)]}, [(0, 10)], (10, 500)),  # the first seed registers all ten: no second attempt
+    ({0: [(6, 400), (4, 100)], 1: [(10, 300)]}, [(0, 6), (1, 10)], (10, 300)),  # the second does
+    ({0: [(7, 400)], 1: [(6, 900)], 2: [(7, 500)]}, [(0, 7), (1, 6), (2, 7)], (7, 500)),  # none: the best kept
+    ({0: [], 1: [], 2: []}, [(0, 0), (1, 0), (2, 0)], None),  # nothing reconstructed under any seed
+])
+def test_the_mapper_tries_further_seeds_until_one_registers_every_photo(monkeypatch, tmp_path, by_seed, tried, kept):
+    from voxnerf.data.importers import sfm
+
+    staged = SimpleNamespace(names=[f"p{i}.jpg" for i in range(10)])
+    seeds_run: list[int] = []
+
+    def fake_map(_staged, _database, sparse, options, monitor, _token, label, floor):
+        seeds_run.append(options.random_seed)
+        for fraction in (0.2, 0.6):  # a later attempt reports less than an earlier one reached
+            floor[0] = max(floor[0], fraction if not label else fraction / 2)
+            monitor.step(f"registering images{label}", floor[0])
+        return {i: _Model(*m) for i, m in enumerate(by_seed[options.random_seed])}
+
+    monkeypatch.setattr(sfm, "_map", fake_map)
+    seen: list[float] = []
+    models, attempts = sfm._map_best(staged, tmp_path / "db", tmp_path / "sparse",
+                                     ImportMonitor(report=lambda _step, fraction: seen.append(fraction)), None)
+    assert attempts == tried and seeds_run == [seed for seed, _ in tried]
+    best = max(models.values(), key=sfm._model_rank, default=None)
+    assert (None if best is None else (best.registered, best.points)) == kept
+    assert seen == sorted(seen)  # progress never goes back
 
 
 @needs_redkitchen

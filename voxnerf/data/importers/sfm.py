@@ -71,6 +71,16 @@ registering a further image (2D-3D inliers), below COLMAP's defaults (16 degrees
 thousands of features per image: on 25-50 frames of a slow indoor video at 320 x 240 (~500 features each) the
 defaults left a third to half of the frames in side reconstructions on some seeds, these registered all of them
 on every seed tried. Poses are bundle-adjusted all the same."""
+SFM_SEED = 0
+"""The seed of structure from motion's random choices before mapping: COLMAP's global generator and each image
+pair's RANSAC in geometric verification (COLMAP seeds those at random by default, and its matcher threads verify
+pairs in any order). With one extraction thread and the mapper's own seeds (MAPPING_SEEDS; it runs
+single-threaded) the same photos give the same poses on one machine."""
+MAPPING_SEEDS = (0, 1, 2)
+"""The incremental mapper's seeds, tried in turn until one registers every photo into one reconstruction; the
+attempt whose largest reconstruction registers most is kept (then the most points). On one seed 20 redkitchen
+photos split 13 + 7, on the next five seeds all 20 registered: where the mapper starts and which image it
+registers next are random choices, and a split is often only an unlucky one."""
 JPEG_QUALITY = 95
 CAMERA_MODEL = "SIMPLE_RADIAL"
 REASONS = {
@@ -105,6 +115,7 @@ class SfmResult:
     camera_mode: str
     model_sizes: list[int]
     unregistered: dict[str, str]
+    mapping_attempts: list[tuple[int, int]]  # (seed, photos its largest reconstruction registered) of each attempt
 
 
 def list_photos(src: Path) -> list[Path]:
@@ -227,25 +238,23 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path,
     shared = len(staged.camera_keys) == 1
     matching = resolve_matching(matching, len(staged.names))
     database = work / "database.db"
-    options = _mapper_options()
     monitor = monitor or ImportMonitor()
     token = pycolmap.CancellationToken()
-    pycolmap.set_random_seed(0)
+    pycolmap.set_random_seed(SFM_SEED)
     with _quiet_colmap():
         monitor.check()
         _extract(staged, database, shared, monitor.within(*SFM_SPANS["extracting"]), token)
         _match(database, len(staged.names), matching, monitor.within(*SFM_SPANS["matching"]), token)
-        (work / "sparse").mkdir()
-        models = _map(staged, database, work / "sparse", options, monitor.within(*SFM_SPANS["mapping"]), token)
-    models = sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+        models, attempts = _map_best(staged, database, work / "sparse", monitor.within(*SFM_SPANS["mapping"]), token)
+    models = sorted(models.values(), key=_model_rank, reverse=True)
     sizes = [r.num_reg_images() for r in models]
     if not models or sizes[0] < MIN_REGISTERED:
         raise SceneError(named, f"structure from motion registered {sizes[0] if sizes else 0} of "
                          f"{len(staged.names)} photos (at least {MIN_REGISTERED} needed): "
                          f"{_why_none(database, len(staged.names))}")
-    unregistered = _unregistered(database, models, options.min_num_matches)
+    unregistered = _unregistered(database, models, _mapper_options(SFM_SEED).min_num_matches)
     camera_mode = "one shared camera" if shared else "one camera per image"
-    return SfmResult(models[0], matching, camera_mode, sizes, unregistered)
+    return SfmResult(models[0], matching, camera_mode, sizes, unregistered, attempts)
 
 
 def _database_count(database: Path, method: str) -> Callable[[], int | None]:
@@ -275,7 +284,9 @@ def _extract(staged: StagedPhotos, database: Path, shared: bool, monitor: Import
 
     mode = pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE
     reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
-    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_FEATURE_IMAGE_SIZE)
+    # one extraction thread: with several, the photos enter the database (and get their image ids) in the order
+    # their threads finish, and the mapper's choices follow the ids
+    extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_FEATURE_IMAGE_SIZE, num_threads=1)
     extraction.sift.max_num_features = MAX_FEATURES
     with _cancellable(token), CountWatch(monitor, _database_count(database, "num_images"), len(staged.names),
                                          "extracting features", "images", token):
@@ -289,45 +300,86 @@ def _match(database: Path, n_images: int, matching: str, monitor: ImportMonitor,
     import pycolmap
 
     pairs = n_images * (n_images - 1) // 2 if matching == "exhaustive" else sequential_pairs(n_images)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = SFM_SEED  # COLMAP's default (-1) seeds each pair's RANSAC at random
     with _cancellable(token), CountWatch(monitor, _database_count(database, "num_matched_image_pairs"), pairs,
                                          f"matching features ({matching})", "image pairs", token):
         if matching == "exhaustive":
             pairing = pycolmap.ExhaustivePairingOptions(block_size=EXHAUSTIVE_BLOCK)
-            pycolmap.match_exhaustive(database, pairing_options=pairing, device=pycolmap.Device.cpu,
-                                      cancellation_token=token)
+            pycolmap.match_exhaustive(database, pairing_options=pairing, verification_options=verification,
+                                      device=pycolmap.Device.cpu, cancellation_token=token)
         else:
             pairing = pycolmap.SequentialPairingOptions(overlap=SEQUENTIAL_OVERLAP, quadratic_overlap=True)
-            pycolmap.match_sequential(database, pairing_options=pairing, device=pycolmap.Device.cpu,
-                                      cancellation_token=token)
+            pycolmap.match_sequential(database, pairing_options=pairing, verification_options=verification,
+                                      device=pycolmap.Device.cpu, cancellation_token=token)
 
 
-def _map(staged: StagedPhotos, database: Path, sparse: Path, options, monitor: ImportMonitor, token) -> dict:
+def _model_rank(model) -> tuple[int, int]:
+    """How reconstructions compare: photos registered, then points."""
+    return model.num_reg_images(), model.num_points3D()
+
+
+def _map_best(staged: StagedPhotos, database: Path, sparse: Path, monitor: ImportMonitor,
+              token) -> tuple[dict, list[tuple[int, int]]]:
+    """:func:`_map` under each of MAPPING_SEEDS in turn until one registers every photo into one reconstruction:
+    the reconstructions of the attempt whose largest ranks first (:func:`_model_rank`), and ``(seed, photos its
+    largest registered)`` of every attempt. The attempts share the mapping's span of progress, which never goes
+    back."""
+    import pycolmap
+
+    n = len(staged.names)
+    best: dict = {}
+    attempts: list[tuple[int, int]] = []
+    floor = [0.0]  # the furthest fraction reported so far
+    for attempt, seed in enumerate(MAPPING_SEEDS):
+        pycolmap.set_random_seed(seed)
+        out = sparse / str(seed)
+        out.mkdir(parents=True)
+        label = "" if attempt == 0 else f" (attempt {attempt + 1} of {len(MAPPING_SEEDS)}, seed {seed})"
+        models = _map(staged, database, out, _mapper_options(seed), monitor, token, label, floor)
+        largest = max(models.values(), key=_model_rank, default=None)
+        attempts.append((seed, largest.num_reg_images() if largest is not None else 0))
+        if largest is not None and (not best or _model_rank(largest) > max(map(_model_rank, best.values()))):
+            best = models
+        if attempts[-1][1] == n:
+            break
+    return best, attempts
+
+
+def _map(staged: StagedPhotos, database: Path, sparse: Path, options, monitor: ImportMonitor, token,
+         label: str = "", floor: list[float] | None = None) -> dict:
     """COLMAP's incremental mapping; its reconstructions. Progress in images registered (COLMAP calls back after
     its first pair and after each image it adds; a second reconstruction's images count on, up to the total),
-    and a stop request cancels it between two images."""
+    each step's text followed by ``label``, its fraction never below ``floor[0]`` (which it raises), and a stop
+    request cancels it between two images."""
     import pycolmap
 
     n = len(staged.names)
     registered = 0
+    floor = floor if floor is not None else [0.0]
+
+    def report(fraction: float) -> None:
+        floor[0] = max(floor[0], fraction)
+        monitor.step(f"registering images: {registered} of {n}{label}", floor[0])
 
     def registered_more(count: int) -> None:
         nonlocal registered
         registered = min(registered + count, n)
-        monitor.step(f"registering images: {registered} of {n}", registered / n)
+        report(registered / n)
         if monitor.should_stop():
             token.cancel()
 
-    monitor.step(f"registering images: 0 of {n}", 0.0)
+    report(0.0)
     with _cancellable(token):
         return pycolmap.incremental_mapping(database, staged.dir, sparse, options,
                                             initial_image_pair_callback=lambda: registered_more(2),
                                             next_image_callback=lambda: registered_more(1), cancellation_token=token)
 
 
-def _mapper_options():
+def _mapper_options(seed: int):
     import pycolmap
 
-    options = pycolmap.IncrementalPipelineOptions(min_model_size=MIN_REGISTERED, random_seed=0, num_threads=1)
+    options = pycolmap.IncrementalPipelineOptions(min_model_size=MIN_REGISTERED, random_seed=seed, num_threads=1)
     options.mapper.init_min_tri_angle = INIT_MIN_TRIANGULATION_DEG
     options.mapper.init_min_num_inliers = INIT_MIN_INLIERS
     options.mapper.abs_pose_min_num_inliers = REGISTER_MIN_INLIERS
@@ -420,12 +472,17 @@ def reconstruct_and_write(
         "matching": result.matching,
         "cameras": result.camera_mode,
         "reconstructions": result.model_sizes,
+        "mapping_attempts": [{"seed": seed, "registered": count} for seed, count in result.mapping_attempts],
         "mean_reprojection_error_px": float(result.recon.compute_mean_reprojection_error()),
         "points": int(result.recon.num_points3D()),
     }
     notes = [f"structure from motion registered {registered} of {total} images ({result.camera_mode}, "
              f"{result.matching} matching, mean reprojection error {sfm['mean_reprojection_error_px']:.2f} px); "
              "poses and scale are COLMAP's (a similarity away from metric)"]
+    if len(result.mapping_attempts) > 1:
+        tried = ", ".join(f"seed {seed}: {count}" for seed, count in result.mapping_attempts)
+        notes.append(f"the mapper's first seed left photos out, so it ran under {len(result.mapping_attempts)} "
+                     f"seeds (registered {tried} of {len(staged.names)}): the best kept")
     if "other_model" in result.unregistered.values():
         notes.append(f"the photos form {len(result.model_sizes)} reconstructions of "
                      f"{', '.join(map(str, result.model_sizes))} images (they may share images): the largest kept")
