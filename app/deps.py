@@ -55,8 +55,8 @@ def require_token(request: Request, settings: SettingsDep) -> Principal:
 PrincipalDep = Annotated[Principal, Depends(require_token)]
 
 
-def require_owner(principal: Principal, what: str, created_by: str | None) -> None:
-    """403 unless ``principal`` may cancel or delete ``what`` (``"job <id>"``...), made by ``created_by``
-    (:func:`app.core.tokens.may_act_on`)."""
+def require_owner(principal: Principal, what: str, created_by: str | None, acts: str = "cancel or delete") -> None:
+    """403 unless ``principal`` may ``acts`` (cancel or delete...) ``what`` (``"job <id>"``...), made by
+    ``created_by`` (:func:`app.core.tokens.may_act_on`)."""
     if not tokens.may_act_on(principal, created_by):
-        raise HTTPException(status_code=403, detail=tokens.ownership_refusal(principal, what, created_by))
+        raise HTTPException(status_code=403, detail=tokens.ownership_refusal(principal, what, created_by, acts))

@@ -217,10 +217,11 @@ def may_act_on(principal: Principal, created_by: str | None) -> bool:
     return principal.scope == "admin" or (created_by is not None and created_by == principal.name)
 
 
-def ownership_refusal(principal: Principal, what: str, created_by: str | None) -> str:
-    """The 403 sentence when :func:`may_act_on` says no for ``what`` (``"job <id>"``...)."""
+def ownership_refusal(principal: Principal, what: str, created_by: str | None, acts: str = "cancel or delete") -> str:
+    """The 403 sentence when :func:`may_act_on` says no for ``what`` (``"job <id>"``...), which the principal
+    would ``acts`` (``"cancel or delete"``...)."""
     owner = repr(created_by) if created_by else "no token (made before tokens existed)"
-    return (f"{what} was made by {owner}; token {principal.name!r} (scope {principal.scope}) may cancel or delete "
+    return (f"{what} was made by {owner}; token {principal.name!r} (scope {principal.scope}) may {acts} "
             "only its own work (scope admin acts on all)")
 
 

@@ -16,7 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.requests import ClientDisconnect
 
 from app.api_reference import EXAMPLE_ID, error_responses
-from app.deps import CeleryDep, PrincipalDep, SettingsDep
+from app.core.settings import Settings
+from app.core.tokens import Principal
+from app.deps import CeleryDep, PrincipalDep, SettingsDep, require_owner
 from app.routes.scenes import store_file, stored_answer, upload_slot
 from app.schemas import ImportOut, SceneOut
 from app.uploads import sessions, staging
@@ -26,6 +28,15 @@ router = APIRouter(tags=["uploads"])
 SessionId = Annotated[str, PathParam(pattern=sessions.SESSION_ID_RE.pattern, description="upload session id")]
 PartNumber = Annotated[int, PathParam(ge=0, le=100_000, description="part number, from 0")]
 SESSION_GONE_EXAMPLE = f"no upload session {EXAMPLE_ID} (completed, deleted or expired)"
+NOT_YOURS_EXAMPLE = (f"upload session {EXAMPLE_ID} was made by 'alice'; token 'bob' (scope write) may read, send parts "
+                     "to, complete or delete only its own work (scope admin acts on all)")
+
+
+def _require_session_owner(settings: Settings, upload_id: str, principal: Principal) -> None:
+    """403 unless ``principal`` opened the session or is an admin (404 when there is no such session): a session's
+    parts, its completion and the scene it becomes belong to the token that opened it."""
+    require_owner(principal, f"upload session {upload_id}", sessions.owner(settings, upload_id),
+                  "read, send parts to, complete or delete")
 
 
 class UploadCreate(BaseModel):
@@ -56,6 +67,7 @@ class UploadOut(BaseModel):
     received_bytes: int
     missing_parts: int
     expires_at: float = Field(description="Unix time at which the session expires unless another part arrives")
+    created_by: str | None = Field(description="the token that opened the session; only it (or an admin) may use it")
 
     @classmethod
     def of(cls, state: sessions.SessionState) -> UploadOut:
@@ -63,7 +75,8 @@ class UploadOut(BaseModel):
         return cls(id=session.id, filename=session.filename, total_bytes=session.total_bytes, sha256=session.sha256,
                    part_bytes=session.part_bytes, part_count=session.part_count,
                    received_parts=sorted(state.received), received_bytes=state.received_bytes,
-                   missing_parts=session.part_count - len(state.received), expires_at=state.expires_at)
+                   missing_parts=session.part_count - len(state.received), expires_at=state.expires_at,
+                   created_by=session.created_by)
 
 
 class PartOut(BaseModel):
@@ -80,25 +93,27 @@ class PartOut(BaseModel):
                  "session takes (VOXNERF_MAX_UPLOAD_SESSION_BYTES)",
                  e429="16 upload sessions are open (VOXNERF_MAX_UPLOAD_SESSIONS): complete or delete one, or wait "
                  "for one to expire"))
-def create_upload(body: UploadCreate, settings: SettingsDep, response: Response) -> UploadOut:
+def create_upload(body: UploadCreate, settings: SettingsDep, principal: PrincipalDep, response: Response) -> UploadOut:
     """Open a session for one file of ``total_bytes`` (a zip or a capture, as ``POST /scenes`` takes): 201 with
     its id, its part size and part count, ``Location: /uploads/{id}``. Send each part with ``PUT
     /uploads/{id}/parts/{n}``, then ``POST /uploads/{id}/complete``. A session no part reaches for
-    ``VOXNERF_UPLOAD_SESSION_EXPIRY_S`` expires."""
+    ``VOXNERF_UPLOAD_SESSION_EXPIRY_S`` expires. The session belongs to the token that opens it: another token
+    (but an admin) gets 403 on every route of it."""
     staging.split_rule(body.splits)  # 422 for anything but a known rule
     sha256 = sessions.check_sha256(body.sha256, "sha256")
     name = body.filename.replace("\\", "/").rsplit("/", 1)[-1]
     if not name or not name.isprintable():
         raise UploadError(422, "filename: give the file's name, printable, without a directory")
-    state = sessions.create(settings, name, body.total_bytes, sha256, body.name, body.splits or None)
+    state = sessions.create(settings, name, body.total_bytes, sha256, body.name, body.splits or None, principal.name)
     response.headers["Location"] = f"/uploads/{state.session.id}"
     return UploadOut.of(state)
 
 
 @router.get("/uploads/{upload_id}", response_model=UploadOut, summary="An upload session: the parts received",
-            responses=error_responses(404, 410, e404=SESSION_GONE_EXAMPLE))
-def get_upload(upload_id: SessionId, settings: SettingsDep) -> UploadOut:
+            responses=error_responses(403, 404, 410, e403=NOT_YOURS_EXAMPLE, e404=SESSION_GONE_EXAMPLE))
+def get_upload(upload_id: SessionId, settings: SettingsDep, principal: PrincipalDep) -> UploadOut:
     """What a client resuming after a dropped connection needs: the parts received and those missing."""
+    _require_session_owner(settings, upload_id, principal)
     return UploadOut.of(sessions.state(settings, upload_id))
 
 
@@ -109,7 +124,7 @@ def get_upload(upload_id: SessionId, settings: SettingsDep) -> UploadOut:
     openapi_extra={"requestBody": {"required": True, "content": {"application/octet-stream": {
         "schema": {"type": "string", "format": "binary"}, "example": "(the part's bytes)"}}}},
     responses=error_responses(
-        404, 409, 410, 413, 422, 507, e404=SESSION_GONE_EXAMPLE,
+        403, 404, 409, 410, 413, 422, 507, e403=NOT_YOURS_EXAMPLE, e404=SESSION_GONE_EXAMPLE,
         e409="part 3 was received already with other bytes (SHA-256 ...); delete the session to start again",
         e422="part 3: the bytes received hash to 9f86d0..., not to the X-Content-SHA256 sent"),
 )
@@ -119,12 +134,14 @@ async def put_part(
     request: Request,
     settings: SettingsDep,
     x_content_sha256: Annotated[str, Header(description="SHA-256 of the part's bytes, 64 hex digits")],
+    principal: PrincipalDep,
     response: Response,
 ) -> PartOut | Response:
     """The bytes of part ``number`` (every part has the session's part size but the last): 201 when new, 200
     when the same bytes had been received already. Its size and SHA-256 are checked before it is kept; a part
     cut off by a dropped connection leaves nothing, so it is simply sent again."""
     declared = sessions.check_sha256(x_content_sha256, "X-Content-SHA256")
+    await run_in_threadpool(_require_session_owner, settings, upload_id, principal)
     session, temp = await run_in_threadpool(sessions.incoming_file, settings, upload_id, number)
     temp_path = Path(temp.name)
     digest = hashlib.sha256()
@@ -156,7 +173,8 @@ async def put_part(
     response_model=SceneOut,
     summary="Join the parts and store the file as POST /scenes stores an upload (the session is then gone)",
     responses={202: {"model": ImportOut, "description": "a capture whose import is queued, as POST /scenes"},
-               **error_responses(404, 409, 410, 413, 415, 422, 429, 503, 507, e404=SESSION_GONE_EXAMPLE,
+               **error_responses(403, 404, 409, 410, 413, 415, 422, 429, 503, 507, e403=NOT_YOURS_EXAMPLE,
+                                 e404=SESSION_GONE_EXAMPLE,
                                  e409="2 of 40 parts not received yet: 17, 31; send them first")},
 )
 async def complete_upload(
@@ -164,7 +182,8 @@ async def complete_upload(
 ) -> SceneOut | JSONResponse:
     """Join the parts (every one must have arrived), check the whole file's SHA-256 when the session has one, and
     validate and store it as ``POST /scenes`` does: 201 with the scene, or 202 with the queued import of a
-    capture."""
+    capture. The scene (or import) is the session's owner's."""
+    await run_in_threadpool(_require_session_owner, settings, upload_id, principal)
     async with upload_slot(request, settings):
         settings.make_dirs()
         handle, name = tempfile.mkstemp(prefix="session-", suffix=".upload", dir=settings.staging_dir)
@@ -182,8 +201,9 @@ async def complete_upload(
 
 
 @router.delete("/uploads/{upload_id}", status_code=204, summary="Abandon an upload session and its parts",
-               responses=error_responses(404, e404=SESSION_GONE_EXAMPLE))
-def delete_upload(upload_id: SessionId, settings: SettingsDep) -> Response:
+               responses=error_responses(403, 404, e403=NOT_YOURS_EXAMPLE, e404=SESSION_GONE_EXAMPLE))
+def delete_upload(upload_id: SessionId, settings: SettingsDep, principal: PrincipalDep) -> Response:
     """Remove the session and the parts received (an expired one too)."""
+    _require_session_owner(settings, upload_id, principal)
     sessions.delete(settings, upload_id)
     return Response(status_code=204)

@@ -3,7 +3,8 @@ connections that drop; completed, the file takes the path a one-request upload t
 
 A session lives in ``upload_sessions_dir/<id>/`` and needs no database row:
 
-- ``session.json``: what :func:`create` was told and chose (file name, size, SHA-256, part size), written once;
+- ``session.json``: what :func:`create` was told and chose (file name, size, SHA-256, part size, the token
+  that opened it), written once;
 - ``parts/<n>.<sha256>``: each part received, renamed there whole once its size and hash are checked, so a part
   is either absent or complete (a dropped connection leaves only a temporary file, removed at once);
 - ``lock``: taken (``flock``) while a part is added or the session is completed or removed, so two requests for
@@ -59,6 +60,9 @@ class Session:
     part_bytes: int
     sha256: str | None  # of the whole file, checked at completion when given
     created_at: float
+    # the token that opened it, the only one but an admin that may use it (None: opened before sessions had
+    # owners, the admin's)
+    created_by: str | None = None
 
     @property
     def part_count(self) -> int:
@@ -151,9 +155,10 @@ def check_sha256(value: str | None, what: str) -> str | None:
 
 
 def create(settings: Settings, filename: str, total_bytes: int, sha256: str | None, name: str | None,
-           splits: str | None) -> SessionState:
-    """Open a session for a file of ``total_bytes``: 413 past ``max_upload_session_bytes``, 429 when
-    ``max_upload_sessions`` are open, 507 when the disk has no room for the file."""
+           splits: str | None, created_by: str | None) -> SessionState:
+    """Open a session for a file of ``total_bytes``, owned by the token named ``created_by``: 413 past
+    ``max_upload_session_bytes``, 429 when ``max_upload_sessions`` are open, 507 when the disk has no room for the
+    file."""
     if total_bytes > settings.max_upload_session_bytes:
         raise UploadError(413, f"total_bytes: {total_bytes} bytes is more than the {settings.max_upload_session_bytes}"
                                " an upload session takes (VOXNERF_MAX_UPLOAD_SESSION_BYTES)")
@@ -164,7 +169,7 @@ def create(settings: Settings, filename: str, total_bytes: int, sha256: str | No
             raise UploadError(429, f"{settings.max_upload_sessions} upload sessions are open "
                                    "(VOXNERF_MAX_UPLOAD_SESSIONS): complete or delete one, or wait for one to expire")
         session = Session(secrets.token_hex(16), filename, name, splits, total_bytes,
-                          part_size_for(settings, total_bytes), sha256, time.time())
+                          part_size_for(settings, total_bytes), sha256, time.time(), created_by)
         staging = Path(tempfile.mkdtemp(prefix=".new-", dir=settings.upload_sessions_dir))
         try:
             (staging / PARTS_DIR).mkdir()
@@ -177,6 +182,15 @@ def create(settings: Settings, filename: str, total_bytes: int, sha256: str | No
             shutil.rmtree(staging, ignore_errors=True)
             raise
     return state(settings, session.id)
+
+
+def owner(settings: Settings, session_id: str) -> str | None:
+    """The token that opened the session (None: opened before sessions had owners), expired or not;
+    SessionGone 404 when there is none."""
+    try:
+        return _read(_dir(settings, session_id)).created_by
+    except FileNotFoundError:
+        raise SessionGone(404, f"no upload session {session_id} (completed, deleted or expired)") from None
 
 
 def state(settings: Settings, session_id: str) -> SessionState:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
+import json
 import sqlite3
 import stat
 
@@ -155,6 +156,49 @@ def test_the_legacy_token_is_principal_admin_and_acts_on_everyones_work(service,
         assert mine["created_by"] == "admin"
         assert admin.delete(f"/scenes/{extra['id']}").status_code == 204  # alice's, deleted by the admin
         assert admin.delete(f"/scenes/{mine['id']}").status_code == 204
+
+
+def test_an_upload_session_belongs_to_the_token_that_opened_it(service, named, micro_room):
+    """Bob can neither read, add to, complete nor delete Alice's upload session (the session stays as it was); an
+    admin can read it; Alice completes it into her own scene. A session opened before sessions had owners is the
+    admin's."""
+    data = zip_scene(micro_room)
+    sha = hashlib.sha256(data).hexdigest()
+    with _as(service, named["alice"]) as alice, _as(service, named["bob"]) as bob, \
+            _as(service, named["root"]) as root:
+        opened = alice.post("/uploads", json={"filename": "room.zip", "total_bytes": len(data)})
+        assert opened.status_code == 201 and opened.json()["created_by"] == "alice"
+        upload_id = opened.json()["id"]
+        scenes_before = {s["id"] for s in root.get("/scenes").json()}
+        refused = {
+            "read": bob.get(f"/uploads/{upload_id}"),
+            "part": bob.put(f"/uploads/{upload_id}/parts/0", content=data, headers={"X-Content-SHA256": sha}),
+            "complete": bob.post(f"/uploads/{upload_id}/complete"),
+            "delete": bob.delete(f"/uploads/{upload_id}"),
+        }
+        for what, response in refused.items():
+            assert response.status_code == 403, (what, response.text)
+            assert response.json()["detail"] == (
+                f"upload session {upload_id} was made by 'alice'; token 'bob' (scope write) may read, send parts "
+                "to, complete or delete only its own work (scope admin acts on all)"), what
+        seen = root.get(f"/uploads/{upload_id}")
+        assert seen.status_code == 200 and seen.json()["received_parts"] == []  # bob's part was not kept
+        assert bob.get("/uploads/" + "0" * 32).status_code == 404  # no session: 404, owner or not
+
+        assert alice.put(f"/uploads/{upload_id}/parts/0", content=data,
+                         headers={"X-Content-SHA256": sha}).status_code == 201
+        scene = alice.post(f"/uploads/{upload_id}/complete")
+        assert scene.status_code == 201, scene.text
+        assert scene.json()["created_by"] == "alice" and scene.json()["id"] not in scenes_before
+
+        legacy = root.post("/uploads", json={"filename": "old.zip", "total_bytes": 10}).json()["id"]
+        session_file = service.data_dir / "upload-sessions" / legacy / "session.json"
+        old = json.loads(session_file.read_text())
+        session_file.write_text(json.dumps({k: v for k, v in old.items() if k != "created_by"}))
+        assert bob.get(f"/uploads/{legacy}").status_code == 403
+        assert "made by no token (made before tokens existed)" in bob.delete(f"/uploads/{legacy}").json()["detail"]
+        assert root.get(f"/uploads/{legacy}").json()["created_by"] is None
+        assert root.delete(f"/uploads/{legacy}").status_code == 204
 
 
 def test_a_revoked_token_is_refused_at_once_and_its_name_is_never_given_again(service, named):
