@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -79,8 +80,10 @@ class FieldRunner:
     activations are cast to ``dtype``; density and colour come back as float32.
     """
 
-    def __init__(self, field, dtype: torch.dtype, cone_radius: float | None = None) -> None:
-        self.field, self.dtype, self.cone_radius = field, dtype, cone_radius
+    def __init__(self, field, dtype: torch.dtype,
+                 radii: Callable[[Tensor], Tensor | None] = lambda _distances: None) -> None:
+        # radii: samples' footprint radii from their distances (VoxNeRFModel.sample_radii; default: points)
+        self.field, self.dtype, self.radii = field, dtype, radii
         self.density_layers = _cast_linears(field.density_mlp, dtype)
         (first_w, first_b), *self.color_layers = _cast_linears(field.color_mlp, dtype)
         n_sh = first_w.shape[1] - field.GEO_FEATURES
@@ -93,11 +96,6 @@ class FieldRunner:
         x = self.field.features(positions, radii).to(self.dtype)
         h = _mlp(x, self.density_layers)
         return trunc_exp(h[:, 0].float()), h[:, 1:]
-
-    def radii(self, distances: Tensor) -> Tensor | None:
-        """Footprint radii [N] of samples at ``distances`` [N] (normalised units), or None where the field reads
-        points (as :meth:`voxnerf.model.voxnerf_model.VoxNeRFModel.sample_radii`)."""
-        return None if self.cone_radius is None else distances * self.cone_radius
 
     def direction_features(self, dirs: Tensor) -> Tensor:
         """[R, 3] unit directions -> [R, hidden] in ``dtype``: the direction part of the colour MLP's first
@@ -160,7 +158,8 @@ def field_runner(model, precision: str = "auto") -> FieldRunner:
     kept one went stale when training changed the weights between two evaluations (the optimiser's updates do
     not all advance the parameters' version counters).
     """
-    return FieldRunner(model.field, getattr(torch, resolve_precision(precision, model.device)), model.cone_radius)
+    return FieldRunner(model.field, getattr(torch, resolve_precision(precision, model.device)),
+                       model.sample_radii)
 
 
 @torch.no_grad()
