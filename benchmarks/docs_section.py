@@ -23,9 +23,11 @@ def replace_section(page: Path, name: str, text: str) -> None:
     write_atomic(page, (doc[: start + len(begin)] + "\n" + text.strip("\n") + "\n" + doc[stop:]).encode())
 
 
-def publish(out: Path, results: dict, text: str, page: Path, name: str, write_docs: bool) -> None:
+def publish(out: Path, results: dict, text: str, page: Path, name: str, write_docs: bool,
+            docs_text: str | None = None) -> None:
     """A benchmark's ending: ``results`` to ``out/results.json``, its markdown ``text`` to ``out/table.md`` and
-    standard output, and with ``write_docs`` into section ``name`` of ``page``."""
+    standard output, and with ``write_docs`` into section ``name`` of ``page`` (``docs_text`` there instead, when
+    the page keeps a shorter table than ``table.md``)."""
     import json
 
     out.mkdir(parents=True, exist_ok=True)
@@ -33,4 +35,4 @@ def publish(out: Path, results: dict, text: str, page: Path, name: str, write_do
     (out / "table.md").write_text(text + "\n")
     print(text)
     if write_docs:
-        replace_section(page, name, text)
+        replace_section(page, name, text if docs_text is None else docs_text)

@@ -479,6 +479,22 @@ def test_the_verdict_adopts_only_a_tuning_win_that_holds_on_every_confirmation_s
                     "tuning half (+0.30 / +0.25 dB) but c2 loses 0.31 dB of extrapolation |"]
 
 
+def test_the_docs_table_leaves_every_run_to_table_md(tmp_path: Path) -> None:
+    results = _made_up({"t1": (0.4, 0.6), "c1": (0.1, 0.5)}, config="sampler-grid")
+    halves = {"t1": "tuning", "c1": "confirmation"}
+    full = suite.table(results, ["t1", "c1"], halves, 300, None, "CMD")
+    short = suite.table(results, ["t1", "c1"], halves, 300, None, "CMD", every_run=False)
+    assert "**Every run**" in full and "| sampler-grid | c1 |" in full
+    assert "**Every run**" not in short and "| sampler-grid | c1 |" not in short
+    assert short.endswith("`table.md` in the command's `--out`.\n")
+    assert full.split("**Every run**")[0] == short.split("Every run's PSNR")[0]  # the same halves and verdicts
+    page = tmp_path / "page.md"
+    page.write_text("<!-- s:begin -->\n<!-- s:end -->\n")
+    docs_section.publish(tmp_path / "out", {}, full, page, "s", write_docs=True, docs_text=short)
+    assert (tmp_path / "out" / "table.md").read_text() == full + "\n"
+    assert page.read_text() == "<!-- s:begin -->\n" + short.strip("\n") + "\n<!-- s:end -->\n"
+
+
 def test_suite_geometry_needs_a_true_mesh(tmp_path: Path, capsys) -> None:
     assert suite_geometry.main(["--runs", str(tmp_path), "--scene", "x", "--scene-dir", str(tmp_path)]) == 2
     assert "gt_mesh.ply: no true mesh" in capsys.readouterr().err
