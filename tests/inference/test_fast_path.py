@@ -64,13 +64,29 @@ def test_without_skipping_the_fast_path_is_the_full_path(sampler, cone_radius):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 @pytest.mark.parametrize("fused", [False, True])
 def test_linear_relu_is_relu_of_the_linear_layer(dtype, fused, monkeypatch):
-    if fused and not inference._fused_linear_relu():
-        pytest.skip("this torch has no fused oneDNN linear + ReLU")
-    monkeypatch.setattr(inference, "_fused_linear_relu", lambda: fused)
+    if fused and not inference._fused_linear_relu(dtype):
+        pytest.skip("this torch or CPU has no fused oneDNN linear + ReLU in this dtype")
+    monkeypatch.setattr(inference, "_fused_linear_relu", lambda dtype: fused)
     x, w, b = (torch.randn(*shape).to(dtype) for shape in ((300, 24), (64, 24), (64,)))
     out = linear_relu(x, w, b)
     assert out.dtype == dtype and out.shape == (300, 64) and bool((out >= 0).all())
     assert torch.equal(out, torch.nn.functional.linear(x, w, b).relu())
+
+
+def test_a_dtype_the_cpu_cannot_fuse_is_probed_false_and_runs_unfused(monkeypatch):
+    """oneDNN refuses a bfloat16 product on a CPU without AVX-512 (RuntimeError: no primitive descriptor): the probe
+    says so for that dtype, and linear_relu then runs the two operations."""
+    def refuses(x, *args):
+        if x.dtype == torch.bfloat16:
+            raise RuntimeError("could not create a primitive descriptor for the inner product forward propagation")
+        return torch.nn.functional.linear(x, *args[:2]).relu()
+
+    monkeypatch.setattr(torch.ops.mkldnn, "_linear_pointwise", refuses)
+    probe = inference._fused_linear_relu.__wrapped__
+    assert probe(torch.float32) and not probe(torch.bfloat16)
+    monkeypatch.setattr(inference, "_fused_linear_relu", probe)
+    x, w, b = (torch.randn(*shape).to(torch.bfloat16) for shape in ((30, 24), (64, 24), (64,)))
+    assert torch.equal(linear_relu(x, w, b), torch.nn.functional.linear(x, w, b).relu())
 
 
 def test_the_runner_splits_the_field_without_changing_it():

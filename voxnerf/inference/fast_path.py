@@ -124,19 +124,21 @@ def _mlp(x: Tensor, layers: list[tuple[Tensor, Tensor]]) -> Tensor:
 
 def linear_relu(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
     """``relu(x @ weight.T + bias)``; on the CPU in one oneDNN call (the ReLU fused into the matrix product's
-    output) where this torch has it, else two operations."""
-    if x.device.type == "cpu" and _fused_linear_relu():
+    output) where this torch and this CPU have it for ``x``'s dtype, else two operations."""
+    if x.device.type == "cpu" and _fused_linear_relu(x.dtype):
         return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "relu", [None], "")
     return nn.functional.linear(x, weight, bias).relu_()
 
 
 @functools.cache
-def _fused_linear_relu() -> bool:
-    """Whether oneDNN's fused linear + ReLU runs here and agrees with the unfused pair (probed once)."""
+def _fused_linear_relu(dtype: torch.dtype = torch.float32) -> bool:
+    """Whether oneDNN's fused linear + ReLU runs here in ``dtype`` and agrees with the unfused pair (probed once per
+    dtype: oneDNN's bfloat16 product needs a CPU with AVX-512, so an AVX2 CPU has it in float32 only)."""
     try:
-        x, w, b = torch.randn(4, 8), torch.randn(3, 8), torch.randn(3)
+        x, w, b = (torch.randn(*shape).to(dtype) for shape in ((4, 8), (3, 8), (3,)))
         fused = torch.ops.mkldnn._linear_pointwise(x, w, b, "relu", [None], "")
-        return bool(torch.allclose(fused, nn.functional.linear(x, w, b).relu(), atol=1e-5))
+        unfused = nn.functional.linear(x.float(), w.float(), b.float()).relu()
+        return bool(torch.allclose(fused.float(), unfused, atol=1e-5 if dtype == torch.float32 else 0.1))
     except (AttributeError, RuntimeError, NotImplementedError):
         return False
 
