@@ -154,6 +154,8 @@ CONFIGS: dict[str, dict] = {
     # window measurement), and the default window at half the paper's width.
     "window-entry": {"window_centre": "entry"},
     "window-half": {"window_width": 0.5},
+    # Renders and checkpoints from an exponential moving average of the field's parameters (a lag of 200 steps).
+    "weight-average": {"weight_average": 0.995},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
     "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine

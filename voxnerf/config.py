@@ -269,6 +269,12 @@ class ScheduleConfig(_Section):
         "coarse_levels to all (a smooth ramp per level); 0 trains every level from the start",
     )
     coarse_levels: int = Field(default=4, ge=1, description="hash levels active at the start of coarse_to_fine")
+    weight_average: float = Field(
+        default=0.0, ge=0.0, lt=1.0,
+        description="renders, checkpoints and evaluations use an exponential moving average of the field's "
+        "parameters with this decay per step (a lag of about 1 / (1 - decay) steps) while the optimiser steps the "
+        "live ones (voxnerf/training/weight_average.py); 0 uses the last step's parameters",
+    )
 
     @field_validator("lr")
     @classmethod

@@ -23,6 +23,7 @@ from voxnerf.errors import RunError, TrainingDiverged
 from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.training.budget import Budget
 from voxnerf.training.records import EvalRecord, TrainReport
+from voxnerf.training.weight_average import WeightAverage
 
 PLAIN_LEAVES = (torch.Tensor, bool, int, float, str, type(None))
 
@@ -135,9 +136,9 @@ class CheckpointWriter:
     when the weights are no longer finite, so the last good checkpoint stays."""
 
     def __init__(self, path: Path, model: VoxNeRFModel, optimizer: torch.optim.Optimizer, budget: Budget,
-                 history: list[EvalRecord], scene: Scene) -> None:
+                 history: list[EvalRecord], scene: Scene, average: WeightAverage | None = None) -> None:
         self.path, self.model, self.optimizer, self.budget = path, model, optimizer, budget
-        self.history, self.scene = history, scene
+        self.history, self.scene, self.average = history, scene, average
 
     def __call__(self, iteration: int) -> None:
         if not params_finite(self.model):
@@ -145,9 +146,18 @@ class CheckpointWriter:
         save_atomic_torch(self.contents(iteration), self.path)
 
     def contents(self, iteration: int) -> dict:
+        """The model renders use (the field's averaged parameters with ``average``, whose live ones then go in
+        ``field_live`` for a resumed run), the optimiser, the step, the training time, the history and the scene's
+        defaults."""
         first = self.scene.intrinsics(self.scene.train_indices[0])
+        model = self.model.state_dict()
+        live = {}
+        if self.average is not None:
+            live = {"field_live": model["field"]}
+            model["field"] = self.average.field_state()
         return {
-            "model": self.model.state_dict(),
+            "model": model,
+            **live,
             "optimizer": self.optimizer.state_dict(),
             "iteration": iteration,
             "train_seconds": self.budget.train_seconds,

@@ -64,6 +64,7 @@ from voxnerf.training.loop import Callback, Limits, LoopState, run_loop
 from voxnerf.training.records import StageRecord, TrainReport
 from voxnerf.training.setup import SetupContext, run_setup
 from voxnerf.training.step import TrainStep, make_loss_fn
+from voxnerf.training.weight_average import WeightAverage
 
 
 class LeaseLost(RunError):
@@ -212,18 +213,19 @@ def _optimise(run: Run, setup: SetupContext, progress_bar: bool) -> TrainReport:
     misses = step.sampler.misses if isinstance(step.sampler, VoxNeRFSampler) else None
     run.report.runtime = compute_environment(run.device) | {"octree_misses": misses}
     views = eval_views_of(setup.scene, built.transform)
-    evaluate = _progress_evaluator(partial(progress_eval, built.model, views, cfg, run.report.history, budget))
+    average = WeightAverage.of(built.model.field, cfg.schedule.weight_average, built.averaged_field)
+    evaluate = _progress_evaluator(_averaged(average, partial(progress_eval, built.model, views, cfg,
+                                                              run.report.history, budget)))
     evaluation = ProgressEvaluation(evaluate, budget, cfg, view_rays(progress_views(views, cfg.evaluation.eval_views)),
                                     run.events, run.report.warnings)
     save = _fenced(run, CheckpointWriter(run.dir / CHECKPOINT, built.model, built.optimizer, budget,
-                                         run.report.history, setup.scene))
+                                         run.report.history, setup.scene, average))
     saving = Checkpointing(save, cfg.run.checkpoint_every_s, budget)
     grid = OccupancyGridUpdate.for_config(built.model, cfg, setup.octree is not None)
     timer = _compile_density_and_time(run, compiled, step, grid)
     bar = ProgressBar.create(cfg.run.max_iters, built.iteration, progress_bar)
-    progress = TrainingProgress(budget, cfg.run.max_iters)
-    schedules = _schedules(cfg, built, step, progress)
-    callbacks = present([evaluation, *schedules, timer, bar, grid, saving, run.events])
+    schedules = _schedules(cfg, built, step, TrainingProgress(budget, cfg.run.max_iters))
+    callbacks = present([average, evaluation, *schedules, timer, bar, grid, saving, run.events])
     state = LoopState(built.iteration)
     if timer is not None:
         timer.loop_starts()
@@ -237,7 +239,20 @@ def _optimise(run: Run, setup: SetupContext, progress_bar: bool) -> TrainReport:
     bar.close()
     if timer is not None:
         timer.finish(state.iteration)
-    return _finish(run, setup, views, save, status, state)
+    return _finish(run, setup, views, save, status, state, average)
+
+
+def _averaged(average: WeightAverage | None, evaluate: Callable[..., tuple[float, float]]
+              ) -> Callable[..., tuple[float, float]]:
+    """``evaluate`` run on the field's averaged parameters (the live ones back after it), or as it is."""
+    if average is None:
+        return evaluate
+
+    def on_average(*args, **kwargs) -> tuple[float, float]:
+        with average.applied():
+            return evaluate(*args, **kwargs)
+
+    return on_average
 
 
 def _compile_density_and_time(run: Run, compiled: stages.CompileStage, step: TrainStep,
@@ -290,14 +305,17 @@ def _diverged(run: Run, exc: TrainingDiverged, iteration: int) -> TrainingDiverg
 
 
 def _finish(run: Run, setup: SetupContext, views: EvalViews, save: Callable[[int], None], status: str,
-            state: LoopState) -> TrainReport:
-    """The train stage, the last checkpoint, the final evaluation and the report."""
+            state: LoopState, average: WeightAverage | None = None) -> TrainReport:
+    """The train stage, the last checkpoint, the final evaluation (of the averaged field, with ``average``) and
+    the report."""
     report, budget, iteration = run.report, run.budget, state.iteration
     budget.end_training()
     train_seconds = budget.train_seconds
     report.stages.append(StageRecord(name="train", ran=iteration > 0, why=f"{status} at iteration {iteration}",
                                      seconds=train_seconds))
     save(iteration)
+    if average is not None:
+        average.apply()
     if setup.built.model.pose_refinement is not None:
         _write_refined_poses(run, setup)
     if setup.built.model.appearance is not None:

@@ -43,7 +43,8 @@ def scene_box(scene: Scene, prior: GeometryPrior | None) -> tuple[SceneTransform
 
 @dataclass
 class ModelStage:
-    """The model in the scene box, its optimiser, and where a resumed run continues (iteration, history)."""
+    """The model in the scene box, its optimiser, and where a resumed run continues (iteration, history, and the
+    field's averaged parameters when it averaged them: ``schedule.weight_average``)."""
 
     transform: SceneTransform
     prior_n: GeometryPrior | None  # the prior in normalised units
@@ -52,6 +53,7 @@ class ModelStage:
     iteration: int = 0
     history: list[EvalRecord] = field(default_factory=list)
     resumed: bool = False
+    averaged_field: dict | None = None
 
 
 def training_mean_colour(scene: Scene) -> tuple[float, float, float]:
@@ -114,6 +116,9 @@ def model_stage(cfg: TrainConfig, scene: Scene, prior: GeometryPrior | None, dev
     stage = ModelStage(transform, prior_n, model, optimizer)
     if previous is not None:
         model.field.load_state_dict(previous["model"]["field"])
+        if previous.get("field_live") is not None:  # the run averaged its weights: "model" holds the average
+            stage.averaged_field = previous["model"]["field"]
+            model.field.load_state_dict(previous["field_live"])
         model.grid.load_state_dict(previous["model"]["grid"])
         if model.appearance is not None and previous["model"].get("appearance") is not None:
             model.appearance.load_state_dict(previous["model"]["appearance"])
