@@ -4,9 +4,6 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SERVICE_STAMP := $(VENV)/.installed-service
 DEV_STAMP := $(VENV)/.installed-dev
-# `make test` runs the suite in this many processes (pytest-xdist), each taking a whole test file at a time so that a
-# file's module fixtures (its services, its trained runs) start once; TEST_PROCESSES=0 runs it in this process.
-TEST_PROCESSES ?= 2
 
 .PHONY: install install-service run test lint bench clean
 
@@ -28,7 +25,7 @@ run: $(SERVICE_STAMP)
 
 test: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q -ra -n $(TEST_PROCESSES) --dist loadfile
+	$(PY) -m pytest -q -ra
 
 # Every benchmark whose table of record docs/benchmarks.md keeps, alone on the machine (about 2 hours on 2 cores): make bench OUT=DIR
 bench: $(DEV_STAMP)
