@@ -1,4 +1,5 @@
-"""Shared fixtures: the shared data directory and small synthetic scenes (generated once per session)."""
+"""Shared fixtures: the shared data directory, small synthetic scenes (generated once per session) and one run
+trained on the small room that several test files read."""
 
 from __future__ import annotations
 
@@ -25,3 +26,18 @@ def small_room(tmp_path_factory) -> Path:
     make_room_scene(out, RoomSpec(width=64, height=48, n_frames=120, train_every=6, gap_len=20,
                                   prior_max_points=100_000))
     return out
+
+
+@pytest.fixture(scope="session")
+def trained_small_room(small_room, tmp_path_factory) -> Path:
+    """``small_room`` trained as ``voxnerf train`` would (compiled step, C kernel where available) for 500 steps
+    of 1024 rays on the CPU, progress evaluations every 20 s and a final evaluation. Read by the end-to-end
+    checks (tests/test_end_to_end.py) and the geometry export's (tests/inference/test_export.py); tests write
+    nothing into it."""
+    from voxnerf.config import TrainConfig
+    from voxnerf.training.run import train
+
+    run = tmp_path_factory.mktemp("runs") / "small_room"
+    config = TrainConfig(max_iters=500, rays_per_batch=1024, device="cpu", eval_every_s=20.0)
+    train(small_room, run, config, progress_bar=False)
+    return run

@@ -233,11 +233,11 @@ class Service:
         return "\n".join(parts)
 
     def stop(self) -> None:
-        for proc in self.procs.values():  # every warm shutdown starts at once
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
+        """Tear the service down: SIGKILL every process group at once. An idle worker's warm shutdown takes
+        seconds (Celery's loop wakes, the pool's process is joined), which every test's teardown would pay; warm
+        shutdowns are test_serve_signals.py's subject (and :meth:`restart_api`'s)."""
         for name in list(self.procs):
-            stop_process(self.procs.pop(name))
+            stop_process(self.procs.pop(name), kill=True)
 
 
 def start_service(

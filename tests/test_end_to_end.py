@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from voxnerf.cli import main
-from voxnerf.config import TrainConfig
 from voxnerf.data.image_io import decode_exr
 from voxnerf.data.scene import load_scene
 from voxnerf.inference.evaluation import evaluate_views
@@ -17,17 +16,13 @@ from voxnerf.inference.render import load_model, render
 from voxnerf.model import hash_kernel
 from voxnerf.synthetic import build_room, render_view
 from voxnerf.training.eval_passes import eval_views_of
-from voxnerf.training.run import train
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def trained_run(small_room, tmp_path_factory):
-    run = tmp_path_factory.mktemp("runs") / "voxnerf"
-    config = TrainConfig(max_iters=500, rays_per_batch=1024, device="cpu", eval_every_s=20.0)
-    train(small_room, run, config, progress_bar=False)
-    return run
+def trained_run(trained_small_room):
+    return trained_small_room
 
 
 def test_report_lists_stages_and_history(trained_run):

@@ -14,7 +14,6 @@ from tiny_run import DEFAULT_INTRINSICS, write_tiny_run
 
 from voxnerf.cameras.rules import Intrinsics
 from voxnerf.cli import main
-from voxnerf.config import TrainConfig
 from voxnerf.data.scene import Frame, Scene, load_scene
 from voxnerf.errors import VoxNeRFError
 from voxnerf.inference.export import (
@@ -29,25 +28,20 @@ from voxnerf.inference.export import (
 from voxnerf.inference.export_plan import view_count, view_size
 from voxnerf.inference.render import load_model
 from voxnerf.prior.depth_fusion import DepthView, backproject
-from voxnerf.training.run import train
 
-# Measured on the fixture below (small_room, 250 iterations of 1024 rays, CPU, seed 0; exports at 2 cm): see
-# docs/engine.md, Geometry export. Bounds in metres (scene units), about twice the measured values (margin for
-# seeds and platforms; 150 iterations give 9 cm / 21 cm and fail them).
-TRAIN_ITERS = 250
+# Measured on conftest's trained_small_room (small_room, 500 iterations of 1024 rays, CPU, seed 0; exports at
+# 2 cm): see docs/engine.md, Geometry export. Bounds in metres (scene units), 2.5-3.5 times the measured values
+# (margin for seeds and platforms; a 250-iteration run gives 2-3 cm / 5-7 cm and fails two of the four).
 VOXEL = "0.02"
-MESH_ACCURACY = (0.05, 0.12)  # mean, 90th percentile: exported mesh vertices -> true mesh
-MESH_COMPLETENESS = (0.05, 0.12)  # true surface the training cameras see -> exported mesh
-CLOUD_ACCURACY = (0.05, 0.12)
-CLOUD_COMPLETENESS = (0.05, 0.12)
+MESH_ACCURACY = (0.03, 0.06)  # mean, 90th percentile: exported mesh vertices -> true mesh
+MESH_COMPLETENESS = (0.03, 0.06)  # true surface the training cameras see -> exported mesh
+CLOUD_ACCURACY = (0.03, 0.06)
+CLOUD_COMPLETENESS = (0.03, 0.06)
 
 
 @pytest.fixture(scope="module")
-def trained_room(small_room, tmp_path_factory) -> Path:
-    run = tmp_path_factory.mktemp("export") / "run"
-    config = TrainConfig(max_iters=TRAIN_ITERS, rays_per_batch=1024, device="cpu", final_eval=False)
-    train(small_room, run, config, progress_bar=False)
-    return run
+def trained_room(trained_small_room) -> Path:
+    return trained_small_room
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,9 @@
-"""Output jobs over real HTTP with real Celery workers (train, render, outputs), once on the embedded default
-(filesystem queue + SQLite, with an API token) and once on a redis-server started here.
+"""Output jobs over real HTTP with real Celery workers (train, render, outputs) on the embedded default
+(filesystem queue + SQLite, with an API token). The broker carries output messages as it carries a job's: videos
+on a redis-server, with their worker killed and the broker restarted, are the soak test's (test_soak.py); a lost
+output message is test_output_faults.py's.
 
-Each mode trains one tiny job (30 iterations: outputs need a checkpoint, not a good model) and one long job
+The service trains one tiny job (30 iterations: outputs need a checkpoint, not a good model) and one long job
 that is cancelled (a checkpoint kept), then: videos (an orbit, a path through the cameras, a posted nerfstudio
 camera path) download and decode with the asked frames, size and fps; a mesh and a point cloud download and
 parse; a running video is cancelled and leaves nothing; bad requests are refused; a cancelled job renders with
@@ -17,7 +19,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 import trimesh
-from service_fixtures import Service, first_pose, start_redis, start_service, upload_scene, wait_for
+from service_fixtures import Service, first_pose, start_service, upload_scene, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -28,26 +30,15 @@ TIMEOUT_S = 300
 SETTINGS = {"VOXNERF_HEARTBEAT_S": "0.5", "VOXNERF_PROGRESS_INTERVAL_S": "0.2", "VOXNERF_MAX_VIDEO_FRAMES": "1000"}
 
 
-@pytest.fixture(scope="module", params=["embedded", "redis"])
-def service(request, tmp_path_factory):
-    root = tmp_path_factory.mktemp(f"outputs-{request.param}")
-    redis = start_redis(root / "redis") if request.param == "redis" else None
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    svc = start_service(tmp_path_factory.mktemp("outputs") / "service", token=TOKEN, settings=SETTINGS)
     try:
-        svc = start_service(
-            root / "service",
-            broker_url=redis.url if redis else None,
-            token=TOKEN if request.param == "embedded" else None,
-            settings=SETTINGS,
-        )
-        try:
-            svc.start_worker("outputs")
-            wait_for(lambda: svc.wait_healthy()["workers"].get("outputs"), 120, "an outputs worker in /healthz")
-            yield svc
-        finally:
-            svc.stop()
+        svc.start_worker("outputs")
+        wait_for(lambda: svc.wait_healthy()["workers"].get("outputs"), 120, "an outputs worker in /healthz")
+        yield svc
     finally:
-        if redis is not None:
-            redis.stop()
+        svc.stop()
 
 
 @pytest.fixture(scope="module")
