@@ -1,7 +1,8 @@
-"""voxnerf.client and ``voxnerf remote`` against the real service (uvicorn, Celery workers) on both broker modes:
-upload (one request, and an upload session), train a tiny job, wait, render, download; the remote CLI through
-subprocesses (upload's last line is the scene id; ``train --wait`` exits 0 for a job that succeeded and 1 for one
-that failed; refusals are one line)."""
+"""voxnerf.client and ``voxnerf remote`` against the real service (uvicorn, Celery workers) on the embedded broker
+(the client speaks HTTP only: the broker behind the API is tests/service/test_service.py's, on both modes, and a
+job's event stream on Redis is test_events.py's): upload (one request, and an upload session), train a tiny job,
+wait, render, download; the remote CLI through subprocesses (upload's last line is the scene id; ``train --wait``
+exits 0 for a job that succeeded and 1 for one that failed; refusals are one line)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from service_fixtures import REPO, start_redis, start_service, wait_for, zip_scene
+from service_fixtures import REPO, start_service, wait_for, zip_scene
 
 from app.schemas import SceneOut
 from voxnerf.client import ApiError, Client
@@ -28,18 +29,12 @@ TINY_FLAGS = ["--max-iters", "2", "--no-compile", "--downscale", "4"]
 JOB_TIMEOUT_S = 300
 
 
-@pytest.fixture(scope="module", params=["embedded", "redis"])
-def service(request, tmp_path_factory):
-    root = tmp_path_factory.mktemp(f"client-{request.param}")
-    redis = start_redis(root / "redis") if request.param == "redis" else None
-    try:
-        svc = start_service(root / "service", broker_url=redis.url if redis else None, token=TOKEN,
-                            settings={"VOXNERF_UPLOAD_PART_BYTES": str(256 * 1024), "OMP_NUM_THREADS": "1"})
-        yield svc
-        svc.stop()
-    finally:
-        if redis is not None:
-            redis.stop()
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    svc = start_service(tmp_path_factory.mktemp("client") / "service", token=TOKEN,
+                        settings={"VOXNERF_UPLOAD_PART_BYTES": str(256 * 1024), "OMP_NUM_THREADS": "1"})
+    yield svc
+    svc.stop()
 
 
 def _test_frame(scene_dir: Path) -> str:
@@ -116,8 +111,6 @@ def _remote(service, *args: str, token: str | None = TOKEN, timeout_s: float = J
 
 
 def test_remote_cli_upload_train_wait_status_render_download(service, small_room, tmp_path):
-    if service.mode != "embedded":
-        pytest.skip("the CLI is the client's: one broker mode is enough")
     uploaded = _remote(service, "upload", str(small_room), "--name", "from the cli")
     assert uploaded.returncode == 0, uploaded.stderr
     scene_id = uploaded.stdout.strip().splitlines()[-1]
@@ -154,8 +147,6 @@ def test_remote_cli_upload_train_wait_status_render_download(service, small_room
 
 
 def test_remote_train_wait_exits_1_when_the_job_fails(service, small_room, tmp_path):
-    if service.mode != "embedded":
-        pytest.skip("the CLI is the client's: one broker mode is enough")
     uploaded = _remote(service, "upload", str(small_room))
     scene_id = uploaded.stdout.strip().splitlines()[-1]
     service.kill("train")  # the job waits in the queue while its scene loses its transforms.json
@@ -177,8 +168,6 @@ def test_remote_train_wait_exits_1_when_the_job_fails(service, small_room, tmp_p
 
 
 def test_remote_refusals_are_one_line(service, small_room, tmp_path):
-    if service.mode != "embedded":
-        pytest.skip("the CLI is the client's: one broker mode is enough")
     unknown = _remote(service, "status", "0" * 32, timeout_s=60)
     assert unknown.returncode == 2 and unknown.stderr == f"voxnerf: error: no job {'0' * 32} (HTTP 404)\n"
     no_token = _remote(service, "status", token=None, timeout_s=60)
