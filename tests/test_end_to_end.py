@@ -20,13 +20,8 @@ from voxnerf.training.eval_passes import eval_views_of
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope="module")
-def trained_run(trained_small_room):
-    return trained_small_room
-
-
-def test_report_lists_stages_and_history(trained_run):
-    report = json.loads((trained_run / "report.json").read_text())
+def test_report_lists_stages_and_history(trained_small_room):
+    report = json.loads((trained_small_room / "report.json").read_text())
     assert report["status"] == "succeeded" and report["iteration"] == 500
     stages = {s["name"]: s for s in report["stages"]}
     for name in ("load_scene", "prior", "octree", "pseudo_depth", "first_hit_cache", "train", "final_eval"):
@@ -44,8 +39,8 @@ def test_report_lists_stages_and_history(trained_run):
     assert report["config"]["smooth_patches"] == 0
 
 
-def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_run, small_room):
-    report = json.loads((trained_run / "report.json").read_text())
+def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_small_room, small_room):
+    report = json.loads((trained_small_room / "report.json").read_text())
     scene = load_scene(small_room)
     for split in ("interpolation", "extrapolation"):
         idx = scene.splits[split]
@@ -55,7 +50,7 @@ def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_run, 
         margin = 3.0 if split == "interpolation" else 0.3  # extrapolation views see much unseen geometry
         assert report["metrics"][split]["psnr"] > np.mean(const) + margin, split
 
-    trained = load_model(trained_run, "cpu")
+    trained = load_model(trained_small_room, "cpu")
     geom = build_room(0)
     errors = []
     for i in scene.splits["interpolation"][:3]:
@@ -67,8 +62,8 @@ def test_heldout_psnr_beats_constant_colour_and_depth_tracks_truth(trained_run, 
     assert float(np.median(np.concatenate([e.ravel() for e in errors]))) < 0.05
 
 
-def test_the_fast_render_path_scores_within_a_fifth_of_a_db_of_the_full_path(trained_run):
-    trained = load_model(trained_run, "cpu")
+def test_the_fast_render_path_scores_within_a_fifth_of_a_db_of_the_full_path(trained_small_room):
+    trained = load_model(trained_small_room, "cpu")
     scene = load_scene(trained.scene_dir, downscale=trained.model.config.run.downscale)
     views = eval_views_of(scene, trained.model.transform)
     fast, full = (evaluate_views(trained.model, views, trained.model.config, lpips=False, path=path)
@@ -78,21 +73,21 @@ def test_the_fast_render_path_scores_within_a_fifth_of_a_db_of_the_full_path(tra
         assert fast[split]["renderer"].startswith("fast") and full[split]["renderer"].startswith("full")
 
 
-def test_cli_eval_and_render(trained_run, tmp_path, capsys):
-    assert main(["eval", str(trained_run), "--split", "extrapolation", "--json", str(tmp_path / "m.json")]) == 0
+def test_cli_eval_and_render(trained_small_room, tmp_path, capsys):
+    assert main(["eval", str(trained_small_room), "--split", "extrapolation", "--json", str(tmp_path / "m.json")]) == 0
     metrics = json.loads((tmp_path / "m.json").read_text())
     assert metrics["split"] == "extrapolation" and {"psnr", "ssim", "lpips", "views"} <= set(metrics)
-    frame = load_model(trained_run, "cpu")
+    frame = load_model(trained_small_room, "cpu")
     c2w = np.eye(4)
     c2w[:3, 3] = [0.0, 0.0, 1.4]
     pose = {"transform_matrix": c2w.tolist(), "w": 40, "h": 30}
     (tmp_path / "pose.json").write_text(json.dumps(pose))
-    assert main(["render", str(trained_run), "--pose", str(tmp_path / "pose.json"), "--out",
+    assert main(["render", str(trained_small_room), "--pose", str(tmp_path / "pose.json"), "--out",
                  str(tmp_path / "v.exr"), "--depth", "--opacity"]) == 0
     channels = decode_exr((tmp_path / "v.exr").read_bytes())
     assert set(channels) == {"R", "G", "B", "Z", "A"} and channels["Z"].shape == (30, 40)
     assert np.isfinite(channels["Z"]).all() and (channels["Z"] > 0).all()
-    assert main(["render", str(trained_run), "--pose", str(tmp_path / "pose.json"), "--out",
+    assert main(["render", str(trained_small_room), "--pose", str(tmp_path / "pose.json"), "--out",
                  str(tmp_path / "v.png")]) == 0
     assert frame.default_intrinsics.width == 64
 

@@ -31,7 +31,7 @@ from voxnerf.prior.depth_fusion import DepthView, backproject
 
 # Measured on conftest's trained_small_room (small_room, 500 iterations of 1024 rays, CPU, seed 0; exports at
 # 2 cm): see docs/engine.md, Geometry export. Bounds in metres (scene units), 2.5-3.5 times the measured values
-# (margin for seeds and platforms; a 250-iteration run gives 2-3 cm / 5-7 cm and fails two of the four).
+# (margin for seeds and platforms).
 VOXEL = "0.02"
 MESH_ACCURACY = (0.03, 0.06)  # mean, 90th percentile: exported mesh vertices -> true mesh
 MESH_COMPLETENESS = (0.03, 0.06)  # true surface the training cameras see -> exported mesh
@@ -40,17 +40,12 @@ CLOUD_COMPLETENESS = (0.03, 0.06)
 
 
 @pytest.fixture(scope="module")
-def trained_room(trained_small_room) -> Path:
-    return trained_small_room
-
-
-@pytest.fixture(scope="module")
-def exported(trained_room, tmp_path_factory) -> dict[str, Path]:
+def exported(trained_small_room, tmp_path_factory) -> dict[str, Path]:
     """The room's mesh and point cloud, written by the CLI at 2 cm voxels."""
     out = tmp_path_factory.mktemp("geometry")
     paths = {"mesh": out / "room_mesh.ply", "pointcloud": out / "room_points.ply"}
-    code = main(["export", str(trained_room), "--mesh", str(paths["mesh"]), "--pointcloud", str(paths["pointcloud"]),
-                 "--voxel-size", VOXEL, "--device", "cpu"])
+    code = main(["export", str(trained_small_room), "--mesh", str(paths["mesh"]),
+                 "--pointcloud", str(paths["pointcloud"]), "--voxel-size", VOXEL, "--device", "cpu"])
     assert code == 0
     return paths
 
@@ -113,8 +108,8 @@ def test_geometry_is_in_scene_units_with_plausible_colours(exported, small_room,
         np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
 
 
-def test_mesh_export_is_deterministic(trained_room, tmp_path):
-    trained = load_model(trained_room, "cpu")
+def test_mesh_export_is_deterministic(trained_small_room, tmp_path):
+    trained = load_model(trained_small_room, "cpu")
     first, second = (export_geometry(trained, tmp_path / f"{i}.ply", "mesh", voxel_size=0.05, max_views=12)
                      for i in range(2))
     assert first.faces > 0 and not first.stopped
@@ -268,15 +263,15 @@ def test_cli_needs_an_output(tmp_path, capsys):
     assert "--mesh" in capsys.readouterr().err
 
 
-def test_cli_bad_voxel_size(trained_room, tmp_path, capsys):
-    assert main(["export", str(trained_room), "--mesh", str(tmp_path / "m.ply"), "--voxel-size", "nan"]) == 2
+def test_cli_bad_voxel_size(trained_small_room, tmp_path, capsys):
+    assert main(["export", str(trained_small_room), "--mesh", str(tmp_path / "m.ply"), "--voxel-size", "nan"]) == 2
     assert "voxel_size" in capsys.readouterr().err
     assert not (tmp_path / "m.ply").exists()
 
 
-def test_cli_prints_progress_and_a_summary(exported, capsys, trained_room, tmp_path):
+def test_cli_prints_progress_and_a_summary(exported, capsys, trained_small_room, tmp_path):
     out = tmp_path / "coarse.ply"
-    assert main(["export", str(trained_room), "--pointcloud", str(out), "--voxel-size", "0.1",
+    assert main(["export", str(trained_small_room), "--pointcloud", str(out), "--voxel-size", "0.1",
                  "--max-views", "5"]) == 0
     captured = capsys.readouterr()
     assert "pointcloud: 5/5 views" in captured.err
