@@ -488,7 +488,7 @@ const keysDown = new Set();
 let flyFrame = 0, flyLast = 0;
 
 function flyStep(now) {
-  const seconds = Math.min(0.1, (now - flyLast) / 1000);
+  const seconds = Math.min(0.1, Math.max(0, now - flyLast) / 1000); // a frame's time may precede the key's
   flyLast = now;
   let move = [0, 0, 0];
   for (const code of keysDown) move = add(move, KEY_MOVES[code]);
@@ -623,8 +623,10 @@ async function previewPath() {
     return;
   }
   stopPlaying();
-  const started = performance.now(), [width, height] = path.size;
+  const [width, height] = path.size;
+  let started = null; // the first frame's timestamp: a frame's time may precede the click's performance.now()
   const step = (now) => {
+    started ??= now;
     const i = Math.min(path.frames.length - 1, Math.floor(((now - started) / 1000) * path.fps));
     const frame = path.frames[i];
     view.camera = { fl_x: frame.fl_x, fl_y: frame.fl_y, cx: frame.cx, cy: frame.cy, width, height };
