@@ -3,11 +3,33 @@ trained on the small room that several test files read."""
 
 from __future__ import annotations
 
+import fcntl
+import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def built_once(tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]) -> Path:
+    """``root/name``, made by ``build(path)`` once per test session even when pytest-xdist runs the session in
+    several processes: they share the parent of their temporary folders and take turns under a file lock; the
+    first to get it builds, the others read what it built. A build that raised is built again by the next."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # pytest-of-<user>/pytest-N, shared by the session's processes
+    path, done = root / name, root / f"{name}.built"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.is_file():
+            shutil.rmtree(path, ignore_errors=True)
+            build(path)
+            done.touch()
+    return path
 
 
 @pytest.fixture(scope="session")
@@ -22,10 +44,11 @@ def small_room(tmp_path_factory) -> Path:
     """A 64x48 furnished room with a noisy point-cloud prior (sigma 2 cm) and interpolation/extrapolation splits."""
     from voxnerf.synthetic import RoomSpec, make_room_scene
 
-    out = tmp_path_factory.mktemp("scenes") / "small_room"
-    make_room_scene(out, RoomSpec(width=64, height=48, n_frames=120, train_every=6, gap_len=20,
-                                  prior_max_points=100_000))
-    return out
+    def build(out: Path) -> None:
+        make_room_scene(out, RoomSpec(width=64, height=48, n_frames=120, train_every=6, gap_len=20,
+                                      prior_max_points=100_000))
+
+    return built_once(tmp_path_factory, "scenes/small_room", build)
 
 
 @pytest.fixture(scope="session")
@@ -37,7 +60,21 @@ def trained_small_room(small_room, tmp_path_factory) -> Path:
     from voxnerf.config import TrainConfig
     from voxnerf.training.run import train
 
-    run = tmp_path_factory.mktemp("runs") / "small_room"
-    config = TrainConfig(max_iters=500, rays_per_batch=1024, device="cpu", eval_every_s=20.0)
-    train(small_room, run, config, progress_bar=False)
-    return run
+    def build(run: Path) -> None:
+        config = TrainConfig(max_iters=500, rays_per_batch=1024, device="cpu", eval_every_s=20.0)
+        train(small_room, run, config, progress_bar=False)
+
+    return built_once(tmp_path_factory, "runs/small_room", build)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (``make test`` runs two processes on two cores), torch computes in one thread per
+    process: in the test processes and in every process they start (services' workers, ``voxnerf train``
+    subprocesses), through ``OMP_NUM_THREADS`` unless it is set already. With torch's default of a thread per
+    core, the two test processes' OpenMP threads, and their services', spin for cores another process holds:
+    the in-process training tests took nearly twice as long. Tests of multi-threaded code set their threads."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        import torch
+
+        torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))

@@ -50,9 +50,18 @@ def _rays(model: VoxNeRFModel, n: int = 64, seed: int = 1):
     return model.ray_bundle(origins, dirs)
 
 
+@pytest.fixture(params=[1, 2], ids=["1-thread", "2-threads"])
+def torch_threads(request) -> int:
+    """torch's threads for the test (the fast path spreads its blocks over them), restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(request.param)
+    yield request.param
+    torch.set_num_threads(before)
+
+
 @pytest.mark.parametrize("sampler", ["voxnerf", "occgrid", "uniform"])
 @pytest.mark.parametrize("cone_radius", [None, 0.02])
-def test_without_skipping_the_fast_path_is_the_full_path(sampler, cone_radius):
+def test_without_skipping_the_fast_path_is_the_full_path(sampler, cone_radius, torch_threads):
     model = _model(sampler, cone_radius=cone_radius)
     rays = _rays(model)
     full = model.render_rays(rays, model.sampler())

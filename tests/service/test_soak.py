@@ -3,8 +3,9 @@
 Real processes, all on loopback: a uvicorn API, a redis-server broker (append-only file, as in
 docker-compose.yml), and three Celery workers (train, render, outputs; concurrency 1 each). ``CLIENTS`` client
 threads upload small scenes, train short jobs, render and request videos for ``LOAD_S`` seconds, while a chaos
-thread SIGKILLs each worker in turn (then starts it again) and restarts redis-server. Then the load stops and
-the service drains.
+thread SIGKILLs each worker in turn (then starts it again) and restarts redis-server. One job has been trained
+before the load starts, so renders and videos are asked for from its first second. Then the load stops and the
+service drains.
 
 At the end:
 - every job and every output a client was told was accepted (202) is in a final state, and no job or output
@@ -33,7 +34,15 @@ from dataclasses import dataclass, field
 import httpx
 import numpy as np
 import pytest
-from service_fixtures import RedisServer, Service, start_redis, start_service, wait_for, zip_scene
+from service_fixtures import (
+    RedisServer,
+    Service,
+    start_redis,
+    start_service,
+    wait_for,
+    wait_until_succeeded,
+    zip_scene,
+)
 from synthetic_fixtures import make_micro_scene
 
 pytestmark = pytest.mark.slow
@@ -224,10 +233,16 @@ def _sample_memory(service: Service, samples: list[int], stop: threading.Event) 
 def test_soak(service, redis, tmp_path_factory):
     scene_zip = zip_scene(make_micro_scene(tmp_path_factory, "soak-scene"))
     tally = Tally()
-    with service.client() as client:  # the first upload warms the API up: its memory is measured from here
+    # the first upload and its job warm the API up (its memory is measured from here), and the clients can render
+    # and ask for videos from the load's first second, however long jobs take on a loaded machine
+    with service.client() as client:
         first = client.post("/scenes", files={"file": ("room.zip", scene_zip, "application/zip")})
         assert first.status_code == 201, first.text
         tally.scenes.append(first.json()["id"])
+        job = client.post(f"/scenes/{first.json()['id']}/jobs", json=TINY)
+        assert job.status_code == 202, job.text
+        tally.jobs.append(job.json()["id"])
+        wait_until_succeeded(service, client, job.json()["id"], DRAIN_S)
     baseline = _rss(service.procs["api"].pid)
     samples: list[int] = [baseline]
     stop_sampling = threading.Event()
