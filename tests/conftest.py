@@ -6,6 +6,7 @@ from __future__ import annotations
 import fcntl
 import os
 import shutil
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -74,7 +75,6 @@ def pytest_configure(config: pytest.Config) -> None:
     core, the two test processes' OpenMP threads, and their services', spin for cores another process holds:
     the in-process training tests took nearly twice as long. Tests of multi-threaded code set their threads."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        os.environ.setdefault("OMP_NUM_THREADS", "1")
-        import torch
-
-        torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+        os.environ.setdefault("OMP_NUM_THREADS", "1")  # torch reads it when it loads
+        if "torch" in sys.modules:  # loaded already (by a plugin): set its threads directly
+            sys.modules["torch"].set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
