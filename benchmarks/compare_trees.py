@@ -25,9 +25,9 @@ from pathlib import Path
 
 from docs_section import replace_section
 
-# Runs inside the measured tree: train, then time three 640x480 renders (rgb + depth) of the run ``render_run``
-# (every measurement renders the same checkpoint, the first run's, so the render column compares the render code,
-# not the models, whose weights differ run to run) after a warm-up render, and keep their median.
+# Runs inside the measured tree: train, then time three renders (rgb + depth; 640x480 unless told) of the run
+# ``render_run`` (every measurement renders the same checkpoint, the first run's, so the render column compares the
+# render code, not the models, whose weights differ run to run) after a warm-up render, and keep their median.
 CHILD = r"""
 import json, sys, time
 import numpy as np
@@ -40,13 +40,14 @@ except ImportError:  # a tree from before the engine's packages (0.1, flat modul
     from voxnerf.cameras import Intrinsics
     from voxnerf.render import load_model, render
 scene, run, iters, downscale, render_run = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
+width, height = int(sys.argv[6]), int(sys.argv[7])
 cfg = TrainConfig(max_iters=iters, downscale=downscale, final_eval=False, eval_every_s=1e9)
 report = train(scene, run, cfg, resume=False, progress_bar=False)
 report = report if isinstance(report, dict) else report.to_json_dict()
 trained = load_model(render_run, "cpu")
 pose = np.eye(4)
 pose[:3, 3] = trained.model.transform.center
-intr = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
+intr = Intrinsics(525.0 * width / 640, 525.0 * width / 640, width / 2, height / 2, width, height)
 render(trained, pose, intr, ("rgb", "depth"))
 seconds = []
 for _ in range(3):
@@ -57,11 +58,13 @@ print(json.dumps({"samples_per_s": report["throughput"]["samples_per_s"], "rende
 """
 
 
-def measure(tree: Path, scene: Path, run: Path, iters: int, downscale: int, render_run: Path | None = None) -> dict:
-    """Train ``iters`` steps in ``tree`` into ``run``, then time renders of ``render_run`` (default: ``run``)."""
+def measure(tree: Path, scene: Path, run: Path, iters: int, downscale: int, render_run: Path | None = None,
+            render_size: tuple[int, int] = (640, 480)) -> dict:
+    """Train ``iters`` steps in ``tree`` into ``run``, then time renders of ``render_run`` (default: ``run``) at
+    ``render_size`` (width, height; the table's column is 640x480)."""
     env = {**os.environ, "PYTHONPATH": str(tree.resolve())}
     out = subprocess.run([sys.executable, "-c", CHILD, str(scene), str(run), str(iters), str(downscale),
-                          str(render_run or run)],
+                          str(render_run or run), *map(str, render_size)],
                          env=env, cwd=tree, capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"{tree}: measurement failed:\n{out.stderr[-3000:]}")

@@ -4,6 +4,7 @@ trained on the small room that several test files read."""
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import shutil
 import sys
@@ -53,6 +54,22 @@ def small_room(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def captured_small_room(small_room, tmp_path_factory) -> Path:
+    """``small_room`` as a user would write it: no ``synthetic`` key, so a run trains the corrections of a captured
+    scan too (pose refinement, per-image appearance). The compiled step of this scene under the default config is
+    the one test_pose_refinement.py and test_service_runtime.py compile: the second loads it from the inductor
+    cache."""
+
+    def build(scene: Path) -> None:
+        shutil.copytree(small_room, scene)
+        meta = json.loads((scene / "transforms.json").read_text())
+        meta.pop("synthetic", None)
+        (scene / "transforms.json").write_text(json.dumps(meta))
+
+    return built_once(tmp_path_factory, "scenes/captured_small_room", build)
+
+
+@pytest.fixture(scope="session")
 def trained_small_room(small_room, tmp_path_factory) -> Path:
     """``small_room`` trained as ``voxnerf train`` would (compiled step, C kernel where available) for 500 steps
     of 1024 rays on the CPU, progress evaluations every 20 s and a final evaluation. Read by the end-to-end
@@ -78,3 +95,18 @@ def pytest_configure(config: pytest.Config) -> None:
         os.environ.setdefault("OMP_NUM_THREADS", "1")  # torch reads it when it loads
         if "torch" in sys.modules:  # loaded already (by a plugin): set its threads directly
             sys.modules["torch"].set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+
+def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Test files in the order of their seconds in tests/file_seconds.json, longest first (a file's tests keep
+    their order; a file the table lacks comes after those it lists). ``--dist loadfile`` hands files to the two
+    processes in this order as each finishes one, so the session ends on short files instead of one process
+    running a long one while the other waits."""
+    table = Path(__file__).with_name("file_seconds.json")
+    seconds = json.loads(table.read_text()) if table.is_file() else {}
+    root = Path(str(config.rootpath))
+
+    def file_seconds(item: pytest.Item) -> float:
+        return -seconds.get(Path(str(item.path)).relative_to(root).as_posix(), -1)
+
+    items.sort(key=file_seconds)  # stable: the collection's order within a file and among equals

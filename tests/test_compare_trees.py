@@ -35,15 +35,21 @@ def test_a_tree_that_cannot_train_is_named(tmp_path):
         compare_trees.measure(broken, tmp_path / "scene", tmp_path / "run", 1, 1)
 
 
-def test_a_measurement_renders_the_run_it_is_given_not_its_own(tmp_path_factory, tmp_path):
+def test_a_measurement_renders_the_run_it_is_given_not_its_own(tmp_path_factory, tmp_path, monkeypatch):
     from synthetic_fixtures import make_micro_scene
+
+    # the check is on which run is rendered: the measured processes run the step eagerly (torch.compile a no-op,
+    # sparing two cold compilations of a graph no other test compiles) and render 64x48 views
+    monkeypatch.setenv("TORCHDYNAMO_DISABLE", "1")
+    small = (64, 48)
 
     scene = make_micro_scene(tmp_path_factory, "compare-trees")
     tree = Path(__file__).resolve().parents[1]
     missing = tmp_path / "no-such-run"
     with pytest.raises(SystemExit, match="no checkpoint"):
-        compare_trees.measure(tree, scene, tmp_path / "first", 1, 1, render_run=missing)
+        compare_trees.measure(tree, scene, tmp_path / "first", 1, 1, render_run=missing, render_size=small)
     assert (tmp_path / "first" / "checkpoint.pt").is_file()  # it trained its own run, then rendered the given one
     # the first run's checkpoint, rendered by a later measurement (main() passes every run the first one's)
-    elsewhere = compare_trees.measure(tree, scene, tmp_path / "again", 1, 1, render_run=tmp_path / "first")
+    elsewhere = compare_trees.measure(tree, scene, tmp_path / "again", 1, 1, render_run=tmp_path / "first",
+                                       render_size=small)
     assert elsewhere["samples_per_s"] > 0 and elsewhere["render_s"] > 0

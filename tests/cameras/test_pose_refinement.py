@@ -195,20 +195,24 @@ def test_prior_rays_are_not_moved_and_the_regulariser_counts():
 
 @pytest.mark.parametrize("compile_step", [False, pytest.param(True, marks=pytest.mark.skipif(
     not hash_kernel.available(), reason="the compiled step runs the C hash kernel's position gradient"))])
-def test_a_run_with_pose_refinement_learns_keeps_and_reports_the_corrections(tmp_path_factory, tmp_path, compile_step):
-    room = make_micro_scene(tmp_path_factory, "pose-refinement")
-    cfg = micro_config(max_iters=12, pose_refinement="so3xr3", pose_lr=1e-3, pose_every=2, final_eval=False,
-                       compile=compile_step)
+def test_a_run_with_pose_refinement_learns_keeps_and_reports_the_corrections(request, tmp_path, compile_step):
+    if compile_step:  # the step a captured scan compiles under the default config, as test_service_runtime.py's runs
+        room = request.getfixturevalue("captured_small_room")
+        cfg = TrainConfig(max_iters=12, final_eval=False, device="cpu", checkpoint_every_s=1e9)
+    else:
+        room = make_micro_scene(request.getfixturevalue("tmp_path_factory"), "pose-refinement")
+        cfg = micro_config(max_iters=12, pose_refinement="so3xr3", pose_lr=1e-3, pose_every=2, final_eval=False)
     report = train(room, tmp_path / "run", cfg, progress_bar=False)
     assert report.status == "succeeded"
     summary = json.loads((tmp_path / "run" / "report.json").read_text())["pose_refinement"]
-    assert summary["images"] == 10 and summary["file"] == "refined_poses.json"
+    scene = load_scene(room, load_images=False)
+    images = len(scene.train_indices)
+    assert summary["images"] == images and summary["file"] == "refined_poses.json"
     assert 0 < summary["rotation_deg"]["max"] < 5 and 0 < summary["translation"]["max"] < 0.5
     state = load_checkpoint(tmp_path / "run" / "checkpoint.pt")["model"]["pose_refinement"]
     delta = state["delta"]
-    assert delta.shape == (10, 6) and bool(torch.isfinite(delta).all()) and float(delta.abs().max()) > 0
+    assert delta.shape == (images, 6) and bool(torch.isfinite(delta).all()) and float(delta.abs().max()) > 0
     refined = json.loads((tmp_path / "run" / "refined_poses.json").read_text())["frames"]
-    scene = load_scene(room, load_images=False)
     given = [scene.frames[i] for i in scene.train_indices]
     assert [f["file_path"] for f in refined] == [f.file_path for f in given]
     for frame, original in zip(refined, given, strict=True):

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -28,17 +27,6 @@ STEPS = 8
 TRAIN_TIMEOUT_S = 600
 
 
-@pytest.fixture(scope="module")
-def captured_room(small_room, tmp_path_factory) -> Path:
-    """The small room as a user would write it: no ``synthetic`` key, so the corrections train too."""
-    scene = tmp_path_factory.mktemp("captured") / "room"
-    shutil.copytree(small_room, scene)
-    meta = json.loads((scene / "transforms.json").read_text())
-    meta.pop("synthetic", None)
-    (scene / "transforms.json").write_text(json.dumps(meta))
-    return scene
-
-
 def _service_env() -> dict[str, str]:
     """The environment :func:`service_fixtures.start_service` gives its processes, less its VOXNERF_ settings."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("VOXNERF_")}
@@ -46,9 +34,9 @@ def _service_env() -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def cli_report(captured_room, tmp_path_factory) -> dict:
+def cli_report(captured_small_room, tmp_path_factory) -> dict:
     run = tmp_path_factory.mktemp("cli") / "run"
-    cmd = [sys.executable, "-m", "voxnerf", "train", str(captured_room), "--out", str(run),
+    cmd = [sys.executable, "-m", "voxnerf", "train", str(captured_small_room), "--out", str(run),
            "--max-iters", str(STEPS), "--device", "cpu"]
     done = subprocess.run(cmd, env=_service_env(), cwd=REPO, capture_output=True, text=True, timeout=TRAIN_TIMEOUT_S)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -91,8 +79,8 @@ def _loop_configuration(report: dict) -> dict:
 
 
 @pytest.mark.parametrize("mode", ["embedded"])  # the train worker's process is the same behind Redis
-def test_a_job_trained_by_a_worker_runs_its_loop_as_the_cli_does(mode, cli_report, captured_room, tmp_path):
-    service_report = _train_through_service(tmp_path / mode, captured_room, mode)
+def test_a_job_trained_by_a_worker_runs_its_loop_as_the_cli_does(mode, cli_report, captured_small_room, tmp_path):
+    service_report = _train_through_service(tmp_path / mode, captured_small_room, mode)
     assert service_report["iteration"] == cli_report["iteration"] == STEPS
     expected = _loop_configuration(cli_report)
     assert expected["runtime"]["omp_wait_policy"] is None, "the CLI runs with OpenMP's default wait policy"

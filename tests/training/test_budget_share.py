@@ -20,9 +20,11 @@ EVAL_EVERY_S = 5.0  # progress evaluations due at 5, 10 and 15 s of training: th
 
 
 @pytest.fixture(scope="module")
-def budgeted_run(small_room, tmp_path_factory):
+def budgeted_run(small_room, trained_small_room, tmp_path_factory):
+    """A ``MAX_SECONDS`` run of the small room with the step of ``trained_small_room`` (its 1024 rays): after that
+    run, the step's compilation loads from the inductor cache instead of compiling on a loaded machine."""
     run_dir = tmp_path_factory.mktemp("budget_share")
-    cfg = TrainConfig(max_seconds=MAX_SECONDS, device="cpu", eval_every_s=EVAL_EVERY_S)
+    cfg = TrainConfig(max_seconds=MAX_SECONDS, device="cpu", eval_every_s=EVAL_EVERY_S, rays_per_batch=1024)
     report = train(small_room, run_dir, cfg, progress_bar=False)
     return report, json.loads((run_dir / REPORT).read_text())
 
