@@ -99,9 +99,9 @@ def pytest_configure(config: pytest.Config) -> None:
 
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
     """Test files in the order of their seconds in tests/file_seconds.json, longest first (a file's tests keep
-    their order; a file the table lacks comes after those it lists). ``--dist loadfile`` hands files to the two
-    processes in this order as each finishes one, so the session ends on short files instead of one process
-    running a long one while the other waits."""
+    their order; a file the table lacks comes after those it lists). ``--dist loadfile --no-loadscope-reorder``
+    hands files to the two processes in this order as each finishes one, so the session ends on short files
+    instead of one process running a long one while the other waits."""
     table = Path(__file__).with_name("file_seconds.json")
     seconds = json.loads(table.read_text()) if table.is_file() else {}
     root = Path(str(config.rootpath))
