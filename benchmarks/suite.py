@@ -537,10 +537,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--suite-dir", type=Path, help="where the suite's scenes are made (default OUT/scenes)")
     p.add_argument("--scenes", help="comma-separated suite scene names (default: all); 'redkitchen' among them "
                    "stands for the --redkitchen scene (alone: no synthetic room)")
-    p.add_argument("--redkitchen", type=Path, help="the 7-Scenes redkitchen scene directory, added to the suite")
+    p.add_argument("--redkitchen", type=Path, help="the 7-Scenes redkitchen scene directory, added to the suite "
+                   "(to a --scenes list only where it names redkitchen)")
     p.add_argument("--record3d-kitchen", action="store_true",
                    help=f"add {RECORD3D}: the shared redkitchen written as a Record3D export and imported (made once "
-                   "under the suite directory; confirmation half)")
+                   "under the suite directory; confirmation half; to a --scenes list only where it names it)")
     p.add_argument("--configs", default=",".join(CONFIGS), help=f"comma-separated, from {', '.join(CONFIGS)}")
     p.add_argument("--budget", type=float, default=300.0, help="--max-seconds of every run")
     p.add_argument("--max-iters", type=int, help="also bound every run by this many training steps (a fixed amount "
@@ -569,13 +570,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     specs = QUICK_SUITE if args.quick else SUITE
     halves = QUICK_HALVES if args.quick else HALVES
-    names = [n for n in args.scenes.split(",") if n not in REAL_SCANS] if args.scenes else list(specs)
+    named = args.scenes.split(",") if args.scenes else None
+    names = [n for n in named if n not in REAL_SCANS] if named is not None else list(specs)
     configs = list(QUICK_CONFIGS) if args.quick and args.configs == ",".join(CONFIGS) else args.configs.split(",")
     scene_dirs = ({name: None for name in names} if args.table_only
                   else make_suite(args.suite_dir or args.out / "scenes", names=names, suite=specs))
-    if args.redkitchen is not None:
+    # a real scan's flag adds it to the whole suite, or to a --scenes list that names it
+    if args.redkitchen is not None and (named is None or REDKITCHEN in named):
         scene_dirs[REDKITCHEN] = args.redkitchen
-    if args.record3d_kitchen:
+    if args.record3d_kitchen and (named is None or RECORD3D in named):
         suite_dir = args.suite_dir or args.out / "scenes"
         scene_dirs[RECORD3D] = suite_dir / RECORD3D if args.table_only else make_record3d_kitchen(suite_dir / RECORD3D)
     eval_at = [float(t) for t in args.eval_at.split(",") if t]

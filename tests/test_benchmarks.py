@@ -524,6 +524,9 @@ def test_suite_runs_scene_by_scene_and_redkitchen_by_name(tmp_path: Path, monkey
     results = json.loads((tmp_path / "alone" / "results.json").read_text())["results"]
     assert {r["scene"] for r in results} == {"redkitchen"}
     assert "incomplete: a half has no scene in this run" in (tmp_path / "alone" / "table.md").read_text()
+    calls.clear()  # the real scans' flags given, a --scenes list that names neither: neither runs
+    assert suite.main([*argv, "--out", str(tmp_path / "rooms"), "--record3d-kitchen", "--scenes", "quick_plain"]) == 0
+    assert calls == [("quick_plain", "previous-defaults"), ("quick_plain", "defaults")]
     extras.clear()
     assert suite.main([*argv, "--out", str(tmp_path / "steps"), "--scenes", "redkitchen", "--max-iters", "7"]) == 0
     assert extras and all(extra[-2:] == ["--max-iters", "7"] for extra in extras)
