@@ -104,9 +104,8 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
     instead of one process running a long one while the other waits."""
     table = Path(__file__).with_name("file_seconds.json")
     seconds = json.loads(table.read_text()) if table.is_file() else {}
-    root = Path(str(config.rootpath))
 
-    def file_seconds(item: pytest.Item) -> float:
-        return -seconds.get(Path(str(item.path)).relative_to(root).as_posix(), -1)
+    def longest_first(item: pytest.Item) -> float:
+        return -seconds.get(item.nodeid.split("::")[0], -1)  # the node id starts with the file, from the root
 
-    items.sort(key=file_seconds)  # stable: the collection's order within a file and among equals
+    items.sort(key=longest_first)  # stable: the collection's order within a file and among equals
