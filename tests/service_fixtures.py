@@ -258,6 +258,8 @@ def start_service(
             "VOXNERF_DEVICE": "cpu",
             "VOXNERF_SWEEP_INTERVAL_S": "1",
             "VOXNERF_HEALTH_TIMEOUT_S": "2",
+            # a task loads the engine when it first runs: most tests' workers run one kind of task, or none
+            "VOXNERF_WORKER_PRELOAD": "0",
             "PYTHONPATH": str(REPO),
             "PYTHONUNBUFFERED": "1",
             "NO_PROXY": "127.0.0.1,localhost",

@@ -41,7 +41,7 @@ from voxnerf.inference.render import load_model
 from voxnerf.synthetic import RoomSpec, make_room_scene
 from voxnerf.training.eval_passes import eval_views_of
 from worker import outputs as output_tasks
-from worker import tasks
+from worker import rendering, tasks, training
 
 ROOT = Path(__file__).resolve().parents[1]
 PASSWORD = "hunter2-s3cr3t"
@@ -130,7 +130,8 @@ def settings(tmp_path, monkeypatch) -> Settings:
     s.make_dirs()
     (s.scenes_dir / SCENE).mkdir()
     jobstore.add_scene(s, SCENE, "room", {"frames": 1}, 10)
-    monkeypatch.setattr(tasks, "get_settings", lambda: s)
+    for module in (tasks, rendering):
+        monkeypatch.setattr(module, "get_settings", lambda: s)
     return s
 
 
@@ -146,7 +147,7 @@ def test_a_failed_training_job_error_carries_no_server_path(settings, monkeypatc
     def broken(*_args, **_kwargs):
         raise SceneError(settings.scenes_dir / SCENE / "transforms.json", "empty", key="frames")
 
-    monkeypatch.setattr(tasks, "train", broken)
+    monkeypatch.setattr(training, "train", broken)
     job = jobstore.create_job(settings, SCENE, {"max_iters": 5})
     tasks.train_job(job.id)
     row = jobstore.JOBS.get(settings, job.id)

@@ -1,5 +1,6 @@
-"""Celery task of capture imports (queued on the ``train`` queue): turn an uploaded raw capture (a ROS bag) into a
-scene with the engine's importer, check it as an upload is checked, and add it to the service.
+"""The work of capture imports (queued on the ``train`` queue): turn an uploaded raw capture (a ROS bag) into a
+scene with the engine's importer, check it as an upload is checked, and add it to the service. Loads the engine;
+the Celery task is :func:`worker.tasks.run_capture_import`.
 
 The task holds the import (:func:`worker.lease.hold`: claimed in the job store, fenced by its attempt, its lease
 renewed every ``heartbeat_s`` and its cancel flag turned into ``should_stop``, read between the stages). Stages:
@@ -23,12 +24,12 @@ from app.core.imports import IMPORTS, elapsed_eta, raw_dir, remove_raw
 from app.core.models import ImportRow
 from app.core.redact import public_error
 from app.core.scene_store import PublishFailed, commit_scene, tree_size
-from app.core.settings import Settings, get_settings
+from app.core.settings import Settings
 from voxnerf.data.importers import ImportCancelled, ImportMonitor, PaperSplitRule, run_import
 from voxnerf.data.scene import inspect_scene
 from voxnerf.errors import VoxNeRFError
 from worker.disk_full import disk_full_message
-from worker.lease import Lease, hold, leased_task
+from worker.lease import Lease
 
 log = logging.getLogger(__name__)
 SPLIT_RULES = {"paper": PaperSplitRule()}
@@ -122,13 +123,6 @@ def _why_failed(row: ImportRow, err: Exception) -> str:
     return f"internal error: {type(err).__name__}: {err}"
 
 
-def _remove_capture(settings: Settings, row: ImportRow, state: str) -> None:
+def remove_capture(settings: Settings, row: ImportRow, state: str) -> None:
     """An import that ended (in any state) leaves no raw capture behind."""
     remove_raw(settings, row.id)
-
-
-@leased_task(IMPORTS)
-def run_capture_import(import_id: str) -> None:
-    """Import capture ``import_id`` to a final state (succeeded, cancelled, failed) unless another worker owns
-    it."""
-    hold(get_settings(), IMPORTS, import_id, import_capture, ending=_remove_capture)

@@ -3,8 +3,9 @@ made with :func:`leased_task` runs its row through :func:`hold`, which claims it
 work while a :class:`Lease` renews the lease and turns cancellation into ``should_stop``, and writes the final
 state; :class:`DeathNotingRequest` notes why the worker's pool process died.
 
-Training jobs (:mod:`worker.tasks`) and output jobs (:mod:`worker.outputs`) both hold their work so, each with
-its kind (:data:`app.core.jobstore.JOBS`, :data:`app.core.outputs.OUTPUTS`); the task holds only its own work.
+Training jobs, capture imports and output jobs (their tasks are in :mod:`worker.tasks`) all hold their work so,
+each with its kind (:data:`app.core.jobstore.JOBS`, :data:`app.core.imports.IMPORTS`,
+:data:`app.core.outputs.OUTPUTS`); the task holds only its own work.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
-"""Celery task of the ``outputs`` queue: make an output job's video, mesh or point cloud from a trained model.
+"""The work of the ``outputs`` queue: make an output job's video, mesh or point cloud from a trained model. Loads
+the engine (torch); the Celery task is :func:`worker.tasks.make_output`.
 
 The task holds the output (:func:`worker.lease.hold`: claimed in the job store, fenced by its attempt, its lease
 renewed every ``heartbeat_s`` and its cancel flag turned into ``should_stop``, so a cancelled output stops at its
-next frame or view), loads the trained job's model through this process's model cache
+next frame or view); :func:`produce` loads the trained job's model through this process's model cache
 (:func:`worker.model_cache.job_model`; with an object store the run's checkpoint is fetched first), and runs the
 engine: :func:`voxnerf.inference.video.render_path` for a video, :func:`voxnerf.inference.export.export_geometry`
 for a mesh or point cloud. Progress (frames or views done, ETA) is written at most every ``progress_interval_s``.
@@ -25,7 +26,7 @@ from app.core.jobstore import JOBS
 from app.core.models import OutputRow
 from app.core.outputs import OUTPUTS
 from app.core.redact import public_error
-from app.core.settings import Settings, get_settings
+from app.core.settings import Settings
 from voxnerf.cameras import paths as camera_paths
 from voxnerf.cameras.paths import CameraPath, parse_nerfstudio
 from voxnerf.cameras.rules import CameraError, resolve_intrinsics
@@ -35,7 +36,7 @@ from voxnerf.inference.export import export_geometry
 from voxnerf.inference.render import TrainedModel, scene_as_trained
 from voxnerf.inference.video import render_path
 from worker.disk_full import disk_full_message
-from worker.lease import Lease, hold, leased_task
+from worker.lease import Lease
 from worker.model_cache import job_model
 
 log = logging.getLogger(__name__)
@@ -160,13 +161,7 @@ def _why_failed(row: OutputRow, err: Exception) -> str:
     return f"internal error: {type(err).__name__}: {err}"
 
 
-def _remove_unfinished(settings: Settings, row: OutputRow, state: str) -> None:
+def remove_unfinished(settings: Settings, row: OutputRow, state: str) -> None:
     """What a failed or cancelled output left in this process's data directory goes."""
     if state != "succeeded":
         outputs.remove_files(settings, row)
-
-
-@leased_task(OUTPUTS)
-def make_output(output_id: str) -> None:
-    """Make output ``output_id`` to a final state (succeeded, cancelled, failed) unless another worker owns it."""
-    hold(get_settings(), OUTPUTS, output_id, produce, ending=_remove_unfinished)

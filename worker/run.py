@@ -17,9 +17,10 @@ from worker import (
     device_report,  # noqa: F401  (registers the remote-control command GET /metrics asks)
     json_logs,
 )
+from worker.tasks import preload_work
 
-# imported by the worker (and its pool processes) for their tasks
-TASK_MODULES = ("worker.tasks", "worker.outputs", "worker.imports")
+# imported by the worker for its tasks (their work's modules load with the first task, or at start: preload_work)
+TASK_MODULES = ("worker.tasks",)
 log = logging.getLogger(__name__)
 
 
@@ -71,8 +72,10 @@ def run_worker(queues: list[str], concurrency: int) -> None:
     configure_logging(settings.log_format)
     if settings.log_format == "json":
         json_logs.install()
-    policy = set_openmp_wait_policy(queues)  # before the tasks' modules load torch
+    policy = set_openmp_wait_policy(queues)  # before the work's modules load torch
     log.info("OpenMP wait policy %s", policy or "default (as voxnerf train)")
+    if settings.worker_preload:  # in this process, before the pool's processes fork: they start with it
+        log.info("loaded %s", ", ".join(preload_work(queues)))
     settings.make_dirs()
     storage.check_store(settings)
     install_log_masking()  # broker and storage URLs' credentials never reach a log line

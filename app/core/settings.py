@@ -170,6 +170,12 @@ class Settings(BaseSettings):
         "Retry-After (each one in progress holds one of the API's 40 worker threads)",
     )
     device: str = Field(default="auto", description="torch device of the workers: auto, cpu or cuda[:N]")
+    worker_preload: bool = Field(
+        default=True,
+        description="a worker loads the engine (torch) for its queues' work when it starts, so its first task "
+        "starts at once; 0: each task kind loads it when its first task runs (the worker is up in about 2 s instead "
+        "of 7 and holds no engine until it works)",
+    )
 
     progress_interval_s: float = Field(default=1.0, ge=0, description="least time between progress writes")
     heartbeat_s: float = Field(default=2.0, gt=0, description="how often a training task renews its lease")

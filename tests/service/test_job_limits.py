@@ -24,7 +24,7 @@ from voxnerf.training.callbacks import ProgressEvaluation
 from voxnerf.training.loop import LoopState
 from voxnerf.training.records import ProgressEvent
 from voxnerf.training.run import REPORT, LeaseLost, train
-from worker.tasks import job_config
+from worker.training import job_config
 
 TOKEN = "limits-token"
 SCENE = "c" * 32

@@ -1,6 +1,6 @@
-"""The workers' tasks (worker/tasks.py) without Celery or training: the ProgressWriter fed with the engine's
-ProgressEvent objects, the train task around a stand-in ``train()`` returning a TrainReport, and the render
-task's outcome around a stand-in model."""
+"""The workers' tasks (worker/tasks.py) and their work (worker/training.py, worker/rendering.py) without Celery or
+training: the ProgressWriter fed with the engine's ProgressEvent objects, the train task around a stand-in
+``train()`` returning a TrainReport, and the render task's outcome around a stand-in model."""
 
 from __future__ import annotations
 
@@ -17,19 +17,20 @@ from app.core.settings import Settings
 from voxnerf.cameras.rules import Intrinsics
 from voxnerf.errors import SceneError
 from voxnerf.training.records import EvalRecord, ProgressEvent, StageRecord, TrainReport
-from worker import tasks
+from worker import rendering, tasks, training
 
 
 @pytest.fixture
 def settings(tmp_path, monkeypatch) -> Settings:
     s = store_with_scene(tmp_path, progress_interval_s=60.0, heartbeat_s=0.05, max_render_pixels=100)
-    monkeypatch.setattr(tasks, "get_settings", lambda: s)
+    for module in (tasks, rendering):
+        monkeypatch.setattr(module, "get_settings", lambda: s)
     return s
 
 
 def test_progress_writer_writes_each_stage_then_one_event_per_interval(settings):
     job = claimed_job(settings)
-    writer = tasks.ProgressWriter(settings, job.id, job.attempt)
+    writer = training.ProgressWriter(settings, job.id, job.attempt)
     writer(ProgressEvent(stage="load_scene"))
     assert jobstore.JOBS.get(settings, job.id).stage == "load_scene"
     writer(ProgressEvent(stage="train", iteration=10, progress=0.2, loss=0.5, eta_s=40.0))
@@ -43,7 +44,7 @@ def test_progress_writer_writes_each_stage_then_one_event_per_interval(settings)
 
 def test_progress_writer_never_goes_back_and_leaves_done_to_the_task(settings):
     job = claimed_job(settings)
-    writer = tasks.ProgressWriter(settings, job.id, job.attempt)
+    writer = training.ProgressWriter(settings, job.id, job.attempt)
     writer(ProgressEvent(stage="train", iteration=30, progress=0.6))
     writer(ProgressEvent(stage="checkpoint", iteration=0, progress=0.0))  # stage events carry iteration 0
     row = jobstore.JOBS.get(settings, job.id)
@@ -55,7 +56,7 @@ def test_progress_writer_never_goes_back_and_leaves_done_to_the_task(settings):
 
 def test_a_fenced_off_writer_writes_nothing(settings):
     job = claimed_job(settings)
-    stale = tasks.ProgressWriter(settings, job.id, job.attempt - 1)
+    stale = training.ProgressWriter(settings, job.id, job.attempt - 1)
     stale(ProgressEvent(stage="train", iteration=7, progress=0.3))
     assert jobstore.JOBS.get(settings, job.id).iteration == 0
 
@@ -80,7 +81,7 @@ def _fake_train(status: str, seen: list):
 
 def test_train_task_records_the_report(settings, monkeypatch):
     seen: list = []
-    monkeypatch.setattr(tasks, "train", _fake_train("succeeded", seen))
+    monkeypatch.setattr(training, "train", _fake_train("succeeded", seen))
     job = jobstore.create_job(settings, SCENE, {"max_iters": 50, "compile": False})
     tasks.train_job(job.id)
     ((scene_dir, run_dir, config, resume),) = seen
@@ -93,7 +94,7 @@ def test_train_task_records_the_report(settings, monkeypatch):
 
 
 def test_train_task_cancelled_keeps_progress(settings, monkeypatch):
-    monkeypatch.setattr(tasks, "train", _fake_train("cancelled", []))
+    monkeypatch.setattr(training, "train", _fake_train("cancelled", []))
     job = jobstore.create_job(settings, SCENE, {"max_iters": 50})
     tasks.train_job(job.id)
     row = jobstore.JOBS.get(settings, job.id)
@@ -104,7 +105,7 @@ def test_train_task_marks_engine_errors_failed(settings, monkeypatch):
     def broken(*_args, **_kwargs):
         raise SceneError("transforms.json", "frames: empty")
 
-    monkeypatch.setattr(tasks, "train", broken)
+    monkeypatch.setattr(training, "train", broken)
     job = jobstore.create_job(settings, SCENE, {"max_iters": 50})
     tasks.train_job(job.id)
     row = jobstore.JOBS.get(settings, job.id)
@@ -116,7 +117,7 @@ def test_train_task_marks_engine_errors_failed(settings, monkeypatch):
 def _fake_model(monkeypatch, settings: Settings) -> None:
     trained = SimpleNamespace(default_intrinsics=Intrinsics(8.0, 8.0, 4.0, 3.0, 8, 6), depth_unit_scale=0.001,
                               model=SimpleNamespace(device=SimpleNamespace(type="cpu")), iteration=42)
-    monkeypatch.setattr(tasks, "job_model", lambda settings, job_id, checkpoint_iteration: trained)
+    monkeypatch.setattr(rendering, "job_model", lambda settings, job_id, checkpoint_iteration: trained)
 
     def render(model, c2w, intrinsics, outputs, path, should_stop):
         assert path == settings.render_path
@@ -124,7 +125,7 @@ def _fake_model(monkeypatch, settings: Settings) -> None:
         return {"rgb": np.full((*shape, 3), 0.5, np.float32), "depth": np.ones(shape, np.float32),
                 "opacity": np.ones(shape, np.float32)}
 
-    monkeypatch.setattr(tasks, "render", render)
+    monkeypatch.setattr(rendering, "render", render)
 
 
 def test_render_task_answers_the_image_or_a_4xx(settings, monkeypatch):
