@@ -44,19 +44,29 @@ class _Token:
         self.cancelled.set()
 
 
-def test_a_watch_reports_the_count_as_work_goes_on_and_once_more_at_the_end():
-    written: list[int | None] = [None]  # what the call has written so far (None: cannot tell yet)
+def test_a_watch_reports_the_count_before_and_after_the_call_and_reads_nothing_while_it_runs():
+    reads = []  # when the count was read: never while the call runs (its writer threads abort on a locked database)
+    running = threading.Event()
     seen = []
     monitor = ImportMonitor(report=lambda step, fraction: seen.append((step, fraction)))
-    with CountWatch(monitor, lambda: written[-1], 4, "matching", "pairs", _Token()):
-        for count in (None, 1, 4):
-            written.append(count)
-            time.sleep(3 * WATCH_PERIOD_S)
-    assert seen[0] == ("matching: 0 of 4 pairs", 0.0)
-    assert not any("None" in step for step, _ in seen)
-    assert seen[-1] == ("matching: 4 of 4 pairs", 1.0)  # counted again when the call returned
-    assert [f for _, f in seen] == sorted(f for _, f in seen)
-    assert ("matching: 1 of 4 pairs", 0.25) in seen
+
+    def count() -> int:
+        reads.append(running.is_set())
+        return 4
+
+    with CountWatch(monitor, count, 8, "extracting", "images", _Token(), before=2):
+        running.set()
+        time.sleep(3 * WATCH_PERIOD_S)
+        running.clear()
+    assert seen == [("extracting: 2 of 8 images", 0.25), ("extracting: 4 of 8 images", 0.5)]
+    assert reads == [False]
+
+
+def test_a_count_that_cannot_be_read_after_the_call_reports_nothing_more():
+    seen = []
+    with CountWatch(ImportMonitor(report=lambda *step: seen.append(step)), lambda: None, 4, "x", "images", _Token()):
+        pass
+    assert seen == [("x: 0 of 4 images", 0.0)]
 
 
 def test_a_count_past_the_total_is_reported_as_the_total():

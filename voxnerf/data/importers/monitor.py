@@ -7,9 +7,9 @@ of the importer's work done, in [0, 1]. At its safe points it calls ``monitor.ch
 any error. ``monitor.within(start, end)`` is the same monitor for a part of the work that spans ``start..end`` of
 the whole (a video's decoding, then its structure from motion).
 
-:class:`CountWatch` follows work that pycolmap does in one blocking call, by counting from a side thread what the
-call has written so far (images, image pairs in its database), and turns a stop request into pycolmap's own
-cancellation.
+:class:`CountWatch` follows work that pycolmap does in one blocking call: it reports the count of work done when
+the call starts and, read from the call's database, when it returns, and turns a stop request into pycolmap's own
+cancellation while it runs.
 """
 
 from __future__ import annotations
@@ -62,20 +62,23 @@ class ImportMonitor:
 
 
 class CountWatch:
-    """While a blocking call runs: every WATCH_PERIOD_S, report ``count()`` against ``total`` as
-    ``"<text>: n of total <unit>"`` (``count`` answers None when it cannot tell yet), and cancel ``token`` (a
-    ``pycolmap.CancellationToken``) once the monitor says stop. Use as a context manager around the call; when
-    the call returns, the count it left is reported once more."""
+    """Around one blocking pycolmap call: reports ``"<text>: <before> of <total> <unit>"`` as it starts and
+    ``count()`` (what the call has written, read once it returned) when it returns; while it runs, every
+    WATCH_PERIOD_S, cancels ``token`` (a ``pycolmap.CancellationToken``) once the monitor says stop.
+
+    Nothing is read from the call's database while it runs: pycolmap's writing threads meet "database is locked"
+    when another connection reads it at the wrong moment, and their error aborts the whole process. Work that
+    needs progress within it is split into several calls (:func:`voxnerf.data.importers.sfm.run_sfm`'s feature
+    extraction)."""
 
     def __init__(self, monitor: ImportMonitor, count: Callable[[], int | None], total: int, text: str, unit: str,
-                 token) -> None:
+                 token, before: int = 0) -> None:
         self.monitor, self.count, self.token = monitor, count, token
-        self.total, self.text, self.unit = max(int(total), 1), text, unit
+        self.total, self.text, self.unit, self.before = max(int(total), 1), text, unit, min(int(before), int(total))
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._watch, name=f"watch {text}", daemon=True)
 
-    def _report(self) -> None:
-        done = self.count()
+    def _report(self, done: int | None) -> None:
         if done is not None:
             done = min(done, self.total)
             self.monitor.step(f"{self.text}: {done} of {self.total} {self.unit}", done / self.total)
@@ -85,10 +88,9 @@ class CountWatch:
             if self.monitor.should_stop():
                 self.token.cancel()
                 return
-            self._report()
 
     def __enter__(self) -> CountWatch:
-        self.monitor.step(f"{self.text}: 0 of {self.total} {self.unit}", 0.0)
+        self._report(self.before)
         self._thread.start()
         return self
 
@@ -96,4 +98,4 @@ class CountWatch:
         self._done.set()
         self._thread.join()
         if exc_type is None:
-            self._report()
+            self._report(self.count())

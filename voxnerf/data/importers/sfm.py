@@ -51,8 +51,11 @@ MATCHING_CHOICES = ("auto", "exhaustive", "sequential")
 EXHAUSTIVE_MAX_IMAGES = 60
 """Up to this many photos every pair is matched (n(n-1)/2 pairs: 1770 at 60); beyond, sequential matching."""
 EXHAUSTIVE_BLOCK = 10
-"""Exhaustive matching goes through the images in blocks of this many (COLMAP's default is 50): its progress and
-a cancel are seen between two blocks."""
+"""Exhaustive matching goes through the images in blocks of this many (COLMAP's default is 50): a cancel is seen
+between two blocks."""
+EXTRACT_CHUNK = 8
+"""Photos whose features one extraction call finds: the import's progress is reported between two calls (nothing
+reads the database while pycolmap writes it, :class:`~voxnerf.data.importers.monitor.CountWatch`)."""
 SEQUENTIAL_OVERLAP = 15
 """Sequential matching with COLMAP's quadratic overlap: each image is matched with the ones 2**k places after it,
 k < SEQUENTIAL_OVERLAP (COLMAP 4 pairs only these, not also the SEQUENTIAL_OVERLAP next ones)."""
@@ -258,8 +261,8 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path,
 
 
 def _database_count(database: Path, method: str) -> Callable[[], int | None]:
-    """``pycolmap.Database.<method>()`` of ``database`` read through a connection of its own (pycolmap's SQLite
-    reads COLMAP's write-ahead log, which another SQLite build may not); None while it cannot be opened."""
+    """``pycolmap.Database.<method>()`` of ``database``, once the call writing it returned (:class:`CountWatch`:
+    never while it runs); None when it cannot be opened."""
     import pycolmap
 
     def count() -> int | None:
@@ -267,7 +270,7 @@ def _database_count(database: Path, method: str) -> Callable[[], int | None]:
             return None
         try:
             db = pycolmap.Database.open(database)
-        except Exception:  # not created yet, or busy: the next period tries again
+        except Exception:  # not created: the call wrote nothing
             return None
         try:
             return int(getattr(db, method)())
@@ -288,11 +291,27 @@ def _extract(staged: StagedPhotos, database: Path, shared: bool, monitor: Import
     # their threads finish, and the mapper's choices follow the ids
     extraction = pycolmap.FeatureExtractionOptions(max_image_size=MAX_FEATURE_IMAGE_SIZE, num_threads=1)
     extraction.sift.max_num_features = MAX_FEATURES
-    with _cancellable(token), CountWatch(monitor, _database_count(database, "num_images"), len(staged.names),
-                                         "extracting features", "images", token):
-        pycolmap.extract_features(database, staged.dir, image_names=staged.names, camera_mode=mode,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
-                                  cancellation_token=token)
+    n = len(staged.names)
+    for start in range(0, n, EXTRACT_CHUNK):
+        with _cancellable(token), CountWatch(monitor, _database_count(database, "num_images"), n,
+                                             "extracting features", "images", token, before=start):
+            pycolmap.extract_features(database, staged.dir, image_names=staged.names[start:start + EXTRACT_CHUNK],
+                                      camera_mode=mode, reader_options=reader, extraction_options=extraction,
+                                      device=pycolmap.Device.cpu, cancellation_token=token)
+        if shared and reader.existing_camera_id < 0:  # the later calls' photos share the first call's camera
+            reader.existing_camera_id = _only_camera_id(database)
+
+
+def _only_camera_id(database: Path) -> int:
+    """The id of the one camera ``database`` holds."""
+    import pycolmap
+
+    db = pycolmap.Database.open(database)
+    try:
+        (camera,) = db.read_all_cameras()
+    finally:
+        db.close()
+    return camera.camera_id
 
 
 def _match(database: Path, n_images: int, matching: str, monitor: ImportMonitor, token) -> None:
