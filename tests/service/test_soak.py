@@ -279,12 +279,13 @@ def test_soak(service, redis, tmp_path_factory):
     output_ids = [o["id"] for o in outputs]
     assert len(set(job_ids)) == len(job_ids) and len(set(output_ids)) == len(output_ids), "an id listed twice"
     refused_by_broker = [j for j in jobs if j["id"] not in tally.jobs]
-    assert all(j["state"] == "failed" and "the broker refused the job" in (j["error"] or "")
+    assert all(j["state"] == "failed" and "the broker refused it" in (j["error"] or "")
                for j in refused_by_broker), refused_by_broker
     assert len(refused_by_broker) == tally.answers[("train", 503)], (refused_by_broker, tally.answers)
     assert set(tally.jobs) <= set(job_ids), "an accepted job was lost"
     refused_outputs = [o for o in outputs if o["id"] not in tally.outputs]
-    assert all(o["state"] == "failed" and "the queue refused it" in (o["error"] or "") for o in refused_outputs)
+    assert all(o["state"] == "failed" and "the broker refused it" in (o["error"] or "")
+               for o in refused_outputs), refused_outputs
     assert len(refused_outputs) == tally.answers[("video", 503)], (refused_outputs, tally.answers)
     assert set(tally.outputs) <= set(output_ids), "an accepted output was lost"
     accepted_jobs = [j for j in jobs if j["id"] in tally.jobs]
