@@ -173,7 +173,7 @@ class Settings(BaseSettings):
     worker_preload: bool = Field(
         default=True,
         description="a worker loads the engine (torch) for its queues' work when it starts, so its first task "
-        "starts at once; 0: each task kind loads it when its first task runs (the worker is up in about 2 s instead "
+        "starts at once; 0: each task kind loads it when its first task runs (the worker is up in about 3 s instead "
         "of 7 and holds no engine until it works)",
     )
 
