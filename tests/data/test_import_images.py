@@ -414,6 +414,7 @@ def test_the_cli_states_the_importers_defaults(capsys):
 SFM_UNDER_A_BUSY_WATCH = """
 import sys
 from pathlib import Path
+import pycolmap
 import voxnerf.data.importers.monitor as monitor
 monitor.WATCH_PERIOD_S = 0.002  # the watch wakes 500 times a second while pycolmap writes its database
 from voxnerf.data.importers import sfm
@@ -422,7 +423,7 @@ photos, work = sorted(Path(sys.argv[1]).iterdir()), Path(sys.argv[2])
 staged = sfm.stage_photos(photos, work)
 steps = []
 watched = ImportMonitor(report=lambda step, fraction: steps.append(step))
-token = __import__("pycolmap").CancellationToken()
+token = pycolmap.CancellationToken()
 sfm._extract(staged, work / "database.db", True, watched, token)
 sfm._match(work / "database.db", len(staged.names), "exhaustive", watched, token)
 print(steps[-1])

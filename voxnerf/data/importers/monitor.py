@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from voxnerf.errors import VoxNeRFError
 
 WATCH_PERIOD_S = 0.5
-"""How often a :class:`CountWatch` counts and asks whether to stop."""
+"""How often a :class:`CountWatch` asks whether to stop while its call runs."""
 
 
 class ImportCancelled(VoxNeRFError):

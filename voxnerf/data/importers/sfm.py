@@ -260,22 +260,31 @@ def run_sfm(staged: StagedPhotos, work: Path, matching: str, named: Path,
     return SfmResult(models[0], matching, camera_mode, sizes, unregistered, attempts)
 
 
+@contextmanager
+def _open_database(database: Path) -> Iterator:
+    """A pycolmap connection to ``database``, closed on the way out (only between pycolmap's calls:
+    :class:`CountWatch`)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(database)
+    try:
+        yield db
+    finally:
+        db.close()
+
+
 def _database_count(database: Path, method: str) -> Callable[[], int | None]:
     """``pycolmap.Database.<method>()`` of ``database``, once the call writing it returned (:class:`CountWatch`:
     never while it runs); None when it cannot be opened."""
-    import pycolmap
 
     def count() -> int | None:
         if not database.is_file():
             return None
         try:
-            db = pycolmap.Database.open(database)
+            with _open_database(database) as db:
+                return int(getattr(db, method)())
         except Exception:  # not created: the call wrote nothing
             return None
-        try:
-            return int(getattr(db, method)())
-        finally:
-            db.close()
 
     return count
 
@@ -299,19 +308,15 @@ def _extract(staged: StagedPhotos, database: Path, shared: bool, monitor: Import
                                       camera_mode=mode, reader_options=reader, extraction_options=extraction,
                                       device=pycolmap.Device.cpu, cancellation_token=token)
         if shared and reader.existing_camera_id < 0:  # the later calls' photos share the first call's camera
-            reader.existing_camera_id = _only_camera_id(database)
+            reader.existing_camera_id = _shared_camera_id(database)
 
 
-def _only_camera_id(database: Path) -> int:
-    """The id of the one camera ``database`` holds."""
-    import pycolmap
-
-    db = pycolmap.Database.open(database)
-    try:
-        (camera,) = db.read_all_cameras()
-    finally:
-        db.close()
-    return camera.camera_id
+def _shared_camera_id(database: Path) -> int:
+    """The id of the camera the photos in ``database`` share; -1 while it holds none (no photo of the first call
+    was read: the next call makes the camera)."""
+    with _open_database(database) as db:
+        cameras = db.read_all_cameras()
+    return cameras[0].camera_id if cameras else -1
 
 
 def _match(database: Path, n_images: int, matching: str, monitor: ImportMonitor, token) -> None:
@@ -409,8 +414,7 @@ def _match_graph(database: Path, min_matches: int) -> tuple[dict[int, str], dict
     """Image id -> name, image id -> keypoint count, image id -> the ids it has a verified match with."""
     import pycolmap
 
-    db = pycolmap.Database.open(database)
-    try:
+    with _open_database(database) as db:
         names = {image.image_id: image.name for image in db.read_all_images()}
         keypoints = {image_id: db.num_keypoints_for_image(image_id) for image_id in names}
         pair_ids, geometries = db.read_two_view_geometries()
@@ -420,8 +424,6 @@ def _match_graph(database: Path, min_matches: int) -> tuple[dict[int, str], dict
                 first, second = pycolmap.pair_id_to_image_pair(pair_id)
                 partners[first].add(second)
                 partners[second].add(first)
-    finally:
-        db.close()
     return names, keypoints, partners
 
 
