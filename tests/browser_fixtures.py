@@ -35,3 +35,26 @@ def csp_reports(page) -> list[str]:
     reports: list[str] = []
     page.on("console", lambda m: "Content Security Policy" in m.text and reports.append(m.text))
     return reports
+
+
+STILL_JS = """([selector, quietMs]) => {
+  const node = document.querySelector(selector);
+  if (!node) return false;
+  const box = node.getBoundingClientRect();
+  const key = [box.x, box.y, box.width, box.height].join(",");
+  const seen = (window.__stillBoxes = window.__stillBoxes || {});
+  const now = performance.now();
+  if (!seen[selector] || seen[selector].key !== key) {
+    seen[selector] = { key, since: now };
+    return false;
+  }
+  return now - seen[selector].since >= quietMs;
+}"""
+
+
+def click_when_still(page, selector: str, quiet_ms: int = 750, timeout_ms: int = 60_000) -> None:
+    """Click ``selector`` once its box has not moved for ``quiet_ms``. Playwright's own stability check spans
+    two animation frames: on a dashboard whose rows above the element grow as their images arrive one by one, a
+    click can land where the element was a moment before, and miss it."""
+    page.wait_for_function(STILL_JS, arg=[selector, quiet_ms], timeout=timeout_ms)
+    page.click(selector)

@@ -27,13 +27,17 @@ function detailText(body, status) {
 }
 
 // fetch(path) with the token; the response when it is ok, else an Error with the server's one-line detail.
-// On 401 the page's token field (id "token"), when it has one, takes the focus.
+// A 401 to a request sent before the token was saved (a poll in flight while the user pressed Save) is sent
+// again once with the saved token. On 401 the page's token field (id "token"), when it has one, takes the focus.
 async function api(path, options = {}) {
   const headers = new Headers(options.headers || {});
   const token = savedToken();
   if (token) headers.set("Authorization", `Bearer ${token}`);
   const response = await fetch(path, { ...options, headers });
   if (response.ok) return response;
+  if (response.status === 401 && savedToken() !== token && !options.resentForToken) {
+    return api(path, { ...options, resentForToken: true });
+  }
   let body = null;
   try {
     body = await response.json();

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from browser_fixtures import browser_page, csp_reports
+from browser_fixtures import browser_page, click_when_still, csp_reports
 from service_fixtures import first_pose, start_service, zip_scene
 
 pytestmark = pytest.mark.slow
@@ -75,7 +75,7 @@ def test_dashboard_shows_live_progress_plot_thumbnails_and_renders(service, page
 
     page.select_option("#render-job", job["id"])
     page.fill("#render-pose", json.dumps(first_pose(small_room)))
-    page.click("#render-form button")
+    click_when_still(page, "#render-form button")  # the row above still grows as its thumbnails arrive
     page.wait_for_function(
         "() => document.getElementById('render-image').naturalWidth === 64", timeout=60_000
     )
@@ -110,9 +110,37 @@ def test_a_bag_uploaded_from_the_dashboard_is_imported_and_its_scene_offered_for
     page.fill("#token", TOKEN)
     page.click("#token-form button")
     page.set_input_files("#upload-file", str(bag))
-    page.click("#upload-form button")
-    page.wait_for_selector("text=queued for import")
+    click_when_still(page, "#upload-form button")  # below the jobs table, which grows as earlier jobs' renders load
+    try:
+        page.wait_for_selector("#message >> text=queued for import", timeout=30_000)
+    except Exception:
+        pytest.fail(f"the dashboard says {page.inner_text('#message')!r}, not that the bag is queued\n"
+                    f"{service.logs()}")
     done = page.wait_for_selector('#imports tr[data-state="succeeded"]', timeout=240_000)
     assert "robot (rosbag)" in done.inner_text() and "frames" in done.inner_text()
     page.wait_for_function("() => [...document.querySelectorAll('#job-scene option')]"
                            ".some((o) => o.textContent.startsWith('robot'))", timeout=10_000)
+
+
+def test_a_poll_sent_before_the_token_was_saved_is_sent_again_with_it(service, page):
+    # the dashboard polls its imports every second: one sent without a token and answered after Save must not
+    # tell the user to enter the token they just saved
+    held = []
+
+    def hold_first_without_token(route):
+        if not held and "authorization" not in route.request.headers:
+            held.append(route)  # answered below, after Save
+        else:
+            route.continue_()
+
+    page.route("**/imports?limit=20", hold_first_without_token)
+    page.goto(service.base_url + "/")
+    page.wait_for_selector("text=needs an API token")
+    page.fill("#token", TOKEN)
+    page.click("#token-form button")
+    page.wait_for_function("() => document.getElementById('message').hidden")
+    with page.expect_response(lambda r: r.request == held[0].request) as answered:
+        held[0].continue_()
+    assert answered.value.status == 401  # it carried no token
+    page.wait_for_timeout(500)
+    assert page.is_hidden("#message"), page.inner_text("#message")
