@@ -128,6 +128,7 @@ def test_read_depth_npy_float_metres(tmp_path: Path) -> None:
     assert read_depth(tmp_path / "d1.npy", 1.0).shape == (2, 2)
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # an expected overflow, not a warning to the user
 def test_read_depth_beyond_float32_range_is_invalid_not_inf(tmp_path: Path) -> None:
     iio.imwrite(tmp_path / "d.png", np.array([[1, 0]], dtype=np.uint16))
     depth = read_depth(tmp_path / "d.png", unit_scale=1e300)

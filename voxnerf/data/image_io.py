@@ -121,7 +121,8 @@ def read_depth(path: Path, unit_scale: float) -> np.ndarray:
     depth = _read_npy_depth(path) if path.suffix.lower() == ".npy" else _read_png_depth(path, unit_scale)
     if np.any(depth < 0):  # NaN compares False, so only finite and -inf negatives count
         raise SceneError(path, f"negative depth values (min {np.nanmin(depth):.4g}): depth must be >= 0")
-    depth = depth.astype(np.float32)  # first, so values beyond float32's range become inf and then NaN
+    with np.errstate(over="ignore"):  # values beyond float32's range become inf here, and NaN below: no warning
+        depth = depth.astype(np.float32)
     depth[~np.isfinite(depth) | (depth == 0)] = np.nan
     return depth
 
