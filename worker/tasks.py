@@ -25,8 +25,9 @@ import logging
 from collections.abc import Sequence
 
 from celery import shared_task
-from celery.signals import worker_ready
+from celery.signals import worker_ready, worker_shutting_down
 
+from app.core import folder_watch
 from app.core.celery_app import OUTPUTS_QUEUE, RENDER_QUEUE, RENDER_TASK, TRAIN_QUEUE
 from app.core.dispatch import sweep_jobs
 from app.core.imports import IMPORTS
@@ -96,3 +97,10 @@ def _recover_stale_jobs(sender=None, **_) -> None:
         sweep_jobs(get_settings(), sender.app)
     except Exception:
         log.exception("start-up recovery of stale jobs failed")
+
+
+@worker_shutting_down.connect
+def _wake_idle_consumer(**_) -> None:
+    """On the embedded broker an idle worker waits on the queue folder's watch for up to 2 s at a time, and Celery
+    reads its stop flag only between waits: end the wait, so a stop request is seen at once (a no-op on Redis)."""
+    folder_watch.wake_all()

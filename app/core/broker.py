@@ -169,6 +169,8 @@ class Transport(filesystem.Transport):
                 sleep(self.polling_interval if left is None else min(self.polling_interval, left))
             else:
                 watch.wait(IDLE_WAIT_S if left is None else min(IDLE_WAIT_S, left))
+                if watch.woken:  # the worker is stopping (folder_watch.wake_all): back to Celery's loop at once
+                    raise TimeoutError
 
     def _folder_watch(self) -> FolderWatch | None:
         """This process's watch of the queue folder (a forked child makes its own), made on its first wait."""

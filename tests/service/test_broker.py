@@ -108,3 +108,57 @@ def test_without_inotify_the_consumer_polls_and_still_receives(tmp_path, name, m
         idle, _ = _wakeups(lambda: pytest.raises(queue.Empty, queue.get, timeout=0.5))
         queue.close()
     assert idle >= 20, idle
+
+
+def test_wake_ends_a_watch_s_wait_and_says_so(tmp_path):
+    import threading
+
+    with folder_watch.FolderWatch.open(tmp_path) as watch:
+        outcome = []
+        waiter = threading.Thread(target=lambda: outcome.append((watch.wait(60.0), watch.woken)))
+        waiter.start()
+        watch.wake()
+        waiter.join(10)
+        assert not waiter.is_alive() and outcome == [(False, True)]  # no file came; it was woken
+        assert (watch.wait(0.01), watch.woken) == (False, False)  # the wake was used up: this wait timed out
+        (tmp_path / "a.msg").write_bytes(b"1")
+        assert (watch.wait(5.0), watch.woken) == (True, False)
+
+
+def test_wake_all_wakes_this_process_s_watches_only(tmp_path):
+    with folder_watch.FolderWatch.open(tmp_path) as mine, folder_watch.FolderWatch.open(tmp_path) as inherited:
+        inherited.pid = -1  # as a forked child sees its parent's watch
+        folder_watch.wake_all()
+        assert (mine.wait(0.0), mine.woken) == (False, True)
+        assert (inherited.wait(0.0), inherited.woken) == (False, False)
+
+
+def test_a_woken_consumer_hands_back_to_its_caller_before_its_timeout(tmp_path, name):
+    """Celery's loop drains events 2 s at a time and reads its stop flag between them: a worker that is stopping
+    (worker.tasks wakes every watch on ``worker_shutting_down``) must not sit out the rest of the wait."""
+    import threading
+
+    queue = Queue(name, Exchange(name), name)
+    with _connection(tmp_path, polling_interval=30.0) as conn, conn.Consumer(queue, callbacks=[]):
+        raised = []
+
+        def drain():
+            try:
+                conn.drain_events(timeout=60.0)
+            except TimeoutError:
+                raised.append(True)
+
+        waiter = threading.Thread(target=drain)
+        waiter.start()
+        time.sleep(0.3)  # let it reach the wait (a wake before it is kept for the next wait anyway)
+        folder_watch.wake_all()
+        waiter.join(10)
+        assert not waiter.is_alive() and raised == [True]
+
+
+def test_the_worker_wakes_its_watches_when_it_starts_to_stop():
+    from celery.signals import worker_shutting_down
+
+    from worker import tasks
+
+    assert any(receiver() is tasks._wake_idle_consumer for _, receiver in worker_shutting_down.receivers)
