@@ -218,9 +218,12 @@ def test_redis_restart_answers_503_meanwhile_and_loses_no_accepted_job(
     wait_for(running_and_queued, JOB_TIMEOUT_S, "one job running and one waiting in the queue")
     redis.stop()
     try:
+        known = {j["id"] for j in client.get("/jobs", params={"limit": 1000}).json()}  # the store needs no broker
         refused = client.post(f"/scenes/{scene['id']}/jobs", json=TINY)
         assert refused.status_code == 503, refused.text
         assert "job queue is unavailable" in refused.json()["detail"]
+        (row,) = [j for j in client.get("/jobs", params={"limit": 1000}).json() if j["id"] not in known]
+        assert row["state"] == "failed" and "the broker refused it" in row["error"], row  # it says why, not queued
         render = client.post("/render", json=_render_body(trained, small_room))
         assert render.status_code == 503, render.text
         assert "render queue is unavailable" in render.json()["detail"]
