@@ -127,7 +127,7 @@ CONFIGS: dict[str, dict] = {
     "no-weight-decay": NO_DECAY,
     "no-corrections": NO_CORRECTIONS | NO_DECAY,
     "previous-defaults": {"train_background": "fixed", "background": [0.0, 0.0, 0.0], "octree_carving": False,
-                          "window_centre": "entry"}
+                          "window_centre": "entry", "weight_average": 0.0}
     | NO_CORRECTIONS | NO_DECAY | STATED_FOCAL,
     "stated-focal": STATED_FOCAL,
     "pixel-jitter": {"pixel_jitter": True},
@@ -154,8 +154,9 @@ CONFIGS: dict[str, dict] = {
     # window measurement), and the default window at half the paper's width.
     "window-entry": {"window_centre": "entry"},
     "window-half": {"window_width": 0.5},
-    # Renders and checkpoints from an exponential moving average of the field's parameters (a lag of 200 steps).
-    "weight-average": {"weight_average": 0.995},
+    # Renders and checkpoints from the field's last-step parameters: the default before the moving average of its
+    # parameters (a lag of 200 steps) won issue #46's protocol at 300 s.
+    "no-weight-average": {"weight_average": 0.0},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
     "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine

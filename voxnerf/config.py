@@ -270,10 +270,11 @@ class ScheduleConfig(_Section):
     )
     coarse_levels: int = Field(default=4, ge=1, description="hash levels active at the start of coarse_to_fine")
     weight_average: float = Field(
-        default=0.0, ge=0.0, lt=1.0,
+        default=0.995, ge=0.0, lt=1.0,
         description="renders, checkpoints and evaluations use an exponential moving average of the field's "
         "parameters with this decay per step (a lag of about 1 / (1 - decay) steps) while the optimiser steps the "
-        "live ones (voxnerf/training/weight_average.py); 0 uses the last step's parameters",
+        "live ones (voxnerf/training/weight_average.py); 0 uses the last step's parameters. The default won on "
+        "both halves of the tuning suite at 300 s (docs/engine.md, weight_average)",
     )
 
     @field_validator("lr")

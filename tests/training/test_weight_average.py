@@ -37,7 +37,7 @@ def _step(field: nn.Module, iteration: int) -> None:
             p.add_(float(iteration))
 
 
-def test_the_average_moves_every_few_steps_by_the_decay_to_that_power() -> None:
+def test_the_average_moves_every_few_steps_by_its_rate() -> None:
     field = _field()
     start = [p.detach().clone() for p in field.parameters()]
     average = WeightAverage(field, decay=0.9, every=2)
@@ -46,13 +46,37 @@ def test_the_average_moves_every_few_steps_by_the_decay_to_that_power() -> None:
         _step(field, iteration)
         average.after_step(LoopState(iteration))
         if iteration % 2 == 0:
-            expected = [e + (1 - 0.9**2) * (p.detach() - e) for e, p in zip(expected, field.parameters(), strict=True)]
+            rate = max(1 - 0.9**2, 9 / (10 + iteration // 2))
+            expected = [e + rate * (p.detach() - e) for e, p in zip(expected, field.parameters(), strict=True)]
     state = average.field_state()
     for (name, live), want in zip(field.named_parameters(), expected, strict=True):
         assert torch.allclose(state[name], want, atol=1e-6)
         assert not torch.allclose(state[name], live)  # the live parameters are left alone
     assert state.keys() == field.state_dict().keys()  # buffers come along as they are
     assert WEIGHT_AVERAGE_EVERY == 4 and WeightAverage(field, 0.99).every == WEIGHT_AVERAGE_EVERY
+
+
+def test_the_rate_falls_from_the_warm_up_to_the_decay_s_and_stays() -> None:
+    average = WeightAverage(_field(), decay=0.995)
+    base = 1 - 0.995**WEIGHT_AVERAGE_EVERY
+    rates = [average.rate_at(n) for n in (1, 10, 100, 443, 444, 10_000)]
+    assert rates[0] == pytest.approx(9 / 11) and rates[2] == pytest.approx(9 / 110)
+    assert rates == sorted(rates, reverse=True) and rates[-3] > base and rates[-2:] == [base, base]
+
+
+def test_a_short_run_s_average_is_not_held_back_by_the_start() -> None:
+    """Without the warm-up, 300 steps at decay 0.995 would leave 0.995**300 = 22 % of the random start in the
+    average; with it, the start is gone and the average sits among the last steps' parameters."""
+    field = _field()
+    start = [p.detach().clone() for p in field.parameters()]
+    average = WeightAverage(field, decay=0.995)
+    for iteration in range(1, 301):
+        _step(field, 1)  # every parameter moves by 1 a step: 300 in all
+        average.after_step(LoopState(iteration))
+    state = average.field_state()
+    for (name, _), first in zip(field.named_parameters(), start, strict=True):
+        moved = (state[name] - first).mean().item()
+        assert 260 < moved < 300, moved  # the last tenth of the run, not 300 * (1 - 0.22) and less
 
 
 def test_applied_puts_the_average_in_and_the_live_parameters_back_even_after_an_error() -> None:
@@ -87,7 +111,7 @@ def test_a_decay_outside_zero_to_one_is_refused(decay: float) -> None:
 def test_the_setting_lies_in_zero_to_one(value: float) -> None:
     with pytest.raises(ValidationError, match="weight_average"):
         TrainConfig(weight_average=value)
-    assert TrainConfig().schedule.weight_average == 0.0  # off by default
+    assert TrainConfig().schedule.weight_average == 0.995  # on by default: issue #46's 300 s verdict
     assert WeightAverage.of(_field(), 0.0) is None
 
 

@@ -1,10 +1,13 @@
 """An exponential moving average of the field's parameters (Polyak averaging, ``schedule.weight_average``).
 
 The optimiser steps the live parameters as before; every :data:`WEIGHT_AVERAGE_EVERY` steps the average moves
-towards them, ``average += (1 - decay^every) * (live - average)``, so it follows the live parameters with a lag of
-about ``1 / (1 - decay)`` steps. What a run gives its users is the average: the checkpoint's model (renders, the
-viewer, exports), the progress evaluations and the final evaluation. The live parameters go into the checkpoint
-too (``field_live``), so a resumed run goes on from them and from the average both.
+towards them, ``average += rate * (live - average)`` with ``rate = 1 - decay^every``, so it follows the live
+parameters with a lag of about ``1 / (1 - decay)`` steps. Early in a run the rate is larger
+(:meth:`WeightAverage.rate_at`, TensorFlow's ``ExponentialMovingAverage`` warm-up): the average then follows
+about the last tenth of the steps made, so a short run's average is not held back by the field's random start.
+What a run gives its users is the average: the checkpoint's model (renders, the viewer, exports), the progress
+evaluations and the final evaluation. The live parameters go into the checkpoint too (``field_live``), so a
+resumed run goes on from them and from the average both.
 """
 
 from __future__ import annotations
@@ -47,13 +50,21 @@ class WeightAverage(Callback):
 
     def after_step(self, state: LoopState) -> None:
         if state.iteration % self.every == 0:
-            self.update()
+            self.update(self.rate_at(state.iteration // self.every))
+
+    def rate_at(self, update: int) -> float:
+        """The share of the gap closed by the run's ``update``-th update (1, 2, ...; counted from the iteration,
+        so a resumed run goes on with its own): ``9 / (10 + update)`` while that is larger than ``1 - decay^every``
+        (up to update 443 at decay 0.995, step 1,772), which then holds."""
+        return max(self.rate, 9.0 / (10.0 + max(update, 0)))
 
     @torch.no_grad()
-    def update(self) -> None:
-        """One move of the average towards the live parameters."""
+    def update(self, rate: float | None = None) -> None:
+        """One move of the average towards the live parameters, closing ``rate`` of the gap (``1 - decay^every``
+        unless given)."""
+        rate = self.rate if rate is None else rate
         for average, live in zip(self.average, self.live, strict=True):
-            average.lerp_(live, self.rate)
+            average.lerp_(live, rate)
 
     def field_state(self) -> dict:
         """The field's state dict with the averaged parameters in place of the live ones (buffers as they are)."""
