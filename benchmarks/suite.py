@@ -40,6 +40,7 @@ the table into docs/benchmarks.md.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import shlex
@@ -214,8 +215,7 @@ def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, 
     t0 = time.perf_counter()
     _run(cmd)
     report = json.loads((run / "report.json").read_text())
-    keep = {k: report.get(k) for k in ("history", "metrics", "throughput", "iteration", "stages", "train_seconds",
-                                        "wall_seconds", "window_check")}
+    keep = {k: report.get(k) for k in REPORT_KEYS}
     result = {"scene": scene, "config": config, "command": command, "wall_s": time.perf_counter() - t0,
               "report": keep}
     write_atomic(done, json.dumps(result).encode())
@@ -241,6 +241,22 @@ def print_table(text: str, out: Path | None) -> int:
     if out is not None:
         out.write_text(text + "\n")
     return 0
+
+
+REPORT_KEYS = ("history", "metrics", "throughput", "iteration", "stages", "train_seconds", "wall_seconds",
+               "window_check", "budget")
+"""What a run's record keeps of its report.json."""
+
+
+def load_result(path: Path) -> dict:
+    """A run's record (``suite-run.json``); a record made before it kept the report's ``budget`` takes it from the
+    run's report.json beside it, when that is there (:func:`budget_rows` needs it to read the ``train`` stage)."""
+    result = json.loads(path.read_text())
+    report = result.get("report") or {}
+    if "budget" not in report:
+        with contextlib.suppress(OSError, ValueError):
+            report["budget"] = json.loads((path.parent / "report.json").read_text()).get("budget")
+    return result
 
 
 def _finished(path: Path) -> dict | None:
@@ -402,7 +418,9 @@ SET_UP_STAGES = ("load_scene", "corrections", "weight_decay", "prior", "focal", 
 
 def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:
     """Per scene, the baseline run's seconds: set-up stages, compilation (first step), progress evaluations,
-    training steps (less the first), final evaluation, and the whole command's wall clock."""
+    training steps (less the first), final evaluation, and the whole command's wall clock. The steps are the
+    report's ``budget.seconds.training`` where it has one (its ``train`` stage then holds the steps alone); an
+    older report's ``train`` stage also held the compilation and the progress evaluations, which are taken off."""
     rows = []
     for scene in scenes:
         run = next((r for r in results if r["scene"] == scene and r["config"] == BASELINE), None)
@@ -411,7 +429,11 @@ def budget_rows(results: list[dict], scenes: list[str]) -> list[str]:
         seconds = {st["name"]: st["seconds"] for st in run["report"]["stages"]}
         set_up = sum(seconds.get(name, 0.0) for name in SET_UP_STAGES)
         compile_s = seconds.get("compile", 0.0)
-        steps = seconds.get("train", 0.0) - compile_s - seconds.get("progress_evals", 0.0)
+        charged = (run["report"].get("budget") or {}).get("seconds") or {}
+        if "training" in charged:
+            steps = charged["training"]
+        else:
+            steps = seconds.get("train", 0.0) - compile_s - seconds.get("progress_evals", 0.0)
         cells = [set_up, compile_s, seconds.get("progress_evals", 0.0), steps, seconds.get("final_eval", 0.0),
                  run["report"].get("wall_seconds") or 0.0]
         rows.append(f"| {scene} | " + " | ".join(f"{c:.1f}" for c in cells) + " |")
@@ -590,7 +612,7 @@ def main(argv: list[str] | None = None) -> int:
         for config in configs:  # a scene's configurations back to back: compared runs minutes apart
             print(f"{config} on {scene} ...", flush=True)
             run_one(scene, Path(scene_dir), config, args.out / "runs" / scene / config, args.budget, eval_at, extra)
-    results = [json.loads(p.read_text()) for p in sorted((args.out / "runs").glob("*/*/suite-run.json"))]
+    results = [load_result(p) for p in sorted((args.out / "runs").glob("*/*/suite-run.json"))]
     results = [r for r in results if r["config"] in CONFIGS and r["config"] in configs and r["scene"] in scene_dirs]
     scenes = list(dict.fromkeys([*scene_dirs, *(r["scene"] for r in results)]))
     in_run = {scene: halves[scene] for scene in scenes}

@@ -621,3 +621,26 @@ def test_step_profile_refuses_a_config_that_is_not_a_json_object(capsys) -> None
     with pytest.raises(SystemExit):
         step_profile.main(["scene", "--config", "paper"])
     assert "expected NAME=JSON" in capsys.readouterr().err
+
+
+def test_the_budget_table_counts_the_steps_as_the_report_charges_them():
+    stages = [{"name": "load_scene", "seconds": 1.0}, {"name": "octree", "seconds": 4.0},
+              {"name": "compile", "seconds": 5.0}, {"name": "progress_evals", "seconds": 6.0},
+              {"name": "train", "seconds": 291.6}, {"name": "final_eval", "seconds": 14.0}]
+    budget = {"seconds": {"training": 291.6, "progress_evals": 6.0, "checkpoints": 2.4, "compile": 5.0}}
+    run = {"scene": "office", "config": suite.BASELINE, "report": {"stages": stages, "budget": budget,
+                                                                   "wall_seconds": 331.0}}
+    (row,) = suite.budget_rows([run], ["office"])
+    assert row == "| office | 5.0 | 5.0 | 6.0 | 291.6 | 14.0 | 331.0 |"  # not 291.6 - 5 - 6 again
+    older = {**run, "report": {"stages": [*stages[:4], {"name": "train", "seconds": 302.6}, stages[5]],
+                               "wall_seconds": 331.0}}  # before budget.seconds: train held compile and evals
+    assert suite.budget_rows([older], ["office"]) == [row]
+
+
+def test_a_record_made_before_it_kept_the_budget_takes_it_from_its_report(tmp_path):
+    record = tmp_path / "suite-run.json"
+    record.write_text(json.dumps({"scene": "office", "config": "defaults", "report": {"stages": []}}))
+    assert suite.load_result(record)["report"] == {"stages": []}  # no report.json beside it: as it was
+    (tmp_path / "report.json").write_text(json.dumps({"budget": {"seconds": {"training": 291.6}}}))
+    assert suite.load_result(record)["report"]["budget"] == {"seconds": {"training": 291.6}}
+    assert "budget" in suite.REPORT_KEYS  # and a new record keeps it
