@@ -93,8 +93,10 @@ class FolderWatch:
         return False
 
     def wake(self) -> None:
-        """End the current wait, or the next one at once."""
-        with contextlib.suppress(OSError):  # closed, or its counter full: a wake is pending either way
+        """End the current wait, or the next one at once (nothing once the watch is closed)."""
+        if self._wake_fd < 0:
+            return  # closed: its number may belong to another file by now
+        with contextlib.suppress(OSError):  # its counter full: a wake is pending anyway
             os.eventfd_write(self._wake_fd, 1)
 
     @staticmethod
@@ -112,9 +114,11 @@ class FolderWatch:
 
     def close(self) -> None:
         _OPEN.discard(self)
-        for fd in (self.fd, self._wake_fd):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        wake_fd, self._wake_fd = self._wake_fd, -1
+        for fd in (self.fd, wake_fd):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
 
     def __enter__(self) -> FolderWatch:
         return self

@@ -1,5 +1,6 @@
 """The embedded broker's wait (app/core/broker.py): an idle consumer sleeps on the queue folder's watch and wakes
-for a message, not every ``polling_interval``; a consumer whose channel is full, or one without inotify, polls.
+for a message, not every ``polling_interval``; a consumer whose channel is full, or one without inotify, polls; a
+worker that starts to stop ends its consumer's wait.
 Counts of wake-ups (voluntary context switches of the waiting thread), never durations, are what is asserted."""
 
 from __future__ import annotations
@@ -110,27 +111,7 @@ def test_without_inotify_the_consumer_polls_and_still_receives(tmp_path, name, m
     assert idle >= 20, idle
 
 
-def test_wake_ends_a_watch_s_wait_and_says_so(tmp_path):
-    import threading
 
-    with folder_watch.FolderWatch.open(tmp_path) as watch:
-        outcome = []
-        waiter = threading.Thread(target=lambda: outcome.append((watch.wait(60.0), watch.woken)))
-        waiter.start()
-        watch.wake()
-        waiter.join(10)
-        assert not waiter.is_alive() and outcome == [(False, True)]  # no file came; it was woken
-        assert (watch.wait(0.01), watch.woken) == (False, False)  # the wake was used up: this wait timed out
-        (tmp_path / "a.msg").write_bytes(b"1")
-        assert (watch.wait(5.0), watch.woken) == (True, False)
-
-
-def test_wake_all_wakes_this_process_s_watches_only(tmp_path):
-    with folder_watch.FolderWatch.open(tmp_path) as mine, folder_watch.FolderWatch.open(tmp_path) as inherited:
-        inherited.pid = -1  # as a forked child sees its parent's watch
-        folder_watch.wake_all()
-        assert (mine.wait(0.0), mine.woken) == (False, True)
-        assert (inherited.wait(0.0), inherited.woken) == (False, False)
 
 
 def test_a_woken_consumer_hands_back_to_its_caller_before_its_timeout(tmp_path, name):

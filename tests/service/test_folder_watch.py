@@ -1,6 +1,6 @@
-"""Waiting on a folder (app/core/folder_watch.py) and the API's wait for a render's outcome on the embedded broker
-(app/core/render_results.py), which sleeps on one. Counts of wake-ups (voluntary context switches of the waiting
-thread) and what arrived are asserted, never durations."""
+"""Waiting on a folder (app/core/folder_watch.py), ending such a wait early (a worker that is stopping), and the
+API's wait for a render's outcome on the embedded broker (app/core/render_results.py), which sleeps on one. Counts
+of wake-ups (voluntary context switches of the waiting thread) and what arrived are asserted, never durations."""
 
 from __future__ import annotations
 
@@ -96,3 +96,39 @@ def test_without_inotify_the_wait_polls_and_still_finds_the_outcome(tmp_path, mo
     writer.join()
     assert outcome is not None and outcome.data == b"png bytes"
     assert wakeups >= 20, wakeups  # it looked every POLL_INTERVAL_S
+
+
+def test_wake_ends_a_watch_s_wait_and_says_so(tmp_path):
+    with FolderWatch.open(tmp_path) as watch:
+        outcome = []
+        waiter = threading.Thread(target=lambda: outcome.append((watch.wait(60.0), watch.woken)))
+        waiter.start()
+        watch.wake()
+        waiter.join(10)
+        assert not waiter.is_alive() and outcome == [(False, True)]  # no file came; it was woken
+        assert (watch.wait(0.01), watch.woken) == (False, False)  # the wake was used up: this wait timed out
+        (tmp_path / "a.msg").write_bytes(b"1")
+        assert (watch.wait(5.0), watch.woken) == (True, False)
+
+def test_a_closed_watch_writes_nothing_when_woken(tmp_path):
+    watch = FolderWatch.open(tmp_path)
+    wake_fd = watch._wake_fd
+    watch.close()
+    reader, writer = os.pipe()  # likely given the closed eventfd's number
+    try:
+        watch.wake()
+        folder_watch.wake_all()
+        os.set_blocking(reader, False)
+        with pytest.raises(BlockingIOError):
+            os.read(reader, 8)  # nothing was written into whatever file has that number now
+        assert wake_fd >= 0 and watch not in folder_watch._OPEN
+    finally:
+        os.close(reader)
+        os.close(writer)
+
+def test_wake_all_wakes_this_process_s_watches_only(tmp_path):
+    with FolderWatch.open(tmp_path) as mine, FolderWatch.open(tmp_path) as inherited:
+        inherited.pid = -1  # as a forked child sees its parent's watch
+        folder_watch.wake_all()
+        assert (mine.wait(0.0), mine.woken) == (False, True)
+        assert (inherited.wait(0.0), inherited.woken) == (False, False)
