@@ -468,18 +468,21 @@ def window_rows(results: list[dict], scenes: list[str], halves: dict[str, str]) 
 
 def table(results: list[dict], scenes: list[str], halves: dict[str, str], budget: float, max_iters: int | None,
           command: str, every_run: bool = True) -> str:
-    """The markdown table of the runs: each half's means, the verdicts, the window check, where the budget went and,
-    with ``every_run``, each run's scores (without it, a line saying that ``table.md`` of ``--out`` has them)."""
+    """The markdown table of the runs: each half's means, the verdicts, the window check, where the budget went and
+    each run's scores. Without ``every_run`` (docs/benchmarks.md's form): each half's all-view PSNR means and the
+    verdicts, then a line saying that ``table.md`` of ``--out`` has the rest."""
     head = ("| config | scenes | interp. mean | vs defaults | worst scene | scenes losing > 0.3 | extrap. mean | "
             "vs defaults | worst scene | scenes losing > 0.3 |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- "
             "| --- |")
     bound = f"{budget:g} s" + (f" or {max_iters} steps, whichever comes first," if max_iters else "")
+    budget_table = "the budget table" if every_run else "the budget table of `table.md`"
     parts = [f"Budget {bound} of training per `voxnerf train` run (`--max-seconds`; set-up, compilation and the "
-             "final evaluation come on top, as the budget table shows), one run at a time. Command:\n\n"
+             f"final evaluation come on top, as {budget_table} shows), one run at a time. Command:\n\n"
              f"    {command}\n"]
     for half in (TUNING, CONFIRMATION):
         group = [s for s in scenes if halves.get(s) == half]
-        for metric, name in (("psnr", "PSNR (dB), all views"), ("half_psnr", "half-image PSNR (dB)")):
+        metrics = (("psnr", "PSNR (dB), all views"), ("half_psnr", "half-image PSNR (dB)"))
+        for metric, name in metrics if every_run else metrics[:1]:
             rows = summary_rows(results, group, metric)
             if rows and group:
                 parts.append(f"**{name}, mean over the {half} half** ({', '.join(group)}):\n\n{head}\n"
@@ -493,6 +496,10 @@ def table(results: list[dict], scenes: list[str], halves: dict[str, str], budget
                      "| config | tuning scenes | interp. | extrap. | confirmation scenes | interp. | extrap. | "
                      "worst confirmation scene | verdict |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
                      + "\n".join(verdict_rows(verdicts)) + "\n")
+    if not every_run:
+        parts.append("The half-image PSNR means, the sampler's window checked at set-up, where the budget went and "
+                     "every run's PSNR, SSIM, LPIPS and steps: `table.md` in the command's `--out`.\n")
+        return "\n".join(parts)
     window = window_rows(results, scenes, halves)
     if window:
         parts.append(f"**The VoxNeRF sampler's window, checked at set-up** (the `{BASELINE}` run of each scene, "
@@ -510,12 +517,9 @@ def table(results: list[dict], scenes: list[str], halves: dict[str, str], budget
                      "| scene | set-up | compile (first step) | progress evaluations | training steps | "
                      "final evaluation | wall |\n| --- | --- | --- | --- | --- | --- | --- |\n"
                      + "\n".join(spent) + "\n")
-    if every_run:
-        parts.append("**Every run** (PSNR / SSIM / LPIPS, half-image PSNR in brackets; steps):\n\n"
-                     "| config | scene | interpolation | extrapolation | steps |\n| --- | --- | --- | --- | --- |\n"
-                     + "\n".join(scene_rows(results, scenes)) + "\n")
-    else:
-        parts.append("Every run's PSNR, SSIM, LPIPS, half-image PSNR and steps: `table.md` in the command's `--out`.\n")
+    parts.append("**Every run** (PSNR / SSIM / LPIPS, half-image PSNR in brackets; steps):\n\n"
+                 "| config | scene | interpolation | extrapolation | steps |\n| --- | --- | --- | --- | --- |\n"
+                 + "\n".join(scene_rows(results, scenes)) + "\n")
     return "\n".join(parts)
 
 
