@@ -515,7 +515,9 @@ def _add_job_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-seconds", type=float, help="seconds of training (set-up, compilation and the final "
                    "evaluation come on top: docs/engine.md, 'The time budget')")
     p.add_argument("--max-iters", type=int)
-    p.add_argument("--sampler", choices=["voxnerf", "occgrid", "uniform"], default="voxnerf")
+    p.add_argument("--sampler", choices=["auto", "voxnerf", "occgrid", "uniform"], default="auto",
+                   help="auto: the VoxNeRF sampler unless the set-up finds the prior's first hits wrong on more than "
+                   "6 %% of the rays with depth, then the occupancy grid (report.json says which and why)")
     p.add_argument("--no-depth-loss", action="store_true", help="leave the depth terms out (as --depth-source none)")
     p.add_argument("--depth-source", choices=["auto", "sensor", "prior", "none"], default="auto",
                    help="what the depth loss compares with: the training frames' depth maps (the prior's depth "

@@ -17,7 +17,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 from pydantic.fields import FieldInfo
 
 Preset = Literal["cpu", "paper"]
-SamplerName = Literal["voxnerf", "occgrid", "uniform"]
+SamplerName = Literal["auto", "voxnerf", "occgrid", "uniform"]
 DepthSource = Literal["auto", "sensor", "prior", "none"]
 LrSchedule = Literal["iterations", "budget"]
 Appearance = Literal["auto", "none", "affine"]
@@ -124,11 +124,20 @@ class SamplingConfig(_Section):
     """The samplers (paper III-C): which one, samples per ray, the octree's leaf and carving, the occupancy grid."""
 
     sampler: SamplerName = Field(
-        default="voxnerf", json_schema_extra=JOB,
+        default="auto", json_schema_extra=JOB,
         description="'voxnerf' (the paper's window around the prior's first hit), 'occgrid' (an occupancy grid, "
-        "seeded from the prior where there is one) or 'uniform'; the VoxNeRF sampler against the seeded grid with "
-        "everything else equal, per scene at 300 s: docs/benchmarks.md, 'The sampler alone'",
+        "seeded from the prior where there is one), 'uniform', or 'auto': 'voxnerf' unless the set-up's window "
+        "check finds the prior's first hit wrong on more than 6 % of the rays with depth, then 'occgrid' "
+        "(fixed at set-up; report.json's window_check stage says which and why); the VoxNeRF sampler against the "
+        "seeded grid with everything else equal, per scene at 300 s: docs/benchmarks.md, 'The sampler alone'",
     )
+
+    @property
+    def may_use_window(self) -> bool:
+        """Whether the set-up builds the VoxNeRF sampler's octree: for ``voxnerf``, and for ``auto`` until its
+        choice (the window check needs the octree's first hits)."""
+        return self.sampler in ("auto", "voxnerf")
+
     prior_file: bool = Field(
         default=True,
         description="use the scene's prior file; False trains as if the scene had none (the prior is then fused from "

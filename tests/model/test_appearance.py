@@ -128,7 +128,7 @@ def test_voxnerf_train_set_wins_over_a_flag_of_the_same_field(tmp_path, capsys):
     """--set sampler=... beside the --sampler flag's default: the --set value is the one checked (and refused)."""
     code = main(["train", str(tmp_path / "scene"), "--out", str(tmp_path / "run"), "--max-iters", "1",
                  "--sampler", "voxnerf", "--set", "sampler=\"warp\"", "--set", "depth_loss=false"])
-    assert code == 2 and "sampler: Input should be 'voxnerf', 'occgrid' or 'uniform'" in capsys.readouterr().err
+    assert code == 2 and "sampler: Input should be 'auto', 'voxnerf', 'occgrid' or 'uniform'" in capsys.readouterr().err
 
 
 def _cameras() -> torch.Tensor:

@@ -66,11 +66,17 @@ def test_ray_bundle_clips_to_the_box_and_keeps_misses_empty():
 @pytest.mark.parametrize(
     ("sampler", "with_octree", "expected"),
     [("uniform", True, UniformSampler), ("occgrid", True, OccGridSampler), ("voxnerf", True, VoxNeRFSampler),
-     ("voxnerf", False, OccGridSampler)],
+     ("voxnerf", False, OccGridSampler), ("auto", True, VoxNeRFSampler), ("auto", False, OccGridSampler)],
 )
 def test_sampler_follows_the_config_and_the_octree(sampler, with_octree, expected):
     model = _model(sampler, _octree() if with_octree else None)
     assert type(model.sampler()) is expected
+
+
+def test_use_sampler_switches_the_sampler_and_the_config_a_checkpoint_keeps():
+    model = _model("auto", _octree())
+    model.use_sampler("occgrid")
+    assert type(model.sampler()) is OccGridSampler and model.config.for_model()["sampling"]["sampler"] == "occgrid"
 
 
 def test_the_voxnerf_sampler_fills_octree_misses_as_the_config_says_on_the_model_s_device(monkeypatch):

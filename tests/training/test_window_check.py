@@ -9,11 +9,20 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import trimesh
 from synthetic_fixtures import MICRO, make_micro_scene, micro_config
 
+from voxnerf.inference.render import load_model
 from voxnerf.synthetic import make_room_scene
 from voxnerf.training.run import REPORT, train
-from voxnerf.training.window_check import first_hit_check, robust_spread, samples_near, share_outside
+from voxnerf.training.window_check import (
+    MAX_WRONG_FIRST_HITS,
+    choose_sampler,
+    first_hit_check,
+    robust_spread,
+    samples_near,
+    share_outside,
+)
 
 NAN = float("nan")
 
@@ -107,5 +116,45 @@ def test_the_check_says_why_it_did_not_run(tmp_path_factory, tmp_path):
     no_depth = make_room_scene(tmp_path_factory.mktemp("no-depth") / "room", replace(MICRO, write_depth=False))
     train(no_depth, tmp_path / "no-depth", micro_config(max_iters=1, final_eval=False), progress_bar=False)
     report = json.loads((tmp_path / "no-depth" / REPORT).read_text())
-    assert _stage(report, "window_check")["why"] == "no sensor depth to check the window against"
-    assert "window_check" not in report
+    assert _stage(report, "window_check")["why"] == ("no sensor depth to check the window against; sampler 'auto': "
+                                                     "voxnerf, no depth to check the window against: the VoxNeRF "
+                                                     "sampler, as the paper")
+    assert "window_check" not in report and report["config"]["sampler"] == "voxnerf"
+
+
+def test_sampler_auto_keeps_the_window_unless_too_many_first_hits_are_wrong():
+    assert choose_sampler(None, has_octree=False)[0] == "occgrid"
+    assert choose_sampler({"wrong_first_hit": 0.0}, has_octree=False)[0] == "occgrid"  # no octree, no window
+    assert choose_sampler(None, has_octree=True)[0] == "voxnerf"  # nothing to check against: the paper's sampler
+    assert choose_sampler({"wrong_first_hit": None}, has_octree=True)[0] == "voxnerf"
+    assert choose_sampler({"wrong_first_hit": 0.047}, has_octree=True) == (
+        "voxnerf", "the first hit is right on 95.3% of the rays with depth (wrong on at most 6%): the VoxNeRF sampler")
+    assert choose_sampler({"wrong_first_hit": MAX_WRONG_FIRST_HITS}, has_octree=True)[0] == "voxnerf"
+    name, why = choose_sampler({"wrong_first_hit": 0.491}, has_octree=True)
+    assert name == "occgrid"
+    assert why.startswith("the first hit is wrong on 49.1% of the rays with depth (more than 6%)")
+
+
+@pytest.mark.parametrize(("shift_m", "chosen"), [(0.0, "voxnerf"), (0.5, "occgrid")])
+def test_a_run_on_sampler_auto_chooses_at_set_up_and_trains_renders_and_reports_its_choice(
+        tmp_path_factory, tmp_path, shift_m, chosen):
+    """The micro room as given, and with its prior moved by half a metre (a prior registered in another frame):
+    the window check finds the first hits right, or wrong on most rays, and the run samples with its choice."""
+    room = make_micro_scene(tmp_path_factory, "window-auto")
+    meta = json.loads((room / "transforms.json").read_text())
+    prior = room / meta["prior_file_path"]
+    cloud = trimesh.load(prior)
+    trimesh.PointCloud(np.asarray(cloud.vertices) + [shift_m, shift_m, 0.0]).export(prior)
+    run = tmp_path / "run"
+    train(room, run, micro_config(final_eval=False), progress_bar=False)
+    report = json.loads((run / REPORT).read_text())
+    assert report["status"] == "succeeded" and report["config"]["sampler"] == chosen
+    check = report["window_check"]
+    assert (check["wrong_first_hit"] > MAX_WRONG_FIRST_HITS) == (chosen == "occgrid")
+    assert check["sampler"]["chosen"] == chosen and check["sampler"]["why"] in _stage(report, "window_check")["why"]
+    assert f"sampler 'auto': {chosen}, " in _stage(report, "window_check")["why"]
+    assert _stage(report, "octree")["ran"]  # built for the check whatever the choice
+    trained = load_model(run, "cpu")
+    assert trained.model.config.sampling.sampler == chosen  # the checkpoint keeps the choice: renders follow it
+    sampler = trained.model.sampler()
+    assert type(sampler).__name__ == ("OccGridSampler" if chosen == "occgrid" else "VoxNeRFSampler")

@@ -169,7 +169,12 @@ class VoxNeRFModel:
         colour = (0.0, 0.0, 0.0) if isinstance(self.config.model.background, str) else self.config.model.background
         return torch.tensor(colour, dtype=torch.float32, device=self.device)
 
+    def use_sampler(self, name: str) -> None:
+        """Sample with ``name`` from now on (sampler ``auto``'s choice at set-up; checkpoints keep it)."""
+        self.config = self.config.updated(sampler=name)
+
     def sampler(self) -> UniformSampler | OccGridSampler | VoxNeRFSampler:
+        """The sampler of the config (``auto``, until the set-up resolves it, is the VoxNeRF sampler)."""
         n = self.config.sampling.samples_per_ray
         if self.config.sampling.sampler == "uniform":
             return UniformSampler(n)

@@ -185,6 +185,9 @@ def _window_check(ctx: SetupContext) -> StageRecord:
                                  ctx.built.transform.scale)
     if checked.summary is not None:
         ctx.report.window_check = checked.summary
+    if checked.sampler is not None:  # sampler 'auto' chose: the run and its model (checkpoints, renders) use it
+        ctx.cfg = ctx.cfg.updated(sampler=checked.sampler)
+        ctx.built.model.use_sampler(checked.sampler)
     return checked.record
 
 
@@ -208,7 +211,7 @@ SETUP_STAGES: tuple[SetupStage, ...] = (
     Stage("depth_target", _depth_target),
     Stage("octree_carving", _carving),
     Stage("first_hit_cache", _first_hit),
-    Stage("window_check", _window_check),  # the sampler's window against the depth maps (report.json window_check)
+    Stage("window_check", _window_check),  # the window against the depth maps; resolves "auto" sampler
     Stage("prior_rays", _prior_rays),
 )
 

@@ -11,6 +11,8 @@ room's exact depth, a sensor's), how often it does and what the window is worth 
   the first hit's offset from the depth; the half-width against the prior's noise measured along the rays.
 - :func:`samples_near` / :func:`share_outside`: the share of a sampler's samples within a band of the depth,
   and of the VoxNeRF sampler's samples outside its own window.
+- :func:`choose_sampler`: sampler ``auto``'s choice from the first check, the VoxNeRF sampler unless its window
+  misses the surface on too many rays.
 
 Plain numpy (no torch): the set-up stage ``window_check`` (:mod:`voxnerf.training.stages.window_check`) hands
 its tensors over as arrays. Distances are normalised ray distances (NaN where there is none) and come back in
@@ -104,6 +106,31 @@ def share_outside(mid_t: np.ndarray, hit_t: np.ndarray, hit: np.ndarray, half_wi
         return None
     inside = hit[:, None] & (np.abs(mid_t - hit_t[:, None]) <= half_window)
     return float(1.0 - inside.mean())
+
+
+MAX_WRONG_FIRST_HITS = 0.06
+"""Sampler ``auto`` keeps the VoxNeRF sampler while at most this share of the checked rays has a wrong first hit
+(stops short or passes through); above it the prior-seeded occupancy grid samples instead. Chosen between the
+tuning suite's scenes, 1.4-4.7 % (the window sampler leads or ties on each), and den with its prior moved by 15 cm,
+7.3 % (the grid leads by 0.4 / 0.1 dB) and by 40 cm, 49 % (by 2.5 / 0.7 dB): docs/benchmarks.md, 'The sampler
+alone'."""
+
+
+def choose_sampler(check: dict | None, has_octree: bool) -> tuple[str, str]:
+    """Sampler ``auto``'s choice, ``(name, why)``: ``'occgrid'`` without an octree (no prior to place a window) or
+    when more than :data:`MAX_WRONG_FIRST_HITS` of the rays of ``check`` (:func:`first_hit_check`'s result) have a
+    wrong first hit, else ``'voxnerf'`` (also when nothing could be checked: no depth, ``check`` None)."""
+    if not has_octree:
+        return "occgrid", "no octree (no prior) to place a window: the occupancy grid samples"
+    wrong = None if check is None else check.get("wrong_first_hit")
+    if wrong is None:
+        return "voxnerf", "no depth to check the window against: the VoxNeRF sampler, as the paper"
+    if wrong > MAX_WRONG_FIRST_HITS:
+        return "occgrid", (f"the first hit is wrong on {wrong:.1%} of the rays with depth (more than "
+                           f"{MAX_WRONG_FIRST_HITS:.0%}): the window would miss their surface, so the occupancy grid "
+                           "seeded from the prior samples")
+    return "voxnerf", (f"the first hit is right on {1 - wrong:.1%} of the rays with depth (wrong on at most "
+                       f"{MAX_WRONG_FIRST_HITS:.0%}): the VoxNeRF sampler")
 
 
 def _share(count: int, total: int) -> float | None:

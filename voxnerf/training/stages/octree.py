@@ -27,7 +27,7 @@ class OctreeStage:
 def octree_stage(cfg: TrainConfig, prior_n: GeometryPrior | None, pixels: TrainingPixels, model: VoxNeRFModel,
                  device: torch.device) -> OctreeStage:
     t0 = time.perf_counter()
-    if cfg.sampling.sampler == "voxnerf" and prior_n is not None:
+    if cfg.sampling.may_use_window and prior_n is not None:
         octree, why = sampler_octree(prior_n, pixels, model, cfg, device)
         return OctreeStage(stage_record("octree", True, why, t0), octree)
     why = "no prior" if prior_n is None else f"sampler {cfg.sampling.sampler!r} does not use it"

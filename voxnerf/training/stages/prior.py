@@ -33,7 +33,7 @@ def prior_stage(scene: Scene, cfg: TrainConfig, run_dir: Path | None = None) -> 
     """The scene's prior file (unless ``prior_file`` is off); without one, the TSDF fusion of the training frames'
     depth maps (written to ``run_dir/prior_tsdf.ply`` when a run directory is given); without either, none."""
     t0 = time.perf_counter()
-    needs_prior = cfg.sampling.sampler == "voxnerf" or cfg.loss.depth_loss
+    needs_prior = cfg.sampling.may_use_window or cfg.loss.depth_loss
     why_needed = "sets the scene box" + (" and guides sampling / depth" if needs_prior else " only (not needed else)")
     if scene.prior_path is not None and not cfg.sampling.prior_file:
         why_needed += f"; the scene's {scene.prior_path.name} left out (prior_file: false)"
@@ -61,6 +61,11 @@ def prior_stage(scene: Scene, cfg: TrainConfig, run_dir: Path | None = None) -> 
 
 def _no_prior(cfg: TrainConfig, why: str, t0: float, needs_prior: bool) -> PriorStage:
     record = stage_record("prior", False, why, t0)
+    if cfg.sampling.sampler == "auto":  # without a prior, auto's choice is the grid: only the depth loss misses it
+        if not cfg.loss.depth_loss:
+            return PriorStage(record, None)
+        return PriorStage(record, None, "the depth loss needs a prior; the scene has none, so no depth loss is used "
+                                        "(sampler 'auto' takes the occupancy grid)")
     if not needs_prior:
         return PriorStage(record, None)
     return PriorStage(record, None, (

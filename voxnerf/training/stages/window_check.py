@@ -14,7 +14,7 @@ from voxnerf.prior.loading import GeometryPrior
 from voxnerf.training.pixels import TrainingPixels
 from voxnerf.training.records import StageRecord
 from voxnerf.training.stages.common import stage_record
-from voxnerf.training.window_check import first_hit_check, samples_near, share_outside
+from voxnerf.training.window_check import choose_sampler, first_hit_check, samples_near, share_outside
 
 CHECK_PIXELS = 262_144  # training pixels with depth whose first hits are checked (a fixed random subset)
 SAMPLED_RAYS = 8_192  # of those, rays both samplers sample at set-up
@@ -24,6 +24,7 @@ SAMPLED_RAYS = 8_192  # of those, rays both samplers sample at set-up
 class WindowCheckStage:
     record: StageRecord
     summary: dict | None = None  # report.json's window_check
+    sampler: str | None = None  # sampler 'auto''s choice ('voxnerf' or 'occgrid'); None for a sampler the config names
 
 
 def window_check_stage(cfg: TrainConfig, model: VoxNeRFModel, pixels: TrainingPixels, depth_t: torch.Tensor | None,
@@ -33,15 +34,18 @@ def window_check_stage(cfg: TrainConfig, model: VoxNeRFModel, pixels: TrainingPi
     pixels, and where the VoxNeRF sampler and the occupancy grid as it stands at set-up (seeded from the prior
     unless ``occgrid_seed`` is off) put their samples on a smaller one (:mod:`voxnerf.training.window_check`).
     Runs only for the VoxNeRF sampler with an octree and a sensor depth target (depth maps and the depth loss on);
-    ``scale`` is normalised units per metre."""
+    ``scale`` is normalised units per metre. For sampler ``auto`` the stage also makes its choice
+    (:func:`~voxnerf.training.window_check.choose_sampler`), says it in its ``why`` and in the summary's
+    ``sampler``."""
     t0 = time.perf_counter()
     sampler = model.sampler()
     if not isinstance(sampler, VoxNeRFSampler) or pixels.hit_t is None:
-        why = f"sampler {cfg.sampling.sampler!r} has no window" if cfg.sampling.sampler != "voxnerf" else "no octree"
-        return WindowCheckStage(stage_record("window_check", False, why, t0))
+        named = cfg.sampling.sampler in ("occgrid", "uniform")
+        why = f"sampler {cfg.sampling.sampler!r} has no window" if named else "no octree"
+        return _with_choice(cfg, WindowCheckStage(stage_record("window_check", False, why, t0)), has_octree=False)
     if depth_t is None or not bool(torch.isfinite(depth_t).any()):
-        return WindowCheckStage(stage_record("window_check", False, "no sensor depth to check the window against",
-                                             t0))
+        return _with_choice(cfg, WindowCheckStage(stage_record(
+            "window_check", False, "no sensor depth to check the window against", t0)), has_octree=True)
     with torch.no_grad():
         summary = _check(cfg, model, sampler, pixels, depth_t, prior_n, scale)
     near = summary["samples"]["near_surface"]
@@ -52,7 +56,19 @@ def window_check_stage(cfg: TrainConfig, model: VoxNeRFModel, pixels: TrainingPi
            + (f" against the prior's measured noise {100 * summary['prior_noise_m']:.1f} cm"
               if summary["prior_noise_m"] else "")
            + f"; samples near the surface: voxnerf {near['voxnerf']:.1%}, occupancy grid {near['occupancy_grid']:.1%}")
-    return WindowCheckStage(stage_record("window_check", True, why, t0), summary)
+    return _with_choice(cfg, WindowCheckStage(stage_record("window_check", True, why, t0), summary), has_octree=True)
+
+
+def _with_choice(cfg: TrainConfig, checked: WindowCheckStage, has_octree: bool) -> WindowCheckStage:
+    """``checked`` with sampler ``auto``'s choice made from its summary (unchanged for a sampler the config names)."""
+    if cfg.sampling.sampler != "auto":
+        return checked
+    name, why = choose_sampler(checked.summary, has_octree)
+    checked.record = checked.record.model_copy(update={"why": f"{checked.record.why}; sampler 'auto': {name}, {why}"})
+    if checked.summary is not None:
+        checked.summary["sampler"] = {"chosen": name, "why": why}
+    checked.sampler = name
+    return checked
 
 
 def _check(cfg: TrainConfig, model: VoxNeRFModel, sampler: VoxNeRFSampler, pixels: TrainingPixels,
