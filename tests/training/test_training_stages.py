@@ -49,6 +49,17 @@ def test_a_scene_without_prior_warns_only_when_something_needs_one(cfg, warning)
     assert (found.warning is None) if warning is None else (warning in found.warning)
 
 
+@pytest.mark.parametrize(("depth_loss", "warning"), [
+    (True, "the depth loss needs a prior; the scene has none, so no depth loss is used (sampler 'auto' takes the "
+           "occupancy grid)"),
+    (False, None),
+])
+def test_without_a_prior_sampler_auto_warns_only_for_the_depth_loss(depth_loss, warning):
+    """Sampler 'auto' needs no prior (without one it chooses the grid): only the depth loss misses it."""
+    found = stages.prior_stage(_scene(), TrainConfig(max_iters=1, depth_loss=depth_loss))
+    assert found.prior is None and not found.record.ran and found.warning == warning
+
+
 def test_hash_kernel_stage_says_why_it_did_not_run():
     off = stages.hash_kernel_stage(TrainConfig(max_iters=1, hash_kernel=False), CPU)
     assert not off.ran and off.why.startswith("disabled (--no-hash-kernel)")
