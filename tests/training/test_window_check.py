@@ -128,7 +128,7 @@ def test_sampler_auto_keeps_the_window_unless_too_many_first_hits_are_wrong():
     assert choose_sampler(None, has_octree=True)[0] == "voxnerf"  # nothing to check against: the paper's sampler
     assert choose_sampler({"wrong_first_hit": None}, has_octree=True)[0] == "voxnerf"
     assert choose_sampler({"wrong_first_hit": 0.047}, has_octree=True) == (
-        "voxnerf", "the first hit is right on 95.3% of the rays with depth (wrong on at most 6%): the VoxNeRF sampler")
+        "voxnerf", "the first hit is wrong on 4.7% of the rays with depth (at most 6%): the VoxNeRF sampler")
     assert choose_sampler({"wrong_first_hit": MAX_WRONG_FIRST_HITS}, has_octree=True)[0] == "voxnerf"
     name, why = choose_sampler({"wrong_first_hit": 0.491}, has_octree=True)
     assert name == "occgrid"

@@ -112,8 +112,8 @@ MAX_WRONG_FIRST_HITS = 0.06
 """Sampler ``auto`` keeps the VoxNeRF sampler while at most this share of the checked rays has a wrong first hit
 (stops short or passes through); above it the prior-seeded occupancy grid samples instead. Chosen between the
 tuning suite's scenes, 1.4-4.7 % (the window sampler leads or ties on each), and den with its prior moved by 15 cm,
-7.3 % (the grid leads by 0.4 / 0.1 dB) and by 40 cm, 49 % (by 2.5 / 0.7 dB): docs/benchmarks.md, 'The sampler
-alone'."""
+7.3 % (the grid leads by 0.4 / 0.1 dB) and by 40 cm, 49 % (by 2.5 / 0.7 dB): docs/benchmarks.md, 'A prior in
+the wrong place'."""
 
 
 def choose_sampler(check: dict | None, has_octree: bool) -> tuple[str, str]:
@@ -129,7 +129,7 @@ def choose_sampler(check: dict | None, has_octree: bool) -> tuple[str, str]:
         return "occgrid", (f"the first hit is wrong on {wrong:.1%} of the rays with depth (more than "
                            f"{MAX_WRONG_FIRST_HITS:.0%}): the window would miss their surface, so the occupancy grid "
                            "seeded from the prior samples")
-    return "voxnerf", (f"the first hit is right on {1 - wrong:.1%} of the rays with depth (wrong on at most "
+    return "voxnerf", (f"the first hit is wrong on {wrong:.1%} of the rays with depth (at most "
                        f"{MAX_WRONG_FIRST_HITS:.0%}): the VoxNeRF sampler")
 
 
