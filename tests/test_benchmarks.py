@@ -489,7 +489,8 @@ def test_the_docs_table_leaves_every_run_to_table_md(tmp_path: Path) -> None:
     assert "**Every run**" not in short and "| sampler-grid | c1 |" not in short
     assert short.endswith("`table.md` in the command's `--out`.\n")
     assert "half-image PSNR (dB), mean" in full and "half-image PSNR (dB), mean" not in short
-    kept = short.split("The half-image PSNR means")[0]
+    head, kept = short.split("The half-image PSNR means")[0].split("\n\n", 1)
+    assert "as the budget table of `table.md` shows" in head and "as the budget table shows" in full
     assert "PSNR (dB), all views, mean over the confirmation half" in kept and "**Verdicts" in kept
     assert all(block in full for block in kept.split("\n\n"))  # the same all-view means and verdicts
     page = tmp_path / "page.md"
