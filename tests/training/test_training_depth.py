@@ -202,7 +202,7 @@ def test_depth_maps_without_a_valid_pixel_leave_the_scene_prior_less_and_say_why
     assert found.prior is None and not found.record.ran
     assert found.record.why == ("no prior file, and the depth maps make none: the depth maps of the 2 training "
                                 "frames hold no valid depth")
-    assert "need a prior; the scene has none" in found.warning
+    assert "needs a prior; the scene has none" in found.warning
 
 
 def test_sensor_depth_without_depth_maps_is_refused_when_the_scene_loads(tmp_path):
