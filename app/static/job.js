@@ -68,19 +68,36 @@ function drawSummary(job) {
   $("summary").replaceChildren(...facts.flatMap(([term, value]) => [el("dt", {}, term), el("dd", { data: { fact: term } }, value)]));
   $("summary").dataset.state = job.state;
   const active = !FINISHED.includes(job.state);
-  $("actions").replaceChildren(...(active && !job.cancel_requested ? [cancelButton()] : []), viewerEntry(job));
+  showActions([...(active && !job.cancel_requested ? [actionElements.cancel ??= cancelButton()] : []),
+    viewerEntry(job)]);
+}
+
+// The action row's elements, made once and updated in place: an update that replaced them (one per progress
+// event) could swallow a click that landed on the element it removed.
+const actionElements = { cancel: null, link: null, pending: null };
+
+function showActions(parts) {
+  const row = $("actions");
+  if (parts.length !== row.children.length || parts.some((part, i) => part !== row.children[i])) {
+    row.replaceChildren(...parts);
+  }
 }
 
 // The viewer's link from the job's first checkpoint on (while it trains: its latest checkpoint), else why not yet.
 function viewerEntry(job) {
   if (!viewable(job)) {
     const why = FINISHED.includes(job.state) ? "no checkpoint to view" : "the viewer opens at the first checkpoint";
-    return el("span", { id: "viewer-pending", className: "muted" }, ` ${why}`);
+    actionElements.pending ??= el("span", { id: "viewer-pending", className: "muted" });
+    actionElements.pending.textContent = ` ${why}`;
+    return actionElements.pending;
   }
   const which = job.state === "succeeded" ? "" : ` (iteration ${job.checkpoint_iteration}, ${
     job.state === "running" ? "training" : job.state})`;
-  return el("a", { id: "viewer-link", className: "viewer-link", href: `/static/viewer.html?job=${jobId}`,
-    data: { iteration: String(job.checkpoint_iteration ?? "") } }, `Open the viewer${which}`);
+  const link = actionElements.link ??= el("a", { id: "viewer-link", className: "viewer-link",
+    href: `/static/viewer.html?job=${jobId}` });
+  link.dataset.iteration = String(job.checkpoint_iteration ?? "");
+  link.textContent = `Open the viewer${which}`;
+  return link;
 }
 
 function cancelButton() {

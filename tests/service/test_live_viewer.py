@@ -100,6 +100,12 @@ def test_a_running_job_is_viewed_from_its_latest_checkpoint(service, page, tmp_p
     page.wait_for_selector("#viewer-link", timeout=60_000)
     assert "training" in page.inner_text("#viewer-link") and page.get_attribute("body", "data-state") == "running"
     page.screenshot(path=str(tmp_path / "job-page-running.png"), full_page=True)
+    # the link is updated in place as checkpoints come (a new element per update could swallow the click)
+    page.evaluate("() => { window.firstLink = document.getElementById('viewer-link'); "
+                  "window.firstIteration = window.firstLink.dataset.iteration; }")
+    page.wait_for_function("() => document.getElementById('viewer-link').dataset.iteration !== "
+                           "window.firstIteration", timeout=FINAL_TIMEOUT_S * 1000)
+    assert page.evaluate("() => document.getElementById('viewer-link') === window.firstLink")
     page.click("#viewer-link")
     page.wait_for_url(f"**/static/viewer.html?job={job_id}")
     page.wait_for_function("() => document.getElementById('checkpoint').dataset.iteration !== ''", timeout=120_000)
