@@ -125,9 +125,11 @@ def test_a_render_the_api_gave_up_on_stops_and_frees_the_worker(service, client,
              "a small render to answer (the model loaded)")
     abandoned = client.post("/render", json={**body, "width": BIG, "height": BIG})
     assert abandoned.status_code == 504, abandoned.text
+    # (a small render of the warm-up above may have been given up on too, on a loaded machine: its line is not this)
     stopped = wait_for(lambda: [line for line in render_log.read_text(errors="replace").splitlines()
-                                if "stopped after" in line], 120, "the render worker to stop the abandoned render")
+                                if "stopped after" in line and f"of {BIG * BIG} rays" in line], 120,
+                       "the render worker to stop the abandoned render")
     (line,) = stopped
-    assert f"of {BIG * BIG} rays" in line and "nothing is delivered" in line
+    assert "nothing is delivered" in line
     answered = client.post("/render", json={**body, "width": 16, "height": 16})
     assert answered.status_code == 200 and answered.headers["content-type"] == "image/png"
