@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from docs_section import publish
+from error_vs_runtime import train_command
 
 from voxnerf.training.window_check import choose_sampler
 
@@ -83,8 +84,7 @@ def make_case(source: Path, shift: np.ndarray, out: Path) -> Path:
 
 def train(scene: Path, run: Path, sampler: str, budget: float, extra: list[str]) -> list[str]:
     """``voxnerf train`` of ``scene`` into ``run`` with ``sampler`` (skipped when ``run`` holds a finished report)."""
-    cmd = [sys.executable, "-m", "voxnerf", "train", str(scene), "--out", str(run), "--max-seconds", f"{budget:g}",
-           "--restart", "--eval-every", "100000", "--sampler", sampler, *extra]
+    cmd = train_command(scene, run, budget, [], ["--eval-every", "100000", "--sampler", sampler, *extra])
     report = run / "report.json"
     if not report.is_file() or json.loads(report.read_text()).get("status") != "succeeded":
         print(f"{sampler} on {scene.name} ...", flush=True)

@@ -40,8 +40,7 @@ def window_check_stage(cfg: TrainConfig, model: VoxNeRFModel, pixels: TrainingPi
     t0 = time.perf_counter()
     sampler = model.sampler()
     if not isinstance(sampler, VoxNeRFSampler) or pixels.hit_t is None:
-        named = cfg.sampling.sampler in ("occgrid", "uniform")
-        why = f"sampler {cfg.sampling.sampler!r} has no window" if named else "no octree"
+        why = "no octree" if cfg.sampling.may_use_window else f"sampler {cfg.sampling.sampler!r} has no window"
         return _with_choice(cfg, WindowCheckStage(stage_record("window_check", False, why, t0)), has_octree=False)
     if depth_t is None or not bool(torch.isfinite(depth_t).any()):
         return _with_choice(cfg, WindowCheckStage(stage_record(
