@@ -63,6 +63,8 @@ def make_case(source: Path, shift: np.ndarray, out: Path) -> Path:
     is there)."""
     if (out / "transforms.json").is_file():
         return out
+    if not (source / "transforms.json").is_file():
+        raise SystemExit(f"shifted_prior.py: {source / 'transforms.json'}: no such scene (see --suite-dir)")
     meta = json.loads((source / "transforms.json").read_text())
     if not meta.get("prior_file_path"):
         raise SystemExit(f"shifted_prior.py: {source / 'transforms.json'}: no prior_file_path to move")
@@ -89,8 +91,10 @@ def train(scene: Path, run: Path, sampler: str, budget: float, extra: list[str])
     if not report.is_file() or json.loads(report.read_text()).get("status") != "succeeded":
         print(f"{sampler} on {scene.name} ...", flush=True)
         run.parent.mkdir(parents=True, exist_ok=True)
-        with open(run.parent / f"{sampler}.log", "w") as log:  # its output and progress bar
-            subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT)
+        log_path = run.parent / f"{sampler}.log"
+        with open(log_path, "w") as log:  # its output and progress bar
+            if subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode != 0:
+                raise SystemExit(f"shifted_prior.py: {shlex.join(cmd[1:])} failed; its output: {log_path}")
     return cmd
 
 
@@ -141,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", nargs="+", required=True, help="SCENE:DX,DY,DZ, the prior's shift in metres")
     ap.add_argument("--table-only", action="store_true", help="train nothing; table the runs under --out")
     ap.add_argument("--write-docs", action="store_true", help="the table into docs/benchmarks.md too")
-    ap.add_argument("--train-args", default="", help="more `voxnerf train` flags for every run (one string)")
+    ap.add_argument("--train-args", default="", help="more `voxnerf train` flags for every run, one string: --train-args=\"--no-compile --max-iters 2\"")
     args = ap.parse_args(argv)
     cases = [parse_case(c) for c in args.cases]
     rows = []

@@ -39,6 +39,12 @@ def test_a_case_moves_the_prior_and_nothing_else(tmp_path_factory, tmp_path):
     assert shifted_prior.make_case(room, shift * 2, moved) == moved  # made once, then reused as it is
 
 
+def test_a_scene_the_suite_lacks_is_a_one_line_error(tmp_path):
+    with pytest.raises(SystemExit, match="nowhere/transforms.json: no such scene"):
+        shifted_prior.main(["--suite-dir", str(tmp_path), "--out", str(tmp_path / "out"), "--cases", "nowhere:0,0,0.1"])
+    assert not (tmp_path / "out" / "scenes").exists()
+
+
 def _report(path: Path, psnr: tuple[float, float], steps: int, wrong: float | None) -> None:
     path.mkdir(parents=True)
     metrics = {split: {"psnr": p} for split, p in zip(("interpolation", "extrapolation"), psnr, strict=True)}
@@ -68,10 +74,19 @@ def test_a_pair_of_micro_runs_trains_each_sampler_and_tables_them(tmp_path_facto
     room = make_micro_scene(tmp_path_factory, "shift-runs")
     suite = room.parent
     args = ["--suite-dir", str(suite), "--out", str(tmp_path), "--budget", "60", "--cases", f"{room.name}:0.5,0.5,0",
-            "--train-args", "--no-compile --max-iters 2 --downscale 2"]
+            "--train-args=--no-compile --max-iters 2 --downscale 2"]
     assert shifted_prior.main(args) == 0
     (row,) = json.loads((tmp_path / "results.json").read_text())["rows"]
     case = tmp_path / "runs" / row["case"]
     assert json.loads((case / "voxnerf" / "report.json").read_text())["config"]["sampler"] == "voxnerf"
     assert json.loads((case / "occgrid" / "report.json").read_text())["config"]["sampler"] == "occgrid"
     assert row["wrong_first_hit"] > 0.06 and row["auto"] == "occgrid"  # half a metre off: the window misses
+
+
+def test_a_run_that_fails_is_a_one_line_error_naming_its_log(tmp_path_factory, tmp_path):
+    room = make_micro_scene(tmp_path_factory, "shift-fails")
+    args = ["--suite-dir", str(room.parent), "--out", str(tmp_path), "--cases", f"{room.name}:0.1,0,0",
+            "--train-args=--no-such-flag"]
+    with pytest.raises(SystemExit, match=r"failed; its output: .*voxnerf\.log"):
+        shifted_prior.main(args)
+    assert "--no-such-flag" in next(tmp_path.glob("runs/*/voxnerf.log")).read_text()
