@@ -145,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", nargs="+", required=True, help="SCENE:DX,DY,DZ, the prior's shift in metres")
     ap.add_argument("--table-only", action="store_true", help="train nothing; table the runs under --out")
     ap.add_argument("--write-docs", action="store_true", help="the table into docs/benchmarks.md too")
-    ap.add_argument("--train-args", default="", help="more `voxnerf train` flags for every run, one string: --train-args=\"--no-compile --max-iters 2\"")
+    ap.add_argument("--train-args", default="", help="more `voxnerf train` flags for every run, one string: "
+                    "--train-args=\"--no-compile --max-iters 2\"")
     args = ap.parse_args(argv)
     cases = [parse_case(c) for c in args.cases]
     rows = []
