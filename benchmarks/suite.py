@@ -21,6 +21,11 @@ the honest score for runs that learn per-image exposure). ``--eval-at`` adds ful
 (their time is not charged to the budget); note that a schedule over the budget (``lr_schedule=budget``) is
 mid-way at such a point, so only the final evaluation is what a run of that length gives.
 
+``--tree NAME=DIR`` adds configuration NAME: the defaults of another source tree of VoxNeRF (e.g. ``git worktree
+add DIR COMMIT`` of the commit an issue's targets were set on), its runs importing ``voxnerf`` from DIR; the record
+keeps DIR's commit. A tree's ``voxnerf train`` runs as that tree's users ran it, whatever its ``--max-seconds``
+charged then.
+
 ``--max-iters N`` bounds every run by N training steps as well (a fixed amount of work, so that runs on a machine
 shared with other work still compare; the budget then only bounds the time).
 
@@ -43,6 +48,7 @@ import argparse
 import contextlib
 import json
 import math
+import os
 import shlex
 import subprocess
 import sys
@@ -164,7 +170,20 @@ CONFIGS: dict[str, dict] = {
 }
 """Configuration name -> TrainConfig fields (``voxnerf train --set``) over the defaults."""
 BASELINE = "defaults"
+TREES: dict[str, Path] = {}
+"""Configuration name -> a source tree whose defaults it runs (``--tree``, filled by :func:`main`)."""
 QUICK_CONFIGS = ("defaults", "distortion")
+
+
+def config_names() -> list[str]:
+    """Every configuration a run may name, in table order: :data:`CONFIGS`, then the ``--tree`` ones."""
+    return [*CONFIGS, *TREES]
+
+
+def tree_commit(tree: Path) -> str | None:
+    """The commit checked out at ``tree`` (None where it is not a git checkout)."""
+    proc = subprocess.run(["git", "-C", str(tree), "rev-parse", "HEAD"], capture_output=True, text=True)
+    return proc.stdout.strip() if proc.returncode == 0 else None
 
 
 def config_flags(overrides: dict) -> list[str]:
@@ -203,21 +222,26 @@ def run_one(scene: str, scene_dir: Path, config: str, run: Path, budget: float, 
     graphs of a step that refines poses on every n-th step only), so the timed run loads its compiled step as
     a user's second run does, instead of every new configuration paying a cold compilation inside its
     budget."""
-    flags = [*scene_flags(scene), "--eval-every", "100000", *extra, *config_flags(CONFIGS[config])]
+    tree = TREES.get(config)
+    flags = [*scene_flags(scene), "--eval-every", "100000", *extra, *config_flags(CONFIGS.get(config, {}))]
+    if tree is not None:  # a tree's run starts in the tree
+        scene_dir, run = scene_dir.resolve(), run.resolve()
     cmd = train_command(scene_dir, run, budget, eval_at, flags)
-    command = "voxnerf " + shlex.join(cmd[3:])
+    command = ("" if tree is None else f"PYTHONPATH={tree} ") + "voxnerf " + shlex.join(cmd[3:])
     done = run / "suite-run.json"
     if (finished := _finished(done)) is not None and finished.get("command") == command:
         return finished
     if "--no-compile" not in extra:
         _run(train_command(scene_dir, run.parent / f".warm-{config}", budget, [],
-                           [*flags, "--max-iters", "2", "--set", "final_eval=false"]))
+                           [*flags, "--max-iters", "2", "--set", "final_eval=false"]), tree)
     t0 = time.perf_counter()
-    _run(cmd)
+    _run(cmd, tree)
     report = json.loads((run / "report.json").read_text())
     keep = {k: report.get(k) for k in REPORT_KEYS}
     result = {"scene": scene, "config": config, "command": command, "wall_s": time.perf_counter() - t0,
               "report": keep}
+    if tree is not None:
+        result["tree"] = {"path": str(tree), "commit": tree_commit(tree)}
     write_atomic(done, json.dumps(result).encode())
     return result
 
@@ -267,8 +291,11 @@ def _finished(path: Path) -> dict | None:
         return None
 
 
-def _run(cmd: list[str]) -> None:
-    proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+def _run(cmd: list[str], tree: Path | None = None) -> None:
+    """Run ``cmd``; with ``tree``, in that directory with ``PYTHONPATH`` naming it (``python -m`` puts the working
+    directory first on the path, so the tree's ``voxnerf`` is the one imported)."""
+    env = None if tree is None else os.environ | {"PYTHONPATH": str(tree)}
+    proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, cwd=tree)
     if proc.returncode != 0:
         raise RuntimeError(f"{shlex.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1:]}")
 
@@ -314,7 +341,7 @@ def summary_rows(results: list[dict], scenes: list[str], metric: str) -> list[st
     """Per configuration: the mean over ``scenes`` of ``metric`` per split, its change against the baseline,
     the worst scene's change and how many scenes lose more than NOISE_DB."""
     by = {(r["scene"], r["config"]): split_scores(r["report"]["metrics"] or {}) for r in results}
-    configs = [c for c in CONFIGS if any((s, c) in by for s in scenes)]
+    configs = [c for c in config_names() if any((s, c) in by for s in scenes)]
     rows = []
     for config in configs:
         cells = []
@@ -400,7 +427,7 @@ def verdict_rows(verdicts: list[dict]) -> list[str]:
 def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
     """Per configuration and scene: PSNR / SSIM / LPIPS per split, half-image PSNR, steps."""
     rows = []
-    for r in sorted(results, key=lambda r: (list(CONFIGS).index(r["config"]), scenes.index(r["scene"])
+    for r in sorted(results, key=lambda r: (config_names().index(r["config"]), scenes.index(r["scene"])
                                             if r["scene"] in scenes else 99)):
         scores = split_scores(r["report"]["metrics"] or {})
         cells = []
@@ -488,7 +515,7 @@ def table(results: list[dict], scenes: list[str], halves: dict[str, str], budget
                 parts.append(f"**{name}, mean over the {half} half** ({', '.join(group)}):\n\n{head}\n"
                              + "\n".join(rows) + "\n")
     ran = {r["config"] for r in results}
-    verdicts = [verdict(results, halves, c) for c in CONFIGS if c != BASELINE and c in ran]
+    verdicts = [verdict(results, halves, c) for c in config_names() if c != BASELINE and c in ran]
     if verdicts:
         parts.append(f"**Verdicts against `{BASELINE}`** (PSNR change, all views, dB: interpolation / extrapolation; "
                      "\"adopt\" only when a configuration wins on the tuning half and no confirmation scene loses "
@@ -535,7 +562,7 @@ def plot(results: list[dict], scenes: list[str], halves: dict[str, str], path: P
         print("matplotlib not installed (the 'bench' extra): no plot", file=sys.stderr)
         return False
     by = {(r["scene"], r["config"]): split_scores(r["report"]["metrics"] or {}) for r in results}
-    configs = [c for c in CONFIGS if c != BASELINE and any((s, c) in by for s in scenes)]
+    configs = [c for c in config_names() if c != BASELINE and any((s, c) in by for s in scenes)]
     height = 0.18 * len(configs) * max(len(scenes), 3) + 1.5  # a bar per scene and configuration
     fig, axes = plt.subplots(1, len(SPLITS), figsize=(6 * len(SPLITS), height), sharey=True)
     width = 0.8 / max(len(scenes), 1)
@@ -570,6 +597,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help=f"add {RECORD3D}: the shared redkitchen written as a Record3D export and imported (made once "
                    "under the suite directory; confirmation half; to a --scenes list only where it names it)")
     p.add_argument("--configs", default=",".join(CONFIGS), help=f"comma-separated, from {', '.join(CONFIGS)}")
+    p.add_argument("--tree", action="append", default=[], metavar="NAME=DIR",
+                   help="also run configuration NAME: the defaults of the VoxNeRF source tree at DIR (e.g. a git "
+                   "worktree of an earlier commit)")
     p.add_argument("--budget", type=float, default=300.0, help="--max-seconds of every run")
     p.add_argument("--max-iters", type=int, help="also bound every run by this many training steps (a fixed amount "
                    "of work: runs on a shared machine still compare)")
@@ -579,7 +609,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="train nothing: the table of the runs already under --out (e.g. while a long run goes on)")
     p.add_argument("--write-docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = p.parse_args(argv)
-    unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
+    args.trees = {}
+    for text in args.tree:
+        name, sep, tree = text.partition("=")
+        if not sep or not name or not tree:
+            p.error(f"--tree wants NAME=DIR, got {text!r}")
+        if name in CONFIGS or name in args.trees:
+            p.error(f"--tree {name}: the name is taken; give the tree another")
+        if not (Path(tree) / "voxnerf" / "__init__.py").is_file():
+            p.error(f"--tree {name}: {tree} holds no voxnerf package (voxnerf/__init__.py)")
+        args.trees[name] = Path(tree).resolve()
+    unknown = [c for c in args.configs.split(",") if c not in CONFIGS and c not in args.trees]
     if unknown:
         p.error(f"unknown configs {unknown}; known: {', '.join(CONFIGS)}")
     if REDKITCHEN in (args.scenes or "").split(",") and args.redkitchen is None:
@@ -599,7 +639,10 @@ def main(argv: list[str] | None = None) -> int:
     halves = QUICK_HALVES if args.quick else HALVES
     named = args.scenes.split(",") if args.scenes else None
     names = [n for n in named if n not in REAL_SCANS] if named is not None else list(specs)
+    TREES.clear()
+    TREES.update(args.trees)
     configs = list(QUICK_CONFIGS) if args.quick and args.configs == ",".join(CONFIGS) else args.configs.split(",")
+    configs += [name for name in TREES if name not in configs]
     scene_dirs = ({name: None for name in names} if args.table_only
                   else make_suite(args.suite_dir or args.out / "scenes", names=names, suite=specs))
     # a real scan's flag adds it to the whole suite, or to a --scenes list that names it
@@ -617,7 +660,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{config} on {scene} ...", flush=True)
             run_one(scene, Path(scene_dir), config, args.out / "runs" / scene / config, args.budget, eval_at, extra)
     results = [load_result(p) for p in sorted((args.out / "runs").glob("*/*/suite-run.json"))]
-    results = [r for r in results if r["config"] in CONFIGS and r["config"] in configs and r["scene"] in scene_dirs]
+    results = [r for r in results if r["config"] in configs and r["scene"] in scene_dirs]
     scenes = list(dict.fromkeys([*scene_dirs, *(r["scene"] for r in results)]))
     in_run = {scene: halves[scene] for scene in scenes}
     command = ".venv/bin/python benchmarks/suite.py " + shlex.join(sys.argv[1:] if argv is None else argv)

@@ -11,6 +11,7 @@ import dataclasses
 import importlib
 import json
 import math
+import subprocess
 import sys
 from pathlib import Path
 
@@ -536,6 +537,52 @@ def test_suite_runs_scene_by_scene_and_redkitchen_by_name(tmp_path: Path, monkey
     assert suite.main([*argv, "--out", str(tmp_path / "steps"), "--scenes", "redkitchen", "--max-iters", "7"]) == 0
     assert extras and all(extra[-2:] == ["--max-iters", "7"] for extra in extras)
     assert "or 7 steps, whichever comes first" in (tmp_path / "steps" / "table.md").read_text()
+
+
+FAKE_VOXNERF_MAIN = """
+import json, pathlib, sys
+argv = sys.argv[1:]
+with open(pathlib.Path(__file__).parent / "calls.txt", "a") as f:
+    f.write(" ".join(argv) + "\\n")
+run = pathlib.Path(argv[argv.index("--out") + 1])
+run.mkdir(parents=True, exist_ok=True)
+metrics = {s: {"psnr": 11.5, "ssim": 0.5} for s in ("interpolation", "extrapolation")}
+(run / "report.json").write_text(json.dumps({"metrics": metrics, "iteration": 77}))
+"""
+
+
+def test_a_tree_runs_its_own_voxnerf_and_its_record_names_the_commit(tmp_path: Path) -> None:
+    tree = tmp_path / "tree"
+    (tree / "voxnerf").mkdir(parents=True)
+    (tree / "voxnerf" / "__init__.py").write_text("")
+    (tree / "voxnerf" / "__main__.py").write_text(FAKE_VOXNERF_MAIN)
+    git = ["git", "-C", str(tree), "-c", "user.name=t", "-c", "user.email=t@t"]
+    for cmd in (["init", "-q"], ["add", "voxnerf"], ["commit", "-q", "-m", "old"]):
+        subprocess.run([*git, *cmd], check=True)
+    commit = subprocess.run([*git, "rev-parse", "HEAD"], check=True, capture_output=True, text=True).stdout.strip()
+    out = tmp_path / "out"
+    argv = ["--out", str(out), "--scenes", "redkitchen", "--redkitchen", str(tmp_path / "kitchen"),
+            "--configs", "old", "--tree", f"old={tree}"]
+    assert suite.main(argv) == 0
+    calls = (tree / "voxnerf" / "calls.txt").read_text().splitlines()
+    assert len(calls) == 2 and "--max-iters 2" in calls[0] and "--max-iters" not in calls[1]  # warm-up, then timed
+    record = json.loads((out / "runs" / "redkitchen" / "old" / "suite-run.json").read_text())
+    assert record["report"]["iteration"] == 77  # the tree's voxnerf wrote it, not this checkout's
+    assert record["command"].startswith(f"PYTHONPATH={tree} voxnerf train ")
+    assert record["tree"] == {"path": str(tree), "commit": commit}
+    assert "| old | redkitchen | 11.50 / 0.500" in (out / "table.md").read_text()
+    assert suite.tree_commit(tmp_path / "kitchen") is None  # not a git checkout
+
+
+@pytest.mark.parametrize(("tree", "message"), [
+    ("old", "--tree wants NAME=DIR, got 'old'"),
+    ("defaults=.", "--tree defaults: the name is taken; give the tree another"),
+    ("old=/nonexistent", "--tree old: /nonexistent holds no voxnerf package (voxnerf/__init__.py)"),
+])
+def test_suite_refuses_a_bad_tree(tree: str, message: str, capsys) -> None:
+    with pytest.raises(SystemExit):
+        suite.main(["--out", "/nonexistent", "--tree", tree])
+    assert message in capsys.readouterr().err
 
 
 def test_suite_needs_the_redkitchen_directory_when_its_scenes_name_it(capsys) -> None:
