@@ -7,6 +7,7 @@ import json
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from synthetic_fixtures import make_micro_scene
 from tiny_run import DEFAULT_INTRINSICS, DEPTH_UNIT_SCALE, write_tiny_run
 
 from voxnerf.cli import MAX_RENDER_PIXELS, main
@@ -151,6 +152,19 @@ def test_a_set_of_an_unknown_dotted_name_is_a_one_line_error(tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "model.lr" in err
+
+
+def test_train_prints_the_set_up_decisions_with_the_sampler_auto_chose(tmp_path_factory, tmp_path, capsys):
+    scene = make_micro_scene(tmp_path_factory, "cli_train")
+    small = ["--set", "hash_levels=4", "--set", "hash_log2_size=10", "--set", "hidden_dim=16"]
+    assert main(["train", str(scene), "--out", str(tmp_path / "r"), "--max-iters", "2", "--no-compile",
+                 "--device", "cpu", "--eval-every", "100000", *small]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert any(line.startswith("prior: ") for line in lines)
+    check = [line for line in lines if line.startswith("window_check: ")]
+    assert len(check) == 1 and "sampler 'auto': voxnerf" in check[0]
+    chosen = json.loads((tmp_path / "r" / "report.json").read_text())["window_check"]["sampler"]["chosen"]
+    assert chosen == "voxnerf"
 
 
 def test_synth_with_too_few_frames_is_a_one_line_error_writing_nothing(tmp_path, capsys):

@@ -65,7 +65,8 @@ def _train(args: argparse.Namespace) -> int:
         raise VoxNeRFError("give --max-seconds or --max-iters (or both)")
     report = train(args.scene, args.out, config, resume=not args.restart)
     for stage in report.stages:
-        if stage.name in ("corrections", "weight_decay", "prior", "focal", "depth_target", "octree_carving"):
+        if stage.name in ("corrections", "weight_decay", "prior", "focal", "depth_target", "octree_carving",
+                          "window_check"):
             print(f"{stage.name}: {stage.why}")
     for warning in report.warnings:
         print(f"warning: {warning}")
