@@ -164,6 +164,10 @@ CONFIGS: dict[str, dict] = {
     # Renders and checkpoints from the field's last-step parameters: the default before the moving average of its
     # parameters (a lag of 200 steps) won issue #46's protocol at 300 s.
     "no-weight-average": {"weight_average": 0.0},
+    # The settings of the defaults when issue #46 was filed (the window on its first leaf's entry, no weight average,
+    # the VoxNeRF sampler) on today's engine: beside ``--tree`` of that commit it tells the settings' share of a
+    # change from the engine's.
+    "issue-46-settings": {"window_centre": "entry", "weight_average": 0.0, "sampler": "voxnerf"},
     "occgrid-seeded": {"sampler": "occgrid", "depth_loss": False},
     "occgrid-density": {"sampler": "occgrid", "occgrid_seed": False, "depth_loss": False},
     "paper-preset": {"preset": "paper"},  # the paper's GPU setting (config.PRESETS); for a CUDA machine
