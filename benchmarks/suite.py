@@ -430,8 +430,8 @@ def verdict_rows(verdicts: list[dict]) -> list[str]:
 
 def scene_rows(results: list[dict], scenes: list[str]) -> list[str]:
     """Per configuration and scene: PSNR / SSIM / LPIPS per split, half-image PSNR, steps."""
-    rows = []
-    for r in sorted(results, key=lambda r: (config_names().index(r["config"]), scenes.index(r["scene"])
+    rows, order = [], config_names()
+    for r in sorted(results, key=lambda r: (order.index(r["config"]), scenes.index(r["scene"])
                                             if r["scene"] in scenes else 99)):
         scores = split_scores(r["report"]["metrics"] or {})
         cells = []
