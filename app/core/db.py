@@ -2,7 +2,8 @@
 
 SQLite (the embedded default) runs in WAL mode with a busy timeout, so one writer and many readers in
 several processes do not block each other. An engine is created per process: a forked worker never
-reuses its parent's connections.
+reuses its parent's connections. Processes that start together on a new database (``voxnerf serve``'s API and
+workers) each create the schema; :func:`create_schema` lets them.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from sqlalchemy import Engine, create_engine, event, inspect, make_url, text
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.models import Base
@@ -21,6 +23,7 @@ from app.core.progress import NULL_READS_AS_DEFAULT
 from app.core.settings import Settings
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
+SCHEMA_ATTEMPTS = 5
 
 _lock = threading.Lock()
 _engines: dict[tuple[int, str], tuple[Engine, sessionmaker[Session]]] = {}
@@ -47,10 +50,25 @@ def _engine_and_factory(settings: Settings) -> tuple[Engine, sessionmaker[Sessio
                 event.listen(engine, "connect", _configure_sqlite)
             else:
                 engine = create_engine(url, pool_pre_ping=True)
-            Base.metadata.create_all(engine)
-            add_missing_columns(engine)
+            create_schema(engine)
             _engines[key] = (engine, sessionmaker(engine, expire_on_commit=False))
         return _engines[key]
+
+
+def create_schema(engine: Engine) -> None:
+    """Create the missing tables, then the missing columns (:func:`add_missing_columns`). Both check what exists,
+    then create: a process starting at the same time (the API and the workers of ``voxnerf serve`` on a new data
+    directory) can create a table or column between one's check and its statement, which then fails ("table
+    already exists", "duplicate column"). Such a failed attempt is made again, up to ``SCHEMA_ATTEMPTS`` in all,
+    and the next check finds what the other process created; an error that persists is raised."""
+    for attempt in range(1, SCHEMA_ATTEMPTS + 1):
+        try:
+            Base.metadata.create_all(engine)
+            add_missing_columns(engine)
+            return
+        except DBAPIError:
+            if attempt == SCHEMA_ATTEMPTS:
+                raise
 
 
 def add_missing_columns(engine: Engine) -> list[str]:
