@@ -25,7 +25,7 @@ run: $(SERVICE_STAMP)
 
 test: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q -ra -n 2 --dist loadfile --no-loadscope-reorder --max-worker-restart 0
+	$(PY) -m pytest -q -ra -n 3 --dist loadfile --no-loadscope-reorder --max-worker-restart 0
 
 # Every benchmark whose table of record docs/benchmarks.md keeps, alone on the machine (about 2 hours on 2 cores): make bench OUT=DIR
 bench: $(DEV_STAMP)

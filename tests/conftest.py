@@ -86,10 +86,10 @@ def trained_small_room(small_room, tmp_path_factory) -> Path:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Under pytest-xdist (``make test`` runs two processes on two cores), torch computes in one thread per
+    """Under pytest-xdist (``make test`` runs three processes on two cores), torch computes in one thread per
     process: in the test processes and in every process they start (services' workers, ``voxnerf train``
     subprocesses), through ``OMP_NUM_THREADS`` unless it is set already. With torch's default of a thread per
-    core, the two test processes' OpenMP threads, and their services', spin for cores another process holds:
+    core, the test processes' OpenMP threads, and their services', spin for cores another process holds:
     the in-process training tests took nearly twice as long. Tests of multi-threaded code set their threads."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ.setdefault("OMP_NUM_THREADS", "1")  # torch reads it when it loads
@@ -100,8 +100,8 @@ def pytest_configure(config: pytest.Config) -> None:
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
     """Test files in the order of their seconds in tests/file_seconds.json, longest first (a file's tests keep
     their order; a file the table lacks comes after those it lists). ``--dist loadfile --no-loadscope-reorder``
-    hands files to the two processes in this order as each finishes one, so the session ends on short files
-    instead of one process running a long one while the other waits."""
+    hands files to the test processes in this order as each finishes one, so the session ends on short files
+    instead of one process running a long one while the others wait."""
     table = Path(__file__).with_name("file_seconds.json")
     seconds = json.loads(table.read_text()) if table.is_file() else {}
 

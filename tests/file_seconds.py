@@ -1,6 +1,6 @@
 """The seconds each test file took in a run of the suite, for tests/conftest.py's order (longest file first).
 
-    .venv/bin/python -m pytest -n 2 --dist loadfile --junitxml=/tmp/junit.xml
+    .venv/bin/python -m pytest -n 3 --dist loadfile --junitxml=/tmp/junit.xml
     .venv/bin/python tests/file_seconds.py /tmp/junit.xml      # rewrites tests/file_seconds.json
 
 A file's seconds are the sum of its tests' (set-up, call and teardown, as the JUnit report counts them), rounded.
