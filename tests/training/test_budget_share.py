@@ -70,12 +70,13 @@ def test_each_part_is_the_seconds_of_its_stage_records(budgeted_run):
 def test_the_progress_evaluations_keep_cheap_points_on_the_curve(budgeted_run):
     """The first scores at most FIRST_PROGRESS_EVAL_RAYS (no cost measured yet); each later one that ran was sized
     to what 2 % of max_seconds had left (5, 10 and 15 s are due; on a loaded machine the later ones may be
-    skipped, and the stage says so)."""
+    skipped, or one slow step may go past one of them, and the stage says so)."""
     report, _ = budgeted_run
     progress = [h for h in report.history if not h.final and not h.full]
     assert progress and progress[0].rays <= FIRST_PROGRESS_EVAL_RAYS
     assert all(h.rays >= MIN_PROGRESS_EVAL_RAYS and set(h.psnr) == {"interpolation", "extrapolation"}
                for h in progress)
     record = next(s for s in report.stages if s.name == PROGRESS_EVALS_STAGE)
-    ran_and_skipped = len(progress) + (record.why.split("; at ")[1].count(",") + 1 if "skipped" in record.why else 0)
-    assert ran_and_skipped == 3
+    not_run = [part.split(" s ")[0].removeprefix("at ").split(", ") for part in record.why.split("; ")
+               if part.startswith("at ")]  # skipped, or gone past within one step of a loaded machine
+    assert len(progress) + sum(len(times) for times in not_run) == 3

@@ -279,3 +279,17 @@ def test_missing_report_and_checkpoint_are_404_and_unknown_jobs_too(settings):
         assert client.get(f"/jobs/{'f' * 32}/report").status_code == 404
         assert client.get(f"/jobs/{'f' * 32}/checkpoint").status_code == 404
         assert client.get("/jobs/not-an-id/report").status_code == 422
+
+
+def test_due_times_one_step_went_past_are_said_and_the_latest_is_evaluated():
+    """A step of 12 s (a loaded machine) goes past the 10 and 20 s due times: the evaluation before the next step
+    stands for 20 s, and the stage says 10 s was not run."""
+    report = TrainReport(config={}, device="cpu")
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-7, view_rays=10_000)
+    evaluation.before_step(LoopState(1, last_loss=0.1))
+    clock.now += 21.0
+    _train_until(evaluation, budget, clock, 31.0)
+    assert [round(t) for t, _ in calls] == [21, 30]
+    (record,) = [s for s in report.stages if s.name == PROGRESS_EVALS_STAGE]
+    assert record.why.endswith("; at 10 s not run: one training step went past it and the next due time")
+

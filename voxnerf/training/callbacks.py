@@ -248,6 +248,7 @@ class ProgressEvaluation(Callback):
         self.progress_rays: list[int] = []  # and the rays each scored
         self.progress_spent = 0.0
         self.skipped: list[float] = []
+        self.passed: list[float] = []  # due times a single step went past, with a later one: not evaluated
         self.record: StageRecord | None = None
 
     def _full_due(self) -> bool:
@@ -294,6 +295,7 @@ class ProgressEvaluation(Callback):
             self.full_spent += spent
             self.next_at = next_progress_eval(at, self.every)  # a progress evaluation due now would repeat it
         else:
+            self.passed += progress_eval_times(self.next_at, self.every, at)[:-1]  # this one stands for the latest
             rays = self.rays_now()
             self.next_at = next_progress_eval(at, self.every)
             if not self.view_rays:  # no evaluation split: nothing to evaluate
@@ -333,6 +335,9 @@ class ProgressEvaluation(Callback):
             parts.append(f"at {seconds_list(self.skipped)} s skipped: fewer than "
                          f"{min(MIN_PROGRESS_EVAL_RAYS, self.view_rays)} rays were left within "
                          f"{PROGRESS_EVAL_SHARE:.0%} of max_seconds")
+        if self.passed:
+            parts.append(f"at {seconds_list(self.passed)} s not run: one training step went past "
+                         f"{'it' if len(self.passed) == 1 else 'each'} and the next due time")
         why = "; ".join(parts)
         self.record.ran, self.record.why, self.record.seconds = n > 0, why, round(self.progress_spent, 3)
 
