@@ -46,20 +46,26 @@ def _database(settings: Settings) -> str:
     return str(settings.data_dir / "voxnerf.sqlite")
 
 
-def test_a_table_another_process_created_meanwhile_is_taken_as_created(settings, before_statements):
-    """The race ``voxnerf serve`` lost on a busy machine: its API found no scenes table, a worker created it, and the
-    API's CREATE TABLE failed ("table scenes already exists"), so the API did not start."""
-    creates = []
+def _other_process_first(settings: Settings, prefix: str, seen: list[str]) -> Callable[[str], str]:
+    """A rewrite that lets "another process" run the first statement starting with ``prefix`` on the database
+    just before the engine runs it; every such statement is appended to ``seen``."""
 
-    def other_process_first(statement: str) -> str:
-        if statement.strip().startswith("CREATE TABLE scenes"):
-            creates.append(statement)
-            if len(creates) == 1:
+    def rewrite(statement: str) -> str:
+        if statement.strip().startswith(prefix):
+            seen.append(statement)
+            if len(seen) == 1:
                 with sqlite3.connect(_database(settings)) as conn:
                     conn.execute(statement)
         return statement
 
-    before_statements(other_process_first)
+    return rewrite
+
+
+def test_a_table_another_process_created_meanwhile_is_taken_as_created(settings, before_statements):
+    """The race ``voxnerf serve`` lost on a busy machine: its API found no scenes table, a worker created it, and the
+    API's CREATE TABLE failed ("table scenes already exists"), so the API did not start."""
+    creates = []
+    before_statements(_other_process_first(settings, "CREATE TABLE scenes", creates))
     engine = db.get_engine(settings)
     assert len(creates) == 1  # the second attempt found the table and created the others
     assert {"scenes", "jobs"} <= set(inspect(engine).get_table_names())
@@ -76,16 +82,7 @@ def test_a_column_another_process_added_meanwhile_is_taken_as_added(settings, be
         conn.execute("ALTER TABLE jobs DROP COLUMN loss_series")
     db._engines.clear()
     alters = []
-
-    def other_process_first(statement: str) -> str:
-        if statement.startswith('ALTER TABLE "jobs" ADD COLUMN "loss_series"'):
-            alters.append(statement)
-            if len(alters) == 1:
-                with sqlite3.connect(_database(settings)) as conn:
-                    conn.execute(statement)
-        return statement
-
-    before_statements(other_process_first)
+    before_statements(_other_process_first(settings, 'ALTER TABLE "jobs" ADD COLUMN "loss_series"', alters))
     engine = db.get_engine(settings)
     assert len(alters) == 1
     assert "loss_series" in {c["name"] for c in inspect(engine).get_columns("jobs")}
