@@ -19,11 +19,14 @@ from voxnerf.training.budget import Budget
 from voxnerf.training.callbacks import (
     FIRST_PROGRESS_EVAL_RAYS,
     MIN_PROGRESS_EVAL_RAYS,
+    PASSED_LISTED,
     PROGRESS_EVAL_SHARE,
     PROGRESS_EVALS_STAGE,
     ProgressEvaluation,
     ProgressEvents,
     next_progress_eval,
+    progress_eval_count,
+    progress_eval_times,
     seconds_list,
 )
 from voxnerf.training.loop import LoopState
@@ -293,3 +296,30 @@ def test_due_times_one_step_went_past_are_said_and_the_latest_is_evaluated():
     (record,) = [s for s in report.stages if s.name == PROGRESS_EVALS_STAGE]
     assert record.why.endswith("; at 10 s not run: one training step went past it and the next due time")
 
+
+
+@pytest.mark.parametrize("every", [1e-3, 0.7, 7.0, 15.0, 25.0, 60.0, 100.0])
+def test_the_due_times_are_counted_as_they_are_listed(every):
+    for first_from in (0.0, 3.0, 10.0, 44.0, 61.0, 250.0):
+        first = next_progress_eval(first_from, every)
+        for until in (first - 1.0, first, first + 0.5, first + 30.0, first + 300.0):
+            listed = progress_eval_times(first, every, until, 10**6)
+            assert progress_eval_count(first, every, until) == len(listed), (first, until)
+            assert progress_eval_times(first, every, until, 3) == listed[:3]
+
+
+def test_a_tiny_eval_every_s_counts_the_due_times_a_step_went_past_without_listing_them():
+    """eval_every_s 1 ms and a step of 30 s: about 30,000 due times went past. They are counted, the first
+    ``PASSED_LISTED`` listed (listing them all took gigabytes at 1 us). The allowance is sized over the
+    evaluations still due (about a million up to max_seconds), so the one due now is skipped."""
+    report = TrainReport(config={}, device="cpu")
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-7, every=1e-3, view_rays=10_000)
+    evaluation.before_step(LoopState(1, last_loss=0.1))
+    clock.now += 30.0
+    evaluation.before_step(LoopState(2, last_loss=0.1))
+    passed = progress_eval_count(1e-3, 1e-3, 30.0) - 1
+    assert not calls and evaluation.skipped == [30.0] and evaluation.passed_count == passed and passed > 29_000
+    assert len(evaluation.passed) == PASSED_LISTED and evaluation.passed[0] == pytest.approx(1e-3)
+    (record,) = [s for s in report.stages if s.name == PROGRESS_EVALS_STAGE]
+    assert record.why.endswith(f", … ({passed} due times) s not run: one training step went past each and the "
+                               "next due time")

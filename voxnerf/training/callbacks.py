@@ -34,6 +34,8 @@ FIRST_PROGRESS_EVAL_RAYS = 2048
 # points in its first minute.
 EARLY_EVAL_S = (10.0, 20.0, 30.0, 45.0)
 PROGRESS_EVALS_STAGE = "progress_evals"
+# Due times that one step went past are counted; the stage's why lists this many of them.
+PASSED_LISTED = 8
 COMPILE_RAN_WHY = "torch.compile of the training step (time of the first step)"
 COMPILE_DENSITY_WHY = ", the occupancy grid's density compiled before the first step included"
 COMPILE_NO_STEP_WHY = "no training step ran"
@@ -193,16 +195,40 @@ def next_progress_eval(after: float, every: float) -> float:
     """The first progress-evaluation time (training seconds) later than ``after``: the :data:`EARLY_EVAL_S`
     times below ``every``, then every multiple of ``every``."""
     early = [t for t in EARLY_EVAL_S if after < t < every]
-    return early[0] if early else (math.floor(after / every) + 1) * every
+    return early[0] if early else _first_multiple_after(after, every) * every
 
 
-def progress_eval_times(first: float, every: float, until: float) -> list[float]:
-    """The progress-evaluation times from ``first`` (a :func:`next_progress_eval` time) up to ``until``
-    (training seconds, excluded); ``first`` alone when it is not below ``until``."""
+def _first_multiple_after(after: float, every: float) -> int:
+    """The smallest k >= 1 whose ``k * every`` (as computed) is above ``after``: the floor of the quotient alone
+    can round to the multiple itself (1e-3 steps) and then repeat it."""
+    k = max(math.floor(after / every) + 1, 1)
+    while k * every <= after:
+        k += 1
+    while k > 1 and (k - 1) * every > after:
+        k -= 1
+    return k
+
+
+def progress_eval_times(first: float, every: float, until: float, most: int) -> list[float]:
+    """The first ``most`` (at least one) progress-evaluation times from ``first`` (a :func:`next_progress_eval`
+    time) up to ``until`` (training seconds, excluded); ``first`` alone when it is not below ``until``."""
     times = [first]
-    while (t := next_progress_eval(times[-1], every)) < until:
+    while len(times) < most and (t := next_progress_eval(times[-1], every)) < until:
         times.append(t)
     return times
+
+
+def progress_eval_count(first: float, every: float, until: float) -> int:
+    """How many times :func:`progress_eval_times` has from ``first`` up to ``until`` (at least one), counted
+    without listing them: a tiny ``every`` puts millions of due times into a few seconds."""
+    if not first < until:
+        return 1
+    early = sum(1 for t in EARLY_EVAL_S if first < t < min(every, until))
+    below = _first_multiple_after(until, every) - 1  # the largest k with k * every <= until
+    if below * every == until:
+        below -= 1  # until itself is excluded
+    multiples = below - _first_multiple_after(first, every) + 1  # k * every in (first, until)
+    return 1 + early + max(multiples, 0)
 
 
 def seconds_list(times: Sequence[float], most: int = 8) -> str:
@@ -249,6 +275,7 @@ class ProgressEvaluation(Callback):
         self.progress_spent = 0.0
         self.skipped: list[float] = []
         self.passed: list[float] = []  # due times a single step went past, with a later one: not evaluated
+        self.passed_count = 0  # all of them; ``passed`` keeps the first PASSED_LISTED
         self.record: StageRecord | None = None
 
     def _full_due(self) -> bool:
@@ -271,7 +298,7 @@ class ProgressEvaluation(Callback):
         if self.share_of is None:
             return math.inf
         end = budget.train_seconds + max(budget.remaining(), 0.0)
-        planned = len(progress_eval_times(self.next_at, self.every, end))
+        planned = progress_eval_count(self.next_at, self.every, end)
         return (self.share_of - self.progress_spent) / planned
 
     def rays_now(self) -> int:
@@ -295,7 +322,7 @@ class ProgressEvaluation(Callback):
             self.full_spent += spent
             self.next_at = next_progress_eval(at, self.every)  # a progress evaluation due now would repeat it
         else:
-            self.passed += progress_eval_times(self.next_at, self.every, at)[:-1]  # this one stands for the latest
+            self._note_passed(at)
             rays = self.rays_now()
             self.next_at = next_progress_eval(at, self.every)
             if not self.view_rays:  # no evaluation split: nothing to evaluate
@@ -312,6 +339,15 @@ class ProgressEvaluation(Callback):
             self._update_record()
         if self.events is not None:
             self.events.emit("train", state.iteration, state.last_loss)
+
+    def _note_passed(self, at: float) -> None:
+        """Counts the due times from ``next_at`` up to ``at`` but the latest (the evaluation now stands for it),
+        and lists the first of them."""
+        passed = progress_eval_count(self.next_at, self.every, at) - 1
+        listed = min(passed, PASSED_LISTED - len(self.passed))
+        if listed > 0:
+            self.passed += progress_eval_times(self.next_at, self.every, at, listed)
+        self.passed_count += passed
 
     def _update_record(self) -> None:
         """The stage ``progress_evals`` in the report: added at the first progress evaluation (or skip), then
@@ -335,9 +371,11 @@ class ProgressEvaluation(Callback):
             parts.append(f"at {seconds_list(self.skipped)} s skipped: fewer than "
                          f"{min(MIN_PROGRESS_EVAL_RAYS, self.view_rays)} rays were left within "
                          f"{PROGRESS_EVAL_SHARE:.0%} of max_seconds")
-        if self.passed:
-            parts.append(f"at {seconds_list(self.passed)} s not run: one training step went past "
-                         f"{'it' if len(self.passed) == 1 else 'each'} and the next due time")
+        if self.passed_count:
+            times = (seconds_list(self.passed) if self.passed_count == len(self.passed)
+                     else f"{seconds_list(self.passed)}, … ({self.passed_count} due times)")
+            parts.append(f"at {times} s not run: one training step went past "
+                         f"{'it' if self.passed_count == 1 else 'each'} and the next due time")
         why = "; ".join(parts)
         self.record.ran, self.record.why, self.record.seconds = n > 0, why, round(self.progress_spent, 3)
 
