@@ -57,8 +57,8 @@ def small_room(tmp_path_factory) -> Path:
 def captured_small_room(small_room, tmp_path_factory) -> Path:
     """``small_room`` as a user would write it: no ``synthetic`` key, so a run trains the corrections of a captured
     scan too (pose refinement, per-image appearance). The compiled step of this scene under the default config is
-    the one test_pose_refinement.py and test_service_runtime.py compile: the second loads it from the inductor
-    cache."""
+    the one test_pose_refinement.py, test_service_runtime.py and test_budget_share.py compile: the first to get
+    there compiles it, the others load it from the inductor cache."""
 
     def build(scene: Path) -> None:
         shutil.copytree(small_room, scene)
@@ -71,15 +71,16 @@ def captured_small_room(small_room, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def trained_small_room(small_room, tmp_path_factory) -> Path:
-    """``small_room`` trained as ``voxnerf train`` would (compiled step, C kernel where available) for 500 steps
+    """``small_room`` trained as ``voxnerf train --no-compile`` would (C kernel where available) for 500 steps
     of 1024 rays on the CPU, progress evaluations every 20 s and a final evaluation. Read by the end-to-end
     checks (tests/test_end_to_end.py) and the geometry export's (tests/inference/test_export.py); tests write
-    nothing into it."""
+    nothing into it. Eager: compiling this step's graph on a cold cache took longer than its 500 steps, and the
+    compiled step is covered by the runs that compile ``captured_small_room``'s."""
     from voxnerf.config import TrainConfig
     from voxnerf.training.run import train
 
     def build(run: Path) -> None:
-        config = TrainConfig(max_iters=500, rays_per_batch=1024, device="cpu", eval_every_s=20.0)
+        config = TrainConfig(max_iters=500, rays_per_batch=1024, device="cpu", eval_every_s=20.0, compile=False)
         train(small_room, run, config, progress_bar=False)
 
     return built_once(tmp_path_factory, "runs/small_room", build)

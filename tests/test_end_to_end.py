@@ -26,7 +26,7 @@ def test_report_lists_stages_and_history(trained_small_room):
     stages = {s["name"]: s for s in report["stages"]}
     for name in ("load_scene", "prior", "octree", "pseudo_depth", "first_hit_cache", "train", "final_eval"):
         assert stages[name]["ran"], name
-    assert stages["compile"]["ran"] and "density compiled before the first step" in stages["compile"]["why"]
+    assert not stages["compile"]["ran"] and stages["compile"]["why"] == "disabled (--no-compile)"
     assert stages["hash_kernel"]["ran"] == hash_kernel.available(), stages["hash_kernel"]["why"]
     assert report["history"] and all("psnr" in h and "elapsed_s" in h for h in report["history"])
     assert set(report["metrics"]) == {"interpolation", "extrapolation"}  # test_filenames == interpolation

@@ -20,12 +20,13 @@ EVAL_EVERY_S = 5.0  # progress evaluations due at 5, 10 and 15 s of training: th
 
 
 @pytest.fixture(scope="module")
-def budgeted_run(small_room, trained_small_room, tmp_path_factory):
-    """A ``MAX_SECONDS`` run of the small room with the step of ``trained_small_room`` (its 1024 rays): after that
-    run, the step's compilation loads from the inductor cache instead of compiling on a loaded machine."""
+def budgeted_run(captured_small_room, tmp_path_factory):
+    """A ``MAX_SECONDS`` run of the captured-like small room under the default config: the step that
+    test_pose_refinement.py and test_service_runtime.py compile too, so one of the three compiles it and the
+    others load it from the inductor cache."""
     run_dir = tmp_path_factory.mktemp("budget_share")
-    cfg = TrainConfig(max_seconds=MAX_SECONDS, device="cpu", eval_every_s=EVAL_EVERY_S, rays_per_batch=1024)
-    report = train(small_room, run_dir, cfg, progress_bar=False)
+    cfg = TrainConfig(max_seconds=MAX_SECONDS, device="cpu", eval_every_s=EVAL_EVERY_S)
+    report = train(captured_small_room, run_dir, cfg, progress_bar=False)
     return report, json.loads((run_dir / REPORT).read_text())
 
 
@@ -63,6 +64,7 @@ def test_each_part_is_the_seconds_of_its_stage_records(budgeted_run):
                      if s.name != PROGRESS_EVALS_STAGE]
     assert sum(s.seconds for s in set_up_stages) <= seconds["set_up"] + 1e-3
     assert stage["compile"].ran and stage["compile"].seconds == pytest.approx(seconds["compile"], abs=1e-3)
+    assert "density compiled before the first step" in stage["compile"].why
     assert stage[PROGRESS_EVALS_STAGE].seconds == pytest.approx(seconds["progress_evals"], abs=1e-3)
     assert stage["final_eval"].ran and stage["final_eval"].seconds == pytest.approx(seconds["final_eval"], abs=1e-3)
 
