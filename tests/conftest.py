@@ -57,8 +57,8 @@ def small_room(tmp_path_factory) -> Path:
 def captured_small_room(small_room, tmp_path_factory) -> Path:
     """``small_room`` as a user would write it: no ``synthetic`` key, so a run trains the corrections of a captured
     scan too (pose refinement, per-image appearance). The compiled step of this scene under the default config is
-    the one test_pose_refinement.py, test_service_runtime.py and test_budget_share.py compile: the first to get
-    there compiles it, the others load it from the inductor cache."""
+    the one test_pose_refinement.py, test_service_runtime.py and test_budget_share.py compile
+    (``compiled_captured_step`` compiles it first)."""
 
     def build(scene: Path) -> None:
         shutil.copytree(small_room, scene)
@@ -67,6 +67,23 @@ def captured_small_room(small_room, tmp_path_factory) -> Path:
         (scene / "transforms.json").write_text(json.dumps(meta))
 
     return built_once(tmp_path_factory, "scenes/captured_small_room", build)
+
+
+@pytest.fixture(scope="session")
+def compiled_captured_step(captured_small_room, tmp_path_factory) -> Path:
+    """A run of ``captured_small_room`` under the default config, compiled, for 8 steps (both graphs of a step
+    that refines poses on every n-th one), made once per session under the file lock: afterwards the inductor
+    cache holds the step that test_pose_refinement.py, test_service_runtime.py and test_budget_share.py compile,
+    and each loads it instead of compiling it cold at the same moment as another (in a three-process run two of
+    them compiled it side by side)."""
+    from voxnerf.config import TrainConfig
+    from voxnerf.training.run import train
+
+    def build(run: Path) -> None:
+        config = TrainConfig(max_iters=8, final_eval=False, device="cpu", checkpoint_every_s=1e9)
+        train(captured_small_room, run, config, progress_bar=False)
+
+    return built_once(tmp_path_factory, "runs/captured_compiled", build)
 
 
 @pytest.fixture(scope="session")

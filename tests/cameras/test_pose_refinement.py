@@ -197,6 +197,7 @@ def test_prior_rays_are_not_moved_and_the_regulariser_counts():
     not hash_kernel.available(), reason="the compiled step runs the C hash kernel's position gradient"))])
 def test_a_run_with_pose_refinement_learns_keeps_and_reports_the_corrections(request, tmp_path, compile_step):
     if compile_step:  # the step a captured scan compiles under the default config, as test_service_runtime.py's runs
+        request.getfixturevalue("compiled_captured_step")  # the inductor cache holds this step
         room = request.getfixturevalue("captured_small_room")
         cfg = TrainConfig(max_iters=12, final_eval=False, device="cpu", checkpoint_every_s=1e9)
     else:

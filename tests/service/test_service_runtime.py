@@ -34,7 +34,8 @@ def _service_env() -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def cli_report(captured_small_room, tmp_path_factory) -> dict:
+def cli_report(captured_small_room, compiled_captured_step, tmp_path_factory) -> dict:
+    """``voxnerf train``'s report.json (its step loads from the inductor cache ``compiled_captured_step`` filled)."""
     run = tmp_path_factory.mktemp("cli") / "run"
     cmd = [sys.executable, "-m", "voxnerf", "train", str(captured_small_room), "--out", str(run),
            "--max-iters", str(STEPS), "--device", "cpu"]

@@ -20,10 +20,9 @@ EVAL_EVERY_S = 5.0  # progress evaluations due at 5, 10 and 15 s of training: th
 
 
 @pytest.fixture(scope="module")
-def budgeted_run(captured_small_room, tmp_path_factory):
+def budgeted_run(captured_small_room, compiled_captured_step, tmp_path_factory):
     """A ``MAX_SECONDS`` run of the captured-like small room under the default config: the step that
-    test_pose_refinement.py and test_service_runtime.py compile too, so one of the three compiles it and the
-    others load it from the inductor cache."""
+    ``compiled_captured_step`` compiled, loaded from the inductor cache."""
     run_dir = tmp_path_factory.mktemp("budget_share")
     cfg = TrainConfig(max_seconds=MAX_SECONDS, device="cpu", eval_every_s=EVAL_EVERY_S)
     report = train(captured_small_room, run_dir, cfg, progress_bar=False)
