@@ -323,3 +323,23 @@ def test_a_tiny_eval_every_s_counts_the_due_times_a_step_went_past_without_listi
     (record,) = [s for s in report.stages if s.name == PROGRESS_EVALS_STAGE]
     assert record.why.endswith(f", … ({passed} due times) s not run: one training step went past each and the "
                                "next due time")
+
+
+@pytest.mark.parametrize("every", [1e-3, 0.1, 0.7, 3.3])
+def test_each_next_due_time_is_later_than_the_last(every):
+    """From a computed multiple of ``every``, the next one is later: the quotient's floor can round onto the
+    multiple itself (3 * 0.7 / 0.7 < 3), which repeated the time, and then sizing an evaluation under max_seconds
+    listed the same time for ever (``--eval-every 0.7 --max-seconds 6`` hung)."""
+    t = next_progress_eval(0.0, every)
+    for _ in range(5000):
+        later = next_progress_eval(t, every)
+        assert later > t and later == pytest.approx(t + every, rel=1e-9, abs=1e-12), t
+        t = later
+
+
+def test_progress_evaluations_every_0_7_s_under_max_seconds_run_and_are_sized():
+    report = TrainReport(config={}, device="cpu")
+    evaluation, calls, budget, clock = _evaluation(report, per_ray=1e-7, max_seconds=60.0, every=0.7,
+                                                   view_rays=10_000)
+    _train_until(evaluation, budget, clock, 5.0)
+    assert calls and all(rays for _, rays in calls)
