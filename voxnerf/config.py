@@ -346,8 +346,9 @@ class EvaluationConfig(_Section):
         description="rays per pass of the full render path (renders, evaluations); None: by the device that renders "
         "(EVAL_CHUNKS: 4,096 on a CPU, 32,768 on a GPU)",
     )
-    eval_every_s: float = Field(json_schema_extra=JOB, default=60.0, gt=0,
-                                description="training seconds between progress evaluations")
+    eval_every_s: float = Field(json_schema_extra=JOB, default=60.0, ge=1e-6,
+                                description="training seconds between progress evaluations (at least 1e-6: "
+                                            "before every step; the due times are multiples of it)")
     eval_views: int = Field(default=4, ge=1, description="views per split in progress evaluations")
     eval_at: list[float] = Field(json_schema_extra=JOB,
         default_factory=list, description="full evaluations at these training seconds (not charged to max_seconds)"

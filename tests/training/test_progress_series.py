@@ -343,3 +343,14 @@ def test_progress_evaluations_every_0_7_s_under_max_seconds_run_and_are_sized():
                                                    view_rays=10_000)
     _train_until(evaluation, budget, clock, 5.0)
     assert calls and all(rays for _, rays in calls)
+
+
+@pytest.mark.parametrize("every", [0.0, 1e-7, 1e-300, 5e-324])
+def test_an_eval_every_s_below_a_microsecond_is_refused(every):
+    """Smaller intervals only repeat "before every step", and at 1e-300 the multiples no longer grow with k
+    (k * every rounds to the same float), so finding the next one never ended."""
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="eval_every_s"):
+        TrainConfig(max_iters=1, eval_every_s=every)
+    assert TrainConfig(max_iters=1, eval_every_s=1e-6).evaluation.eval_every_s == 1e-6
