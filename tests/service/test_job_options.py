@@ -100,6 +100,8 @@ def test_rest_only_limits():
         JobOptions(max_iters=5, eval_at=[-1.0])
     with pytest.raises(ValidationError, match="eval_every_s"):
         JobOptions(max_iters=5, eval_every_s=float("inf"))
+    with pytest.raises(ValidationError, match="greater than or equal to 0.000001"):
+        JobOptions(max_iters=5, eval_every_s=1e-300)  # the engine's own bound, carried into the job options
     with pytest.raises(ValidationError, match="lr"):
         JobOptions(max_iters=5, lr=0.1)
     with pytest.raises(ValidationError, match="seed"):
