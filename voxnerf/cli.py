@@ -66,7 +66,7 @@ def _train(args: argparse.Namespace) -> int:
     report = train(args.scene, args.out, config, resume=not args.restart)
     for stage in report.stages:
         if stage.name in ("corrections", "weight_decay", "prior", "focal", "depth_target", "octree_carving",
-                          "window_check"):
+                          "window_check", "colour_prior"):
             print(f"{stage.name}: {stage.why}")
     for warning in report.warnings:
         print(f"warning: {warning}")

@@ -113,6 +113,14 @@ class ModelConfig(_Section):
         "the mean colour of the training images, fixed when training starts. It is what a view shows where it "
         "looks at space no training view saw (docs/benchmarks.md, 'The tuning suite')",
     )
+    render_background: Literal["colour", "nearest_seen"] = Field(
+        default="colour",
+        description="what a rendered ray shows behind its last sample: 'colour' the background; 'nearest_seen' "
+        "the colour the training images show nearest to where the ray meets the prior (the voxnerf sampler's "
+        "window centre), pooled at set-up from the training pixels at their depth targets "
+        "(voxnerf/model/colour_prior.py), and the background where the ray misses the prior or the run samples "
+        "without the octree. Training rays keep train_background",
+    )
     cone_radius: Annotated[float, Field(ge=0.0, le=0.1)] | Literal["auto"] | None = Field(
         default=None,
         description="read the field over each pixel's cone instead of at points (Zip-NeRF's feature downweighting): "

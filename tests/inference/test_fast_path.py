@@ -21,6 +21,7 @@ from voxnerf.inference.fast_path import (
     render_rays_fast,
 )
 from voxnerf.inference.render import render_normalized, resolved_render_path
+from voxnerf.model.colour_prior import ColourPrior
 from voxnerf.model.voxnerf_model import VoxNeRFModel
 from voxnerf.prior.octree import SparseVoxelOctree
 
@@ -68,6 +69,19 @@ def test_without_skipping_the_fast_path_is_the_full_path(sampler, cone_radius, t
     fast = render_rays_fast(model, rays, model.sampler(), EXACT)
     for name in ("rgb", "depth", "opacity"):
         assert torch.allclose(fast[name], full[name].detach(), atol=2e-6), name
+
+
+def test_the_fast_path_shows_the_colour_seen_where_rays_meet_the_prior_as_the_full_path_does(torch_threads):
+    model = _model("voxnerf", density_bias=-4.0)  # a faint field: the background shows through
+    model.config = model.config.updated(render_background="nearest_seen")
+    model.colour_prior = ColourPrior.pool(torch.rand(500, 3) * 1.2 - 0.6, torch.rand(500, 3))
+    rays = _rays(model)
+    full = model.render_rays(rays, model.sampler())
+    fast = render_rays_fast(model, rays, model.sampler(), EXACT)
+    model.config = model.config.updated(render_background="colour")
+    plain = render_rays_fast(model, rays, model.sampler(), EXACT)
+    assert torch.allclose(fast["rgb"], full["rgb"].detach(), atol=2e-6)
+    assert not torch.allclose(fast["rgb"], plain["rgb"], atol=1e-3)  # the per-ray colours changed what shows
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])

@@ -11,6 +11,7 @@ import torch
 
 from voxnerf.config import TrainConfig
 from voxnerf.data.scene import SceneTransform
+from voxnerf.model.colour_prior import ColourPrior
 from voxnerf.model.samplers import OccGridSampler, UniformSampler, VoxNeRFSampler
 from voxnerf.model.voxnerf_model import NEAR_MIN, VoxNeRFModel, field_for, ray_aabb
 from voxnerf.prior.octree import SparseVoxelOctree
@@ -185,3 +186,64 @@ def test_the_grid_reads_half_a_cell_where_the_field_reads_cones_and_points_other
 def test_an_unresolved_auto_cone_is_refused():
     with pytest.raises(ValueError, match="cone_radius 'auto'"):
         _ = _cone_model("auto").cone_radius
+
+
+# What rendered rays show behind their last sample: render_background and the colour prior.
+
+GREEN = [0.0, 1.0, 0.0]
+
+
+def _seen_model(sampler: str = "voxnerf", render_background: str = "nearest_seen") -> VoxNeRFModel:
+    """A model whose octree holds one leaf around (0.1, 0.1, 0.1), with a colour prior of green pixels there."""
+    octree = SparseVoxelOctree.from_points(torch.tensor([[0.1, 0.1, 0.1]]), 0.05)
+    model = _model(sampler, octree)
+    model.config = model.config.updated(render_background=render_background, background=(0.2, 0.3, 0.4))
+    model.colour_prior = ColourPrior.pool(torch.tensor([[0.1, 0.1, 0.1]]), torch.tensor([GREEN]), finest=64, levels=3)
+    return model
+
+
+def _towards_the_leaf_and_away() -> tuple[torch.Tensor, torch.Tensor]:
+    origins = torch.tensor([[-0.5, 0.1, 0.1], [-0.5, 0.1, 0.1]])
+    dirs = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    return origins, dirs
+
+
+def test_a_ray_that_meets_the_prior_shows_the_colour_seen_there_and_one_that_misses_the_background():
+    model = _seen_model()
+    rays = model.ray_bundle(*_towards_the_leaf_and_away())
+    rays, background = model.view_background(rays, model.sampler())
+    torch.testing.assert_close(background, torch.tensor([GREEN, [0.2, 0.3, 0.4]]))
+    assert rays.hit.tolist() == [True, False]  # the first hits are kept: the sampler does not cast them again
+    assert 0.5 < float(rays.hit_t[0]) < 0.7
+
+
+@pytest.mark.parametrize(("sampler", "render_background", "prior"), [
+    ("voxnerf", "colour", True), ("occgrid", "nearest_seen", True), ("voxnerf", "nearest_seen", False)])
+def test_otherwise_every_ray_shows_the_background(sampler, render_background, prior):
+    model = _seen_model(sampler, render_background)
+    if not prior:
+        model.colour_prior = None
+    rays = model.ray_bundle(*_towards_the_leaf_and_away())
+    same, background = model.view_background(rays, model.sampler())
+    assert same is rays and background.tolist() == pytest.approx([0.2, 0.3, 0.4])
+
+
+def test_rendered_rays_composite_over_the_colour_seen_where_they_meet_the_prior():
+    model = _seen_model()
+    with torch.no_grad():
+        model.field.encoding.table.fill_(0.0)
+        for module in model.field.modules():  # a field of no density anywhere: every ray shows its background
+            if isinstance(module, torch.nn.Linear):
+                module.weight.zero_()
+                module.bias.fill_(-30.0)
+    out = model.render_rays(model.ray_bundle(*_towards_the_leaf_and_away()), model.sampler())
+    torch.testing.assert_close(out["rgb"], torch.tensor([GREEN, [0.2, 0.3, 0.4]]), atol=1e-4, rtol=0)
+
+
+def test_the_colour_prior_survives_the_checkpoint_and_an_older_checkpoint_has_none():
+    model = _seen_model()
+    rebuilt = VoxNeRFModel.from_state_dict(model.state_dict(), torch.device("cpu"))
+    assert rebuilt.colour_prior.summary() == model.colour_prior.summary()
+    older = model.state_dict()
+    del older["colour_prior"]
+    assert VoxNeRFModel.from_state_dict(older, torch.device("cpu")).colour_prior is None

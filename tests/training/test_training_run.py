@@ -17,8 +17,8 @@ from voxnerf.training.records import ProgressEvent, TrainReport
 from voxnerf.training.run import REPORT, throughput, train
 
 STAGES = ["load_scene", "corrections", "weight_decay", "prior", "focal", "hash_kernel", "octree", "pseudo_depth",
-          "depth_target", "octree_carving", "first_hit_cache", "window_check", "prior_rays", "compile", "train",
-          "final_eval"]
+          "depth_target", "octree_carving", "first_hit_cache", "window_check", "colour_prior", "prior_rays", "compile",
+          "train", "final_eval"]
 
 
 @pytest.fixture(scope="module")

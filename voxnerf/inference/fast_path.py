@@ -179,7 +179,7 @@ def render_rays_fast(model, rays: RayBundle, sampler, settings: FastSettings = F
 
     @torch.no_grad()  # grad mode is per thread
     def block(i: int) -> tuple[Tensor, Tensor, Tensor]:
-        part = rays.slice(i, i + size)
+        part, background = model.view_background(rays.slice(i, i + size), sampler)
         starts, ends = sampler(part, False)
         occupied = _occupied(model, part, 0.5 * (starts + ends)) if settings.skip_empty else None
         dir_features = runner.direction_features(part.dirs)
@@ -187,7 +187,7 @@ def render_rays_fast(model, rays: RayBundle, sampler, settings: FastSettings = F
         for j in range(starts.shape[1]):
             acc.add_column(runner, part.origins, part.dirs, starts[:, j], ends[:, j], dir_features,
                            None if occupied is None else occupied[:, j], settings)
-        return acc.finish(starts[:, 0], ends[:, -1], model.background)
+        return acc.finish(starts[:, 0], ends[:, -1], background)
 
     parts = _map_blocks(block, range(0, len(rays), size), workers)
     rgb, opacity, depth = (torch.cat(values) for values in zip(*parts, strict=True))
@@ -261,8 +261,8 @@ class _Composite:
         _add(self.rgb, rays_lit, _take(weight, lit)[:, None] * color)
 
     def finish(self, near: Tensor, far: Tensor, background: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(rgb [B, 3], opacity [B], depth [B]): the residual light is the background's and lies at ``far``,
-        depth clamped to [near, far] (as :func:`voxnerf.model.volume_rendering.volume_render` does)."""
+        """(rgb [B, 3], opacity [B], depth [B]): the residual light is the background's ([3] or [B, 3]) and lies
+        at ``far``, depth clamped to [near, far] (as :func:`voxnerf.model.volume_rendering.volume_render` does)."""
         opacity = self.weight.clamp(0.0, 1.0)
         residual = 1.0 - opacity
         rgb = self.rgb + residual[:, None] * background

@@ -17,6 +17,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.data.scene import SceneTransform
 from voxnerf.model import hash_kernel
 from voxnerf.model.appearance import ImageAppearance
+from voxnerf.model.colour_prior import ColourPrior
 from voxnerf.model.field import RadianceField
 from voxnerf.model.losses import PAPER_BETA, color_loss, depth_loss, depth_smoothness_loss, distortion_loss
 from voxnerf.model.samplers import (
@@ -131,6 +132,8 @@ class VoxNeRFModel:
     training images' colours, and a rendered view's as its nearest training cameras' were; ``pose_refinement``
     (config ``pose_refinement='so3xr3'``) corrects the training images' rays, and a rendered pose by its nearest
     training cameras' corrections (both applied by :func:`voxnerf.inference.render.render_normalized`).
+    ``colour_prior`` (config ``render_background='nearest_seen'``, built at set-up) gives rendered rays the colour
+    the training images show where the ray meets the prior (:meth:`view_background`).
     """
 
     config: TrainConfig
@@ -141,6 +144,7 @@ class VoxNeRFModel:
     octree: SparseVoxelOctree | None
     appearance: ImageAppearance | None = None
     pose_refinement: PoseRefinement | None = None
+    colour_prior: ColourPrior | None = None
     _compiled: dict = field(default_factory=dict, repr=False)
 
     @staticmethod
@@ -168,6 +172,21 @@ class VoxNeRFModel:
         training images, where it is still the name, shows black."""
         colour = (0.0, 0.0, 0.0) if isinstance(self.config.model.background, str) else self.config.model.background
         return torch.tensor(colour, dtype=torch.float32, device=self.device)
+
+    def view_background(self, rays: RayBundle, sampler) -> tuple[RayBundle, Tensor]:
+        """What rendered rays show behind their last sample: ``rays`` with their octree first hits cached (when
+        the colour prior needed them, so ``sampler`` does not cast them again) and the colour [R, 3] or [3].
+
+        With ``render_background='nearest_seen'``, a colour prior and the voxnerf ``sampler``: each ray that meets
+        the prior gets the :class:`ColourPrior` colour at its window centre; every other ray :attr:`background`."""
+        if (self.config.model.render_background != "nearest_seen" or self.colour_prior is None
+                or not isinstance(sampler, VoxNeRFSampler)):
+            return rays, self.background
+        z, hit = sampler.first_hits(rays)
+        rays = RayBundle(rays.origins, rays.dirs, rays.near, rays.far, z, hit)
+        points = rays.origins + torch.where(hit, z, torch.zeros_like(z))[:, None] * rays.dirs
+        colour, found = self.colour_prior.lookup(points)
+        return rays, torch.where((hit & found)[:, None], colour, self.background)
 
     def use_sampler(self, name: str) -> None:
         """Sample with ``name`` from now on (sampler ``auto``'s choice at set-up; checkpoints keep it)."""
@@ -325,10 +344,12 @@ class VoxNeRFModel:
         return self._compiled["density"]
 
     def render_rays(self, rays: RayBundle, sampler, stratified: bool = False, compiled: bool = False) -> dict:
-        """Render a ray batch: ``rgb`` [R, 3], ``depth`` [R] (ray distance, normalised), ``opacity`` [R]."""
+        """Render a ray batch: ``rgb`` [R, 3], ``depth`` [R] (ray distance, normalised), ``opacity`` [R], over
+        :meth:`view_background`."""
+        rays, background = self.view_background(rays, sampler)
         starts, ends = sampler(rays, stratified)
         fn = self.compiled_render_samples() if compiled else self.render_samples
-        return fn(rays.origins, rays.dirs, starts, ends)
+        return fn(rays.origins, rays.dirs, starts, ends, background)
 
     def state_dict(self) -> dict:
         return {
@@ -340,6 +361,7 @@ class VoxNeRFModel:
             "octree": None if self.octree is None else self.octree.state_dict(),
             "appearance": None if self.appearance is None else self.appearance.state_dict(),
             "pose_refinement": None if self.pose_refinement is None else self.pose_refinement.state_dict(),
+            "colour_prior": None if self.colour_prior is None else self.colour_prior.state_dict(),
         }
 
     @staticmethod
@@ -359,4 +381,6 @@ class VoxNeRFModel:
         if state.get("pose_refinement") is not None:
             model.pose_refinement = PoseRefinement(int(state["pose_refinement"]["delta"].shape[0])).to(device)
             model.pose_refinement.load_state_dict(state["pose_refinement"])
+        if state.get("colour_prior") is not None:  # a checkpoint from before it has none
+            model.colour_prior = ColourPrior.from_state_dict(state["colour_prior"]).to(device)
         return model

@@ -28,6 +28,7 @@ from voxnerf.training import stages
 from voxnerf.training.pixels import TrainingPixels, training_pixels
 from voxnerf.training.prior_rays import PriorRayBank
 from voxnerf.training.records import StageRecord, TrainReport
+from voxnerf.training.stages.colour_prior import colour_prior_stage
 from voxnerf.training.stages.corrections import corrections_stage
 from voxnerf.training.stages.focal import focal_stage
 from voxnerf.training.stages.weight_decay import weight_decay_stage
@@ -191,6 +192,12 @@ def _window_check(ctx: SetupContext) -> StageRecord:
     return checked.record
 
 
+def _colour_prior(ctx: SetupContext) -> StageRecord:
+    pooled = colour_prior_stage(ctx.cfg, ctx.octree is not None, ctx.pixels)
+    ctx.built.model.colour_prior = pooled.prior
+    return pooled.record
+
+
 def _prior_rays(ctx: SetupContext) -> StageRecord:
     extra = stages.prior_rays_stage(ctx.cfg, ctx.built.prior_n, ctx.use_depth, ctx.octree, ctx.pixels,
                                     ctx.built.model, ctx.device)
@@ -212,6 +219,7 @@ SETUP_STAGES: tuple[SetupStage, ...] = (
     Stage("octree_carving", _carving),
     Stage("first_hit_cache", _first_hit),
     Stage("window_check", _window_check),  # the window against the depth maps; resolves "auto" sampler
+    Stage("colour_prior", _colour_prior),  # after the sampler's choice: only the octree's hits look it up
     Stage("prior_rays", _prior_rays),
 )
 

@@ -1,0 +1,56 @@
+"""benchmarks/render_background.py: one trained field scored under both render backgrounds, from a suite's run
+directory; its refusals."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import pytest
+from synthetic_fixtures import make_micro_scene, micro_config
+
+from voxnerf.training.run import train
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+render_background = importlib.import_module("render_background")
+
+
+def test_a_suite_run_is_scored_both_ways_on_the_same_field(tmp_path_factory, tmp_path):
+    room = make_micro_scene(tmp_path_factory, "render-background")
+    runs = tmp_path / "suite"
+    train(room, runs / "runs" / room.name / "defaults", micro_config(max_iters=2), progress_bar=False)
+    out = tmp_path / "out"
+    args = ["--runs", str(runs), "--suite-dir", str(room.parent), "--out", str(out)]
+    assert render_background.main(args) == 0
+    result = json.loads((out / "results.json").read_text())[room.name]
+    assert "training pixels (100.0%) at their depth targets" in result["colour_prior"]
+    splits = list(result["colour"])
+    assert splits and list(result["nearest_seen"]) == splits
+    for choice in render_background.CHOICES:
+        for split in splits:
+            metrics = result[choice][split]
+            assert metrics["psnr"] > 0 and metrics["half"]["psnr"] > 0
+    # The run's own report scored the background colour on the same field.
+    report = json.loads((runs / "runs" / room.name / "defaults" / "report.json").read_text())
+    assert result["colour"][splits[0]]["psnr"] == pytest.approx(report["metrics"][splits[0]]["psnr"], abs=1e-6)
+    table = (out / "table.md").read_text()
+    assert f"| {room.name} | " in table and "render_background.py --runs" in table
+    before = (out / "results.json").stat().st_mtime_ns
+    assert render_background.main(args) == 0  # scored once: the next call reuses it
+    assert (out / "results.json").stat().st_mtime_ns == before
+
+
+def test_a_scene_without_a_run_is_refused_before_anything_is_written(tmp_path):
+    (tmp_path / "runs" / "den" / "defaults").mkdir(parents=True)  # no checkpoint in it
+    with pytest.raises(SystemExit):
+        render_background.main(["--runs", str(tmp_path), "--suite-dir", str(tmp_path), "--out", str(tmp_path / "o"),
+                                "--scenes", "den"])
+    assert not (tmp_path / "o").exists()
+
+
+def test_redkitchen_needs_its_directory():
+    with pytest.raises(SystemExit, match="redkitchen's run needs --redkitchen"):
+        render_background.scene_dir_of("redkitchen", Path("/scenes"), None)
+    assert render_background.scene_dir_of("den", Path("/scenes"), None) == Path("/scenes/den")
