@@ -4,7 +4,8 @@ Each stage function takes what it needs and returns its product with its :class:
 why). Modules: ``load_scene``, ``prior``, ``hash_kernel``, ``model``, ``octree``, ``pseudo_depth``, ``prior_rays``,
 ``depth_target``, ``octree_carving``, ``first_hit_cache``, ``window_check``, ``colour_prior``, ``compile``,
 ``corrections``, ``weight_decay``, ``focal``; ``common`` holds what they share. The names are re-exported here
-(``window_check``'s and ``colour_prior``'s are imported from their modules), so ``from voxnerf.training.stages import model_stage`` reads as before the split.
+(``window_check``'s and ``colour_prior``'s are imported from their modules), so
+``from voxnerf.training.stages import model_stage`` reads as before the split.
 """
 
 from __future__ import annotations
