@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 
 import torch
-from suite import HALVES, NOISE_DB
+from suite import BASELINE, HALVES, NOISE_DB, verdict, verdict_rows
 
 from voxnerf.config import TrainConfig
 from voxnerf.data.scene import load_scene
@@ -89,9 +89,21 @@ def _change(by_choice: dict[str, list[float]]) -> str:
     return " / ".join(f"{b - a:+.2f}" for a, b in zip(by_choice["colour"], by_choice["nearest_seen"], strict=True))
 
 
+def protocol_verdict(results: dict[str, dict]) -> dict:
+    """The suite's verdict (:func:`suite.verdict`, issue #46's protocol) on 'nearest_seen' against 'colour' as the
+    baseline, over the scenes of ``results`` that belong to a half."""
+    runs = [{"scene": scene, "config": BASELINE if choice == "colour" else choice, "report": {"metrics": r[choice]}}
+            for scene, r in results.items() for choice in CHOICES]
+    return verdict(runs, {s: HALVES[s] for s in results if s in HALVES}, "nearest_seen")
+
+
 def table(results: dict[str, dict], command: str) -> str:
     lines = ["PSNR (dB), all views, the same trained field rendered both ways; `nearest_seen` - `colour`. Command:", "",
-             f"    {command}", ""]
+             f"    {command}", "",
+             "**The protocol's verdict** (`nearest_seen` against `colour`; benchmarks/suite.py's rule):", "",
+             "| config | tuning scenes | interp. | extrap. | confirmation scenes | interp. | extrap. | "
+             "worst confirmation scene | verdict |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+             *verdict_rows([protocol_verdict(results)]), ""]
     for half in dict.fromkeys(HALVES.values()):
         scenes = [s for s, h in HALVES.items() if h == half and s in results]
         if not scenes:

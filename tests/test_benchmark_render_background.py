@@ -54,3 +54,19 @@ def test_redkitchen_needs_its_directory():
     with pytest.raises(SystemExit, match="redkitchen's run needs --redkitchen"):
         render_background.scene_dir_of("redkitchen", Path("/scenes"), None)
     assert render_background.scene_dir_of("den", Path("/scenes"), None) == Path("/scenes/den")
+
+
+def _scored(interpolation: float, extrapolation: float) -> dict:
+    return {split: {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "half": {"psnr": psnr}}
+            for split, psnr in (("interpolation", interpolation), ("extrapolation", extrapolation))}
+
+
+@pytest.mark.parametrize(("loft_after", "expected"), [((33.0, 24.2), "adopt"), ((33.0, 23.5), "keep")])
+def test_the_verdict_is_the_suite_protocol_s(loft_after, expected):
+    results = {"studio": {"colour": _scored(33.0, 24.0), "nearest_seen": _scored(33.0, 24.5)},
+               "loft": {"colour": _scored(33.0, 24.0), "nearest_seen": _scored(*loft_after)}}
+    verdict = render_background.protocol_verdict(results)
+    assert verdict["verdict"] == expected
+    assert verdict["tuning"]["extrapolation"] == pytest.approx(0.5)
+    table = render_background.table(results, "cmd")
+    assert "| nearest_seen | 1 | +0.00 | +0.50 | 1 |" in table and f"**{expected}**" in table
