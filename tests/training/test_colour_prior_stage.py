@@ -57,6 +57,20 @@ def test_a_pixel_is_pooled_where_its_ray_reaches_its_depth_target():
     assert found.all() and colour.tolist() == [[1.0, 0.0, 0.0]]
 
 
+def test_images_held_channel_by_channel_are_pooled_as_they_are_read():
+    # A downscaled import's images can come channel-planar (not contiguous as [N, H, W, 3]).
+    depth = torch.full((1, 2, 2), 0.5)
+    planar = _pixels(depth)
+    planar.images = torch.arange(12, dtype=torch.uint8).view(1, 3, 2, 2).permute(0, 2, 3, 1) * 20
+    assert not planar.images.is_contiguous()
+    cfg = micro_config(render_background="nearest_seen", sampler="voxnerf")
+    prior = colour_prior_stage(cfg, True, planar).prior
+    origins, dirs = planar.rays(torch.tensor([0]), torch.tensor([1]), torch.tensor([0]))
+    colour, found = prior.lookup(origins + 0.5 * dirs)
+    assert found.all()
+    torch.testing.assert_close(colour, planar.images[0, 1, 0][None].float() / 255.0)
+
+
 def test_a_run_rendering_over_the_colour_seen_keeps_it_and_renders_with_it(tmp_path_factory, tmp_path):
     room = make_micro_scene(tmp_path_factory, "colour-prior")
     run = tmp_path / "run"

@@ -40,8 +40,8 @@ def colour_prior_stage(cfg: TrainConfig, has_octree: bool, pixels: TrainingPixel
 
 def _pooled(pixels: TrainingPixels, t0: float) -> ColourPriorStage:
     points, colours = [], []
-    flat_t = pixels.depth_t.view(-1)
-    flat_rgb = pixels.images.view(-1, 3)
+    flat_t = pixels.depth_t.reshape(-1)
+    flat_rgb = pixels.images.reshape(-1, 3)  # not always contiguous (an imported scan's images)
     real = pixels.real_pixels()
     placed = real[torch.isfinite(flat_t[real])]
     for f, _, origins, dirs in rays_in_chunks(pixels, placed):
