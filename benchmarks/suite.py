@@ -143,6 +143,7 @@ CONFIGS: dict[str, dict] = {
     "background-mean": {"train_background": "fixed", "background": "training_mean"},
     "background-gray": {"train_background": "fixed", "background": [0.5, 0.5, 0.5]},
     "render-black": {"background": [0.0, 0.0, 0.0]},
+    "render-background-colour": {"render_background": "colour"},
     "samples-4-2": {"n_importance": 4, "n_rest": 2},
     "rays-4096": {"rays_per_batch": 4096},
     "table-2^18": {"hash_log2_size": 18},

@@ -114,12 +114,13 @@ class ModelConfig(_Section):
         "looks at space no training view saw (docs/benchmarks.md, 'The tuning suite')",
     )
     render_background: Literal["colour", "nearest_seen"] = Field(
-        default="colour",
+        default="nearest_seen",
         description="what a rendered ray shows behind its last sample: 'colour' the background; 'nearest_seen' "
         "the colour the training images show nearest to where the ray meets the prior (the voxnerf sampler's "
         "window centre), pooled at set-up from the training pixels at their depth targets "
         "(voxnerf/model/colour_prior.py), and the background where the ray misses the prior or the run samples "
-        "without the octree. Training rays keep train_background",
+        "without the octree. Training rays keep train_background. The default won on the tuning suite's halves "
+        "(docs/benchmarks.md, 'What a view shows where no training view looked')",
     )
     cone_radius: Annotated[float, Field(ge=0.0, le=0.1)] | Literal["auto"] | None = Field(
         default=None,

@@ -18,9 +18,11 @@ import torch
 from torch import Tensor
 
 # Cells across the box of the finest level (2 / 256 normalised units: about 2 cm in a 5 m room) and the levels,
-# each with half the cells of the one before (the coarsest, 4 cells across, always finds a pixel).
+# each with half the cells of the one before, down to 8 cells across (a quarter of the box). A surface no training
+# view saw reads one of the coarse levels; 4 cells across gained more on the tuning rooms' mean but lost 0.31 dB of
+# extrapolation on one of them (docs/benchmarks.md, "What a view shows where no training view looked").
 FINEST = 256
-LEVELS = 7
+LEVELS = 6
 
 
 def _cell_keys(points: Tensor, cells: int) -> Tensor:
