@@ -56,14 +56,22 @@ class ColourPrior:
         if finest < 2 or levels < 1 or finest >> (levels - 1) < 1:
             raise ValueError(f"colour prior: {levels} levels from {finest} cells do not fit")
         cells_per_level = [finest >> level for level in range(levels)]
+        # The pixels are pooled once, on the finest grid; each coarser level pools the voxels of the one before
+        # (a voxel's index halved is its parent's: floor(floor(y) / 2) = floor(y / 2)).
+        key, inverse = torch.unique(_cell_keys(points.float(), finest), sorted=True, return_inverse=True)
+        total = torch.zeros(len(key), 3, device=points.device).index_add_(0, inverse, colours.float())
+        count = torch.zeros(len(key), device=points.device).index_add_(0, inverse, torch.ones_like(points[:, 0]))
         keys, means = [], []
-        colours = colours.float()
-        for cells in cells_per_level:
-            key, inverse, count = torch.unique(_cell_keys(points.float(), cells), sorted=True, return_inverse=True,
-                                               return_counts=True)
-            total = torch.zeros(len(key), 3, device=points.device).index_add_(0, inverse, colours)
+        for level, cells in enumerate(cells_per_level):
+            if level:
+                finer = 2 * cells
+                index = torch.stack([key // (finer * finer), key // finer % finer, key % finer], -1) // 2
+                key, inverse = torch.unique((index[:, 0] * cells + index[:, 1]) * cells + index[:, 2], sorted=True,
+                                            return_inverse=True)
+                total = torch.zeros(len(key), 3, device=points.device).index_add_(0, inverse, total)
+                count = torch.zeros(len(key), device=points.device).index_add_(0, inverse, count)
             keys.append(key)
-            means.append(total / count[:, None].float())
+            means.append(total / count[:, None])
         return ColourPrior(cells_per_level, keys, means, int(points.shape[0]))
 
     def lookup(self, points: Tensor) -> tuple[Tensor, Tensor]:
