@@ -138,6 +138,8 @@ CONFIGS: dict[str, dict] = {
     | NO_CORRECTIONS | NO_DECAY | STATED_FOCAL,
     "stated-focal": STATED_FOCAL,
     "pixel-jitter": {"pixel_jitter": True},
+    "error-map": {"error_map": 0.5},
+    "error-map-weighted": {"error_map": 0.5, "error_map_weights": True},
     "cone": {"cone_radius": "auto"},
     "no-carving": {"octree_carving": False},
     "background-mean": {"train_background": "fixed", "background": "training_mean"},

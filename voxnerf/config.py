@@ -255,6 +255,18 @@ class LossConfig(_Section):
         "over the footprint rather than at the one point a centre ray reads; the per-pixel depth and first hit "
         "stay the centre's (voxnerf/training/pixels.py, TrainingPixels.rays)",
     )
+    error_map: float = Field(
+        default=0.0, ge=0, lt=1,
+        description="the share of each batch's rays drawn where the field is still wrong: the training images cut "
+        "into cells of 8 x 8 pixels, each drawn in proportion to its pixels times its running squared colour error "
+        "(instant-ngp's error map, voxnerf/training/error_map.py); the rest uniformly; 0 draws every ray uniformly",
+    )
+    error_map_weights: bool = Field(
+        default=False,
+        description="with error_map: weigh each ray's colour loss by its pixel's probability under uniform draws "
+        "over its probability under the error map's (importance weights: the loss's expectation stays the uniform "
+        "batch's); off, the rays the error map draws weigh as any",
+    )
     train_background: Literal["fixed", "random"] = Field(
         default="random",
         description="the colour behind each training ray: 'random' a uniform random colour per ray and step, so a "

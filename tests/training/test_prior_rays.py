@@ -92,7 +92,7 @@ def test_prior_rays_enter_the_depth_loss_but_not_the_colour_loss(n_prior):
     target_t = torch.rand(r, generator=g) + 5.0
     args = (torch.zeros(r, 3), torch.ones(r, 3), starts, starts + 0.1, target_rgb, target_t,
             torch.ones(r, dtype=torch.bool), None, torch.zeros(r, dtype=torch.int64), torch.tensor(0.3))
-    total, lc, ld, _, _ = make_loss_fn(_StubModel(), TrainConfig(max_iters=1), 0.1, 0, 8, n_prior)(Batch(*args))
+    total, lc, ld, *_ = make_loss_fn(_StubModel(), TrainConfig(max_iters=1), 0.1, 0, 8, n_prior)(Batch(*args))
     expected_colour = ((starts[:8].mean(-1, keepdim=True) - target_rgb[:8]) ** 2).mean()
     torch.testing.assert_close(lc, expected_colour)
     assert float(ld) > 0 and torch.isfinite(total)
@@ -119,7 +119,7 @@ def test_prior_rays_to_unseen_surfaces_are_pulled_to_the_mean_colour_with_their_
     weight = torch.tensor([1.0] * 8 + [0.5, 0.0, 0.5, 0.0])
     args = (torch.zeros(r, 3), torch.ones(r, 3), starts, starts + 0.1, target_rgb, torch.rand(r, generator=g) + 5,
             torch.ones(r, dtype=torch.bool), None, torch.zeros(r, dtype=torch.int64), torch.tensor(0.3), weight)
-    _, lc, _, _, _ = make_loss_fn(_StubModel(), TrainConfig(max_iters=1), 0.1, 0, 8, 4)(Batch(*args))
+    _, lc, *_ = make_loss_fn(_StubModel(), TrainConfig(max_iters=1), 0.1, 0, 8, 4)(Batch(*args))
     err = ((starts.mean(-1, keepdim=True) - target_rgb) ** 2).mean(-1)
     torch.testing.assert_close(lc, (err[:8].sum() + 0.5 * (err[8] + err[10])) / 8)
 

@@ -49,6 +49,12 @@ def test_a_run_with_masked_octree_misses_trains_and_says_so(tiny_room, tmp_path)
     assert report.status == "succeeded" and report.iteration == 3 and report.runtime["octree_misses"] == "mask"
 
 
+def test_a_run_drawing_half_its_rays_by_the_error_map_trains(tiny_room, tmp_path):
+    """Its loss finite at every step (the divergence guard would have failed the run), report.json names it."""
+    report = train(tiny_room, tmp_path, _config(error_map=0.5, final_eval=False), progress_bar=False)
+    assert report.status == "succeeded" and report.iteration == 3 and report.config["error_map"] == 0.5
+
+
 def test_a_resumed_run_continues_its_iterations_and_history(tiny_room, tmp_path):
     train(tiny_room, tmp_path, _config(final_eval=False, eval_every_s=1e-6), progress_bar=False)
     report = train(tiny_room, tmp_path, _config(max_iters=5, final_eval=False, eval_every_s=1e-6),

@@ -87,13 +87,16 @@ class Batch(NamedTuple):
 
 
 class Losses(NamedTuple):
-    """Scalar tensors of one step: the total and its colour, depth, smoothness and distortion terms."""
+    """Scalar tensors of one step: the total and its colour, depth, smoothness and distortion terms; and
+    ``ray_error`` [R_image], each image ray's squared colour error (the mean over the channels, detached: what
+    the error map of the training pixels reads, voxnerf/training/error_map.py)."""
 
     total: Tensor
     colour: Tensor
     depth: Tensor
     smoothness: Tensor
     distortion: Tensor
+    ray_error: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -326,7 +329,8 @@ class VoxNeRFModel:
                 m = batch.target_ok[n_image - n_patch : n_image].view(-1, patch, patch)
                 lreg = depth_smoothness_loss(d, m, settings.smooth_scales)
             total = total + batch.depth_weight * (ld + settings.lambda_smooth * lreg)
-        return Losses(total, lc, ld, lreg, ldist)
+        ray_error = ((rgb.detach() - batch.target_rgb[:n_image]) ** 2).mean(-1)
+        return Losses(total, lc, ld, lreg, ldist, ray_error)
 
     # Rendering.
 

@@ -253,47 +253,48 @@ def rays_in_chunks(pixels: TrainingPixels, flat: torch.Tensor, chunk: int = 262_
         yield f, img, origins, dirs
 
 
-def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, gen: torch.Generator) -> PixelIndex:
+def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, gen: torch.Generator,
+                 flat: torch.Tensor | None = None) -> PixelIndex:
     """Random pixels plus (optionally) s x s patches: index tensors img, py, px [R] (patches last). Every pixel
-    of every image is equally likely; a patch lies inside one image."""
-    if pixels.sizes is not None:
-        return _sample_batch_sized(pixels, cfg, use_patches, gen)
+    of every image is equally likely, unless ``flat`` (int64 [rays_per_batch] flat indices into [N, H, W]) names
+    the rays' pixels; a patch lies inside one image (a side no larger than the smallest image's)."""
     n, h, w = pixels.shape
     device = pixels.images.device
     r = int(cfg.schedule.rays_per_batch)
-    img = torch.randint(0, n, (r,), generator=gen, device=device)
-    py = torch.randint(0, h, (r,), generator=gen, device=device)
-    px = torch.randint(0, w, (r,), generator=gen, device=device)
-    if use_patches:
-        s, p = min(cfg.loss.patch_size, h, w), cfg.loss.smooth_patches
+    if flat is None and pixels.sizes is None:
+        img = torch.randint(0, n, (r,), generator=gen, device=device)
+        py = torch.randint(0, h, (r,), generator=gen, device=device)
+        px = torch.randint(0, w, (r,), generator=gen, device=device)
+    else:
+        flat = pixels.random_pixels(r, gen) if flat is None else flat
+        img, py, px = flat // (h * w), flat % (h * w) // w, flat % w
+    if not use_patches:
+        return img, py, px
+    pi, y0, x0, s = _patch_corners(pixels, cfg, gen)
+    dy, dx = torch.meshgrid(torch.arange(s, device=device), torch.arange(s, device=device), indexing="ij")
+    img = torch.cat([img, pi[:, None].expand(len(pi), s * s).reshape(-1)])
+    py = torch.cat([py, (y0[:, None] + dy.reshape(1, -1)).reshape(-1)])
+    px = torch.cat([px, (x0[:, None] + dx.reshape(1, -1)).reshape(-1)])
+    return img, py, px
+
+
+def _patch_corners(pixels: TrainingPixels, cfg: TrainConfig,
+                   gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """The smoothness patches' images, top rows and left columns [P] and their side: each patch inside its image."""
+    n, h, w = pixels.shape
+    device = pixels.images.device
+    p = cfg.loss.smooth_patches
+    if pixels.sizes is None:
+        s = min(cfg.loss.patch_size, h, w)
         pi = torch.randint(0, n, (p,), generator=gen, device=device)
         y0 = torch.randint(0, h - s + 1, (p,), generator=gen, device=device)
         x0 = torch.randint(0, w - s + 1, (p,), generator=gen, device=device)
-        dy, dx = torch.meshgrid(torch.arange(s, device=device), torch.arange(s, device=device), indexing="ij")
-        img = torch.cat([img, pi[:, None].expand(p, s * s).reshape(-1)])
-        py = torch.cat([py, (y0[:, None] + dy.reshape(1, -1)).reshape(-1)])
-        px = torch.cat([px, (x0[:, None] + dx.reshape(1, -1)).reshape(-1)])
-    return img, py, px
-
-
-def _sample_batch_sized(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool,
-                        gen: torch.Generator) -> PixelIndex:
-    """:func:`sample_batch` for images of different sizes: pixels drawn over every image's own pixels, patches
-    placed inside their image (a side no larger than the smallest image's)."""
-    n, h, w = pixels.shape
-    device = pixels.images.device
-    flat = pixels.random_pixels(int(cfg.schedule.rays_per_batch), gen)
-    img, py, px = flat // (h * w), flat % (h * w) // w, flat % w
-    if use_patches:
-        s, p = min(cfg.loss.patch_size, *pixels.smallest_side), cfg.loss.smooth_patches
-        pi = torch.randint(0, n, (p,), generator=gen, device=device)
-        room = pixels.sizes[pi] - s + 1  # [p, 2] the top-left corners that keep the patch inside its image
-        corner = (torch.rand(p, 2, generator=gen, device=device) * room).long().minimum(room - 1)
-        dy, dx = torch.meshgrid(torch.arange(s, device=device), torch.arange(s, device=device), indexing="ij")
-        img = torch.cat([img, pi[:, None].expand(p, s * s).reshape(-1)])
-        py = torch.cat([py, (corner[:, :1] + dy.reshape(1, -1)).reshape(-1)])
-        px = torch.cat([px, (corner[:, 1:] + dx.reshape(1, -1)).reshape(-1)])
-    return img, py, px
+        return pi, y0, x0, s
+    s = min(cfg.loss.patch_size, *pixels.smallest_side)
+    pi = torch.randint(0, n, (p,), generator=gen, device=device)
+    room = pixels.sizes[pi] - s + 1  # [p, 2] the top-left corners that keep the patch inside its image
+    corner = (torch.rand(p, 2, generator=gen, device=device) * room).long().minimum(room - 1)
+    return pi, corner[:, 0], corner[:, 1], s
 
 
 def sensor_ray_distance(pixels: TrainingPixels, z: torch.Tensor, scale: float, chunk: int = 262_144) -> torch.Tensor:

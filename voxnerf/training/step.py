@@ -11,6 +11,7 @@ import torch
 from voxnerf.config import TrainConfig
 from voxnerf.errors import TrainingDiverged
 from voxnerf.model.voxnerf_model import Batch, Losses, LossSettings, VoxNeRFModel
+from voxnerf.training.error_map import ErrorMap
 from voxnerf.training.pixels import TrainingPixels, sample_batch
 from voxnerf.training.prior_rays import PriorRayBank
 
@@ -68,10 +69,19 @@ class TrainStep:
         # lambda_d now, as a tensor the schedule sets
         self.depth_weight = torch.tensor(float(cfg.loss.lambda_depth), device=pixels.images.device)
         self.batches = 0  # batches drawn by this step (which ones refine the poses)
+        share = float(cfg.loss.error_map)
+        self.error_map = ErrorMap(pixels, share) if share > 0 else None
+        self._drawn: torch.Tensor | None = None  # the last batch's pixels drawn by the error map (flat [R])
 
     def batch(self) -> Batch:
         pixels = self.pixels
-        img, py, px = sample_batch(pixels, self.cfg, self.use_patches, self.gen)
+        flat = colour_weight = None
+        if self.error_map is not None:
+            flat, weights = self.error_map.draw(int(self.cfg.schedule.rays_per_batch), self.gen)
+            self._drawn = flat
+        img, py, px = sample_batch(pixels, self.cfg, self.use_patches, self.gen, flat)
+        if flat is not None and self.cfg.loss.error_map_weights:  # the patch rays after them weigh 1
+            colour_weight = torch.cat([weights, weights.new_ones(len(img) - len(flat))])
         rays = self.model.ray_bundle(*pixels.rays(img, py, px, pixel_offsets(self.cfg, len(img), self.gen)))
         if pixels.hit_t is not None:
             rays.hit_t, rays.hit = pixels.hit_t[img, py, px], pixels.hit[img, py, px]
@@ -85,7 +95,7 @@ class TrainStep:
         if pixels.depth_beta_scale is not None:
             target_beta = pixels.depth_beta_scale[img, py, px]
         batch = Batch(rays.origins, rays.dirs, starts, ends, target_rgb, target_t, target_ok, target_beta, img,
-                      self.depth_weight, background=self._random_background(len(img)),
+                      self.depth_weight, colour_weight, background=self._random_background(len(img)),
                       pose_corrections=self._pose_corrections())
         self.batches += 1
         return batch if self.prior_rays is None or target_t is None else self._with_prior_rays(batch)
@@ -123,9 +133,12 @@ class TrainStep:
         beta = None if batch.target_beta is None else torch.cat([batch.target_beta, torch.ones_like(target_t)])
         colour = self.mean_colour.expand(n, 3)
         weight = None
-        if unseen is not None:
-            colour_weight = self.cfg.loss.prior_ray_colour * unseen.float()
-            weight = torch.cat([torch.ones_like(batch.target_rgb[:, 0]), colour_weight])
+        if unseen is not None or batch.colour_weight is not None:  # else the prior rays carry no colour term
+            prior_weight = target_t.new_zeros(n) if unseen is None else self.cfg.loss.prior_ray_colour * unseen.float()
+            image_weight = batch.colour_weight
+            if image_weight is None:
+                image_weight = torch.ones_like(batch.target_rgb[:, 0])
+            weight = torch.cat([image_weight, prior_weight])
         return Batch(torch.cat([batch.origins, rays.origins]), torch.cat([batch.dirs, rays.dirs]),
                      torch.cat([batch.starts, starts]), torch.cat([batch.ends, ends]),
                      torch.cat([batch.target_rgb, colour]), torch.cat([batch.target_t, target_t]),
@@ -138,6 +151,8 @@ class TrainStep:
         losses = self.loss_fn(batch)
         self.optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
+        if self.error_map is not None and self._drawn is not None and losses.ray_error is not None:
+            self.error_map.update(self._drawn, losses.ray_error[: len(self._drawn)])
         return losses
 
     def apply(self) -> None:
