@@ -280,3 +280,10 @@ def test_pixel_jitter_draws_training_rays_through_their_pixels_not_their_centres
         dy, dx = y - py, x - px.float()
         assert float(dy.abs().max()) <= 0.5 + 1e-4 and float(dx.abs().max()) <= 0.5 + 1e-4
         assert (float(dx.abs().max()) > 0.3) == jitter and (float(dy.std()) > 0.1) == jitter
+
+
+def test_index_of_undoes_the_flat_index_of_the_grid():
+    pixels = _pixels(n=3, h=6, w=7)
+    img, py, px = torch.tensor([0, 2, 1]), torch.tensor([5, 0, 3]), torch.tensor([6, 1, 4])
+    flat = (img * 6 + py) * 7 + px
+    assert all(torch.equal(a, b) for a, b in zip(pixels.index_of(flat), (img, py, px), strict=True))

@@ -35,25 +35,26 @@ class ErrorMap:
         sizes = pixels.sizes if pixels.sizes is not None else torch.tensor([[h, w]], device=device).expand(n, 2)
         top = torch.arange(self.rows, device=device) * CELL
         left = torch.arange(self.cols, device=device) * CELL
-        # [N, rows, cols]: each cell's height and width inside its image (0 where it lies in the padding)
-        self.cell_h = (sizes[:, 0, None] - top[None]).clamp(0, CELL)[:, :, None].expand(n, self.rows, self.cols)
-        self.cell_w = (sizes[:, 1, None] - left[None]).clamp(0, CELL)[:, None, :].expand(n, self.rows, self.cols)
-        self.area = (self.cell_h * self.cell_w).reshape(-1).float()
+        # [N * rows * cols]: each cell's height and width inside its image (0 where it lies in the padding)
+        shape = (n, self.rows, self.cols)
+        self.cell_h = (sizes[:, 0, None] - top[None]).clamp(0, CELL)[:, :, None].expand(shape).reshape(-1)
+        self.cell_w = (sizes[:, 1, None] - left[None]).clamp(0, CELL)[:, None, :].expand(shape).reshape(-1)
+        self.area = (self.cell_h * self.cell_w).float()
         self.error = torch.zeros(n * self.rows * self.cols, device=device)
         self.visited = torch.zeros(n * self.rows * self.cols, dtype=torch.bool, device=device)
+        self.updated = False  # whether update ran (kept on the host: draw reads no device value)
 
     def cell_of(self, flat: torch.Tensor) -> torch.Tensor:
         """int64 [R]: the cell of each flat pixel index."""
-        n, h, w = self.pixels.shape
-        img, rem = flat // (h * w), flat % (h * w)
-        return (img * self.rows + rem // w // CELL) * self.cols + rem % w // CELL
+        img, py, px = self.pixels.index_of(flat)
+        return (img * self.rows + py // CELL) * self.cols + px // CELL
 
     def draw(self, count: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """(flat [count] int64, weights [count] float32): pixel indices, ``share`` of them by error (all uniform
         before any visit) and the rest uniform; and each pixel's importance weight, its probability under uniform
         draws over its probability under this mixture (weighing the colour loss by them keeps its expectation the
         uniform batch's: the draws then only lower the variance)."""
-        by_error = int(round(self.share * count)) if bool(self.visited.any()) else 0
+        by_error = int(round(self.share * count)) if self.updated else 0
         uniform = self.pixels.random_pixels(count - by_error, gen)
         if by_error == 0:
             return uniform, torch.ones(count, device=uniform.device)
@@ -64,8 +65,8 @@ class ErrorMap:
         img, rest = cell // (self.rows * self.cols), cell % (self.rows * self.cols)
         row, col = rest // self.cols, rest % self.cols
         u = torch.rand(by_error, 2, generator=gen, device=gen.device)
-        py = row * CELL + (u[:, 0] * self.cell_h.reshape(-1)[cell]).long()
-        px = col * CELL + (u[:, 1] * self.cell_w.reshape(-1)[cell]).long()
+        py = row * CELL + (u[:, 0] * self.cell_h[cell]).long()
+        px = col * CELL + (u[:, 1] * self.cell_w[cell]).long()
         flat = torch.cat([uniform, img * (h * w) + py * w + px])
         by_error_share = by_error / count
         pixel_by_error = estimate[self.cell_of(flat)] / (self.area * estimate).sum()  # a pixel's chance per draw
@@ -74,13 +75,15 @@ class ErrorMap:
 
     def update(self, flat: torch.Tensor, error: torch.Tensor) -> None:
         """Fold the squared errors [R] of the rays through pixels ``flat`` [R] into their cells' estimates; a
-        non-finite error is left out (the divergence guard reports it)."""
+        non-finite error is left out (the divergence guard reports it). Masks, not a boolean index, so nothing waits
+        for the device."""
         ok = torch.isfinite(error)
-        cell = self.cell_of(flat[ok])
-        total = torch.zeros_like(self.error).index_add_(0, cell, error[ok].float())
-        count = torch.zeros_like(self.error).index_add_(0, cell, torch.ones_like(cell, dtype=torch.float32))
+        cell = self.cell_of(flat)
+        total = torch.zeros_like(self.error).index_add_(0, cell, torch.where(ok, error.float(), 0.0))
+        count = torch.zeros_like(self.error).index_add_(0, cell, ok.float())
         seen = count > 0
         mean = total / count.clamp_min(1.0)
         moved = torch.where(self.visited, self.error + ALPHA * (mean - self.error), mean)
         self.error = torch.where(seen, moved, self.error)
         self.visited = self.visited | seen
+        self.updated = True

@@ -135,6 +135,11 @@ class TrainingPixels:
             return torch.randint(0, n * h * w, (count,), generator=gen, device=device)
         return self._flat_of_ordinal(torch.randint(0, self.pixel_count, (count,), generator=gen, device=device))
 
+    def index_of(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(image, row, column) int64 [R] of flat indices ``flat`` [R] into the [N, H, W] grid."""
+        _, h, w = self.shape
+        return flat // (h * w), flat % (h * w) // w, flat % w
+
     def _flat_of_ordinal(self, ordinal: torch.Tensor) -> torch.Tensor:
         """Flat grid indices of the pixels numbered ``ordinal`` when the images' pixels are counted image by
         image, row by row (the padding skipped)."""
@@ -245,11 +250,10 @@ def per_pixel(
 def rays_in_chunks(pixels: TrainingPixels, flat: torch.Tensor, chunk: int = 262_144):
     """Rays of the training pixels ``flat`` (int64 [P], flat indices into [N, H, W]), ``chunk`` at a time:
     yields (flat indices [R], image indices [R], origins [R, 3], unit dirs [R, 3]), normalised units."""
-    n, h, w = pixels.shape
     for i in range(0, len(flat), chunk):
         f = flat[i : i + chunk]
-        img, rem = f // (h * w), f % (h * w)
-        origins, dirs = pixels.rays(img, rem // w, rem % w)
+        img, py, px = pixels.index_of(f)
+        origins, dirs = pixels.rays(img, py, px)
         yield f, img, origins, dirs
 
 
@@ -267,7 +271,7 @@ def sample_batch(pixels: TrainingPixels, cfg: TrainConfig, use_patches: bool, ge
         px = torch.randint(0, w, (r,), generator=gen, device=device)
     else:
         flat = pixels.random_pixels(r, gen) if flat is None else flat
-        img, py, px = flat // (h * w), flat % (h * w) // w, flat % w
+        img, py, px = pixels.index_of(flat)
     if not use_patches:
         return img, py, px
     pi, y0, x0, s = _patch_corners(pixels, cfg, gen)

@@ -46,10 +46,9 @@ def sampler_octree(
         why = "octree_leaf: sigma" if cfg.sampling.octree_leaf == "sigma" else "mesh prior, sampled densely"
         return octree, (f"voxnerf sampler: {octree.levels} levels, leaf = sigma = {octree.leaf_size:.4g} "
                         f"(normalised; {why})")
-    n, h, w = pixels.shape
     gen = torch.Generator(device=device).manual_seed(0)
     flat = pixels.random_pixels(min(COVERAGE_RAYS, pixels.pixel_count), gen)
-    rays = model.ray_bundle(*pixels.rays(flat // (h * w), flat % (h * w) // w, flat % w))
+    rays = model.ray_bundle(*pixels.rays(*pixels.index_of(flat)))
     octree, misses = coverage_octree(points, prior.sigma, rays.origins, rays.dirs, rays.near, rays.far)
     tried = ", ".join(f"{s} sigma: {m:.1%}" for s, m in misses.items())
     scale = octree.leaf_size_requested / prior.sigma

@@ -72,7 +72,6 @@ def _with_choice(cfg: TrainConfig, checked: WindowCheckStage, has_octree: bool) 
 
 def _check(cfg: TrainConfig, model: VoxNeRFModel, sampler: VoxNeRFSampler, pixels: TrainingPixels,
            depth_t: torch.Tensor, prior_n: GeometryPrior | None, scale: float) -> dict:
-    n, h, w = pixels.shape
     with_depth = torch.nonzero(torch.isfinite(depth_t).reshape(-1)).reshape(-1)
     gen = torch.Generator(device="cpu").manual_seed(0)
     order = torch.randperm(len(with_depth), generator=gen)[:CHECK_PIXELS].to(with_depth.device)
@@ -85,8 +84,7 @@ def _check(cfg: TrainConfig, model: VoxNeRFModel, sampler: VoxNeRFSampler, pixel
     summary = first_hit_check(at(pixels.hit_t), at(pixels.hit), true_t, sampler.half_window, scale,
                               at(pixels.pseudo_t), None if prior_n is None else prior_n.sigma)
     rays_idx = pick[:SAMPLED_RAYS]
-    img, rem = rays_idx // (h * w), rays_idx % (h * w)
-    rays = model.ray_bundle(*pixels.rays(img, rem // w, rem % w))
+    rays = model.ray_bundle(*pixels.rays(*pixels.index_of(rays_idx)))
     rays.hit_t, rays.hit = pixels.hit_t.reshape(-1)[rays_idx], pixels.hit.reshape(-1)[rays_idx]
     starts, ends = sampler(rays, False)
     voxnerf_mid = (0.5 * (starts + ends)).cpu().numpy()
