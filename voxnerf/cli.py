@@ -202,7 +202,7 @@ def _render_image(args: argparse.Namespace, mode: str) -> int:
     else:
         pose, intr = _scene_frame(args, trained)
     outputs = ["rgb"] + (["depth"] if args.depth else []) + (["opacity"] if args.opacity else [])
-    images = render(trained, pose, intr, outputs)
+    images = render(trained, pose, intr, outputs, antialias=args.antialias)
     files = encode_files(out, images, outputs, trained.depth_unit_scale)
     out.parent.mkdir(parents=True, exist_ok=True)
     for path in write_files(files):
@@ -314,7 +314,7 @@ def _render_camera_path(args: argparse.Namespace, mode: str) -> int:
     check_request(path, out, outputs, fmt)
     with tqdm(total=len(path), unit="frame", desc="render", file=sys.stderr) as bar:
         result = render_path(trained, path, out, outputs=outputs, fmt=fmt,
-                             on_frame=lambda done, total: bar.update(done - bar.n))
+                             on_frame=lambda done, total: bar.update(done - bar.n), antialias=args.antialias)
     width, height = path.size
     print(f"wrote {result.out} ({result.frames} frames, {width}x{height}, {path.fps:g} fps) in "
           f"{result.seconds:.1f} s")
@@ -596,6 +596,9 @@ def _add_render_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--opacity", action="store_true",
                    help="also render opacity (EXR channel A, or IMG_opacity.png as 8-bit gray)")
     p.add_argument("--format", choices=["png", "exr"], help="files of a frames directory (default png)")
+    p.add_argument("--no-antialias", dest="antialias", action="store_false", default=None,
+                   help="render each pixel's colour from its centre ray alone: a fifth of the rays of the "
+                   "antialiased default (the run's antialias setting, docs/engine.md)")
     p.add_argument("--dataparser-transforms", metavar="FILE",
                    help="--camera-path: the nerfstudio run's dataparser_transforms.json, mapping the viewer's "
                    "poses back to the scene's units")

@@ -122,6 +122,14 @@ class ModelConfig(_Section):
         "without the octree. Training rays keep train_background. The default won on the tuning suite's halves "
         "(docs/benchmarks.md, 'What a view shows where no training view looked')",
     )
+    antialias: bool = Field(
+        default=True,
+        description="render each pixel's colour as the weighted mean of five rays through it, its centre (weight "
+        "1/3) and the centres of its four quarters (1/6 each), as a camera averages over its pixel's area: five "
+        "times the rays of a colour render; depth and opacity stay the centre ray's. false renders the centre ray "
+        "alone. Training rays are unchanged. The default won on the tuning suite's halves (docs/benchmarks.md, "
+        "'Antialiased renders')",
+    )
     cone_radius: Annotated[float, Field(ge=0.0, le=0.1)] | Literal["auto"] | None = Field(
         default=None,
         description="read the field over each pixel's cone instead of at points (Zip-NeRF's feature downweighting): "

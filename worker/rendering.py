@@ -47,7 +47,7 @@ def render_outcome(job_id: str, request: RenderRequest, should_stop: Callable[[]
     except CameraError as err:
         return RenderOutcome(422, detail=str(err))
     images = render(trained, np.asarray(request.transform_matrix), intrinsics, tuple(request.outputs),
-                    path=settings.render_path, should_stop=should_stop)
+                    path=settings.render_path, should_stop=should_stop, antialias=request.antialias)
     data = encode_outputs(images, request.format, request.outputs, trained.depth_unit_scale)
     return RenderOutcome(200, request.media_type, data, iteration=trained.iteration)
 

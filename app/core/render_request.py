@@ -69,6 +69,9 @@ class RenderRequest(BaseModel):
     p2: float | None = None
     format: FormatName = "png"
     outputs: list[OutputName] | None = None
+    antialias: bool | None = Field(
+        None, description="false: each pixel's colour from its centre ray alone, a fifth of the rays (the viewer's "
+        "frames while the camera moves); absent: the job's antialias setting (five rays per pixel by default)")
 
     @field_validator("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2")
     @classmethod

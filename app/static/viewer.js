@@ -111,21 +111,24 @@ function showMessage(text, kind = "error") {
 
 // ------------------------------------------------------------------------------------------- rendering
 
+// A frame's quality: "small" (1/SMALL_FACTOR of the size per side) and "full" (full size) with one ray per pixel,
+// "final" full size and antialiased (five rays per pixel, POST /render's default).
 function requestBody(quality) {
-  const camera = quality === "full" ? view.camera : scaledCamera(view.camera, SMALL_FACTOR);
+  const camera = quality === "small" ? scaledCamera(view.camera, SMALL_FACTOR) : view.camera;
   return {
     job_id: jobId, transform_matrix: view.pose, format: "png", outputs: [view.mode],
     width: camera.width, height: camera.height, fl_x: camera.fl_x, fl_y: camera.fl_y, cx: camera.cx, cy: camera.cy,
+    ...(quality === "final" ? {} : { antialias: false }),
   };
 }
 
 // The view changed: abort a full-size render in flight (superseded), render the newest pose small now if nothing
-// is in flight, and full size once the camera rests.
+// is in flight, and full size once the camera rests, then antialiased.
 function viewChanged() {
   frames.lastMoveAt = performance.now();
   frames.failures = 0;
   frames.resting = false;
-  if (frames.inflight && frames.inflight.quality === "full") frames.inflight.controller.abort();
+  if (frames.inflight && frames.inflight.quality !== "small") frames.inflight.controller.abort();
   if (view.snapped && poseKey(view.pose) !== poseKey(view.snapped.transform_matrix)) hideGroundTruth();
   $("render").classList.add("stale");
   drawOverlay();
@@ -134,12 +137,13 @@ function viewChanged() {
   frames.restTimer = setTimeout(() => { frames.resting = true; pump(); }, REST_MS);
 }
 
+// The next frame the view needs, or null: small while the camera moves; once it rests, full size, then final
+// (colour only: depth and opacity are the centre ray's either way).
 function wantedFrame() {
   const key = currentKey();
-  const quality = frames.resting ? "full" : "small";
-  if (frames.outdated && frames.resting) return { key, quality };
-  if (frames.shownKey === key && (frames.shownQuality === "full" || quality === "small")) return null;
-  return { key, quality };
+  if (!frames.resting) return frames.shownKey === key ? null : { key, quality: "small" };
+  if (frames.outdated || frames.shownKey !== key || frames.shownQuality === "small") return { key, quality: "full" };
+  return frames.shownQuality === "full" && view.mode === "rgb" ? { key, quality: "final" } : null;
 }
 
 async function pump() {
@@ -195,7 +199,7 @@ async function showFrame(request, buffer, source) {
   frames.shownKey = request.key;
   frames.shownQuality = request.quality;
   frames.shownBody = request.body;
-  if (request.quality === "full" && request.seq > frames.outdatedAfter) frames.outdated = false;
+  if (request.quality !== "small" && request.seq > frames.outdatedAfter) frames.outdated = false;
   showCheckpoint(source);
   canvas.classList.toggle("stale", request.key !== currentKey());
   canvas.classList.remove("empty");

@@ -184,6 +184,22 @@ def test_frame_with_lens_renders_through_it(run, scene, tmp_path):
     assert (tmp_path / "plain.png").read_bytes() != (tmp_path / "lens.png").read_bytes()
 
 
+def test_no_antialias_renders_each_pixel_from_its_centre_ray(run, scene, tmp_path):
+    frame = load_scene(scene, load_images=False).frames[3]
+    trained = load_model(run, "cpu")
+    assert _render(run, "--frame", "f03", "--scene", scene, "--out", tmp_path / "default.png") == 0
+    assert _render(run, "--frame", "f03", "--scene", scene, "--no-antialias", "--out", tmp_path / "centre.png") == 0
+    camera = frame.intrinsics.undistorted()
+    antialiased = render(trained, frame.c2w, camera, ["rgb"])  # the run's setting: antialiased
+    centre = render(trained, frame.c2w, camera, ["rgb"], antialias=False)
+    assert (tmp_path / "default.png").read_bytes() == encode_outputs(antialiased, "png", ["rgb"], 1.0)
+    assert (tmp_path / "centre.png").read_bytes() == encode_outputs(centre, "png", ["rgb"], 1.0)
+    assert (tmp_path / "default.png").read_bytes() != (tmp_path / "centre.png").read_bytes()
+    out = tmp_path / "frames"
+    assert _render(run, "--path", "orbit", "--frames", 2, "--no-antialias", "--out", out, "--scene", scene) == 0
+    assert len(list(out.glob("frame_*.png"))) == 2
+
+
 def test_frame_at_another_size_scales_its_camera(run, scene, tmp_path):
     assert _render(run, "--frame", "f02", "--scene", scene, "--width", 32, "--height", 24, "--depth",
                    "--out", tmp_path / "view.exr") == 0

@@ -24,9 +24,10 @@ from voxnerf.inference.export import (
     export_views,
     fuse_mesh,
     point_cloud,
+    render_view,
 )
 from voxnerf.inference.export_plan import view_count, view_size
-from voxnerf.inference.render import load_model
+from voxnerf.inference.render import load_model, render
 from voxnerf.prior.depth_fusion import DepthView, backproject
 
 # Measured on conftest's trained_small_room (small_room, 500 iterations of 1024 rays, CPU, seed 0; exports at
@@ -173,6 +174,14 @@ def _scene(tmp_path: Path, look_away: bool = False) -> Scene:
 @pytest.fixture
 def tiny(tmp_path):
     return load_model(write_tiny_run(tmp_path / "tiny"), "cpu")
+
+
+def test_views_are_fused_from_centre_rays_whatever_the_run_renders(tiny, tmp_path):
+    view = export_views(_scene(tmp_path), 2.0)[0]
+    assert tiny.model.config.model.antialias  # the run renders antialiased images
+    fused = render_view(tiny, view, 0.0)
+    centre = render(tiny, view.c2w, view.intrinsics, ("rgb",), antialias=False)["rgb"]
+    np.testing.assert_array_equal(fused.rgb, np.round(np.clip(centre, 0.0, 1.0) * 255).astype(np.uint8))
 
 
 def test_nothing_opaque_is_a_clear_error(tiny, tmp_path):

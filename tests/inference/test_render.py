@@ -16,6 +16,7 @@ from voxnerf.inference.encoding import OUTPUT_NAMES
 from voxnerf.inference.render import (
     CHECKPOINT,
     OUTPUTS,
+    PIXEL_RAYS,
     PixelSet,
     load_model,
     render,
@@ -209,12 +210,62 @@ def test_the_full_path_renders_in_passes_of_the_device_s_chunk_unless_the_config
     monkeypatch.setattr(type(model), "render_rays", counting)
     camera = Intrinsics(40.0, 40.0, 40.0, 30.0, 80, 60)  # 4,800 rays
     assert model.config.evaluation.eval_chunk is None
-    render_normalized(model, torch.eye(4), camera, ("rgb",), path="full")
+    render_normalized(model, torch.eye(4), camera, ("rgb",), path="full", antialias=False)
     assert passes == [4096, 704]
     passes.clear()
     monkeypatch.setattr(model.config.evaluation, "eval_chunk", 3000)
-    render_normalized(model, torch.eye(4), camera, ("rgb",), path="full")
+    render_normalized(model, torch.eye(4), camera, ("rgb",), path="full", antialias=False)
     assert passes == [3000, 1800]
+
+
+# ------------------------------------------------------------------------------------------- antialiasing
+
+
+def test_the_rays_of_an_antialiased_pixel_start_at_its_centre_and_weigh_one_in_all():
+    assert PIXEL_RAYS[0][:2] == (0.0, 0.0) and len(PIXEL_RAYS) == 5
+    assert sum(weight for *_, weight in PIXEL_RAYS) == pytest.approx(1.0)
+    assert all(abs(dx) < 0.5 and abs(dy) < 0.5 and weight > 0 for dx, dy, weight in PIXEL_RAYS)  # inside the pixel
+
+
+@pytest.mark.parametrize("path", ["fast", "full"])
+def test_an_antialiased_colour_is_the_weighted_mean_of_its_rays_and_depth_is_the_centre_s(trained, path):
+    model = trained.model
+    camera = Intrinsics(30.0, 30.0, 10.0, 7.5, 20, 15)
+    assert model.config.model.antialias  # the default
+    default = render_normalized(model, torch.eye(4), camera, OUTPUTS, path=path)
+    centre = render_normalized(model, torch.eye(4), camera, OUTPUTS, path=path, antialias=False)
+    expected = sum(weight * render_normalized(model, torch.eye(4), Intrinsics(30.0, 30.0, 10.0 - dx, 7.5 - dy, 20, 15),
+                                              ("rgb",), path=path, antialias=False)["rgb"]
+                   for dx, dy, weight in PIXEL_RAYS)
+    torch.testing.assert_close(default["rgb"], expected)
+    assert not torch.allclose(default["rgb"], centre["rgb"])
+    for name in ("depth", "opacity"):
+        torch.testing.assert_close(default[name], centre[name], rtol=0, atol=0)
+
+
+def test_a_run_set_to_centre_rays_renders_them_and_a_render_without_colour_casts_no_more(trained, monkeypatch):
+    import voxnerf.inference.render as render_module
+
+    model = trained.model
+    camera = Intrinsics(30.0, 30.0, 10.0, 7.5, 20, 15)
+    passes = []
+    real = render_module._render_chunks
+
+    def counting(model, origins, dirs, outputs, *args):
+        passes.append(tuple(outputs))
+        return real(model, origins, dirs, outputs, *args)
+
+    monkeypatch.setattr(render_module, "_render_chunks", counting)
+    render_normalized(model, torch.eye(4), camera, ("rgb", "depth"))
+    assert passes == [("rgb", "depth")] + [("rgb",)] * 4  # the centre's every output, the colour of four more
+    passes.clear()
+    render_normalized(model, torch.eye(4), camera, ("depth", "opacity"))
+    assert passes == [("depth", "opacity")]
+    passes.clear()
+    centre = render_normalized(model, torch.eye(4), camera, ("rgb",), antialias=False)
+    monkeypatch.setattr(model, "config", model.config.updated(antialias=False))
+    torch.testing.assert_close(render_normalized(model, torch.eye(4), camera, ("rgb",))["rgb"], centre["rgb"])
+    assert passes == [("rgb",)] * 2
 
 
 # ------------------------------------------------------------------------------------------- some pixels

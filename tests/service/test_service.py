@@ -164,6 +164,13 @@ def test_render_png_and_exr_of_a_held_out_pose(service, client, trained, small_r
         "POST /render disagrees with eval render"
     )
 
+    # the job's antialiased colour (five rays per pixel) by default; one ray per pixel when asked
+    _, centre_png = _render(client, {"job_id": job["id"], "transform_matrix": pose, "antialias": False})
+    centre = iio.imread(centre_png).astype(int)
+    assert centre.shape == rgb.shape and 0 < np.abs(centre - rgb.astype(int)).mean() < 8
+    refused = client.post("/render", json={"job_id": job["id"], "transform_matrix": pose, "antialias": "sometimes"})
+    assert refused.status_code == 422 and "antialias" in refused.text
+
     media, exr = _render(client, {"job_id": job["id"], "transform_matrix": pose, "format": "exr"})
     assert media == "image/x-exr"
     channels = decode_exr(exr)

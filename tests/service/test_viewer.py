@@ -242,12 +242,12 @@ class RenderLog:
         raise AssertionError(f"no response recorded for the shown frame {body}")
 
 
-SETTLED = """() => { const s = window.viewerState; return s && s.frames.shownQuality === "full" && !s.frames.inflight
-  && s.frames.shownKey === s.currentKey(); }"""
+SETTLED = """() => { const s = window.viewerState; return s && !s.frames.inflight
+  && s.frames.shownKey === s.currentKey() && s.frames.shownQuality === (s.view.mode === "rgb" ? "final" : "full"); }"""
 
 
 def _settle(page) -> None:
-    """Wait until the full-size frame of the current view is on screen."""
+    """Wait until the last frame of the current view is on screen: full size, antialiased for colour."""
     page.wait_for_function(SETTLED, timeout=60_000)
 
 
@@ -288,7 +288,11 @@ def test_the_viewer_renders_drags_snaps_and_starts_a_video(trained, page, tmp_pa
     _settle(page)
     moved_body, moved_image = renders.shown()
     assert moved_body["transform_matrix"] != first_body["transform_matrix"] and moved_image != first_image
-    assert any(body["width"] < moved_body["width"] for body, _ in renders.calls)  # a small frame was asked
+    small = [body for body, _ in renders.calls if body["width"] < moved_body["width"]]
+    assert small  # a small frame was asked; small and full frames with one ray per pixel, the final one antialiased
+    assert all(body["antialias"] is False for body in small) and "antialias" not in moved_body
+    full = [body for body, _ in renders.calls if body["width"] == moved_body["width"] and "antialias" in body]
+    assert full and all(body["antialias"] is False for body in full)
     page.screenshot(path=str(tmp_path / "viewer-dragged.png"))
 
     # fly: W moves the camera forward (along -Z of its pose), turning nothing

@@ -114,13 +114,17 @@ def test_train_task_marks_engine_errors_failed(settings, monkeypatch):
     assert jobstore.JOBS.get(settings, job.id).attempt == 1
 
 
+rendered_with: list[bool | None] = []  # the antialias each render of the fake model was asked for
+
+
 def _fake_model(monkeypatch, settings: Settings) -> None:
     trained = SimpleNamespace(default_intrinsics=Intrinsics(8.0, 8.0, 4.0, 3.0, 8, 6), depth_unit_scale=0.001,
                               model=SimpleNamespace(device=SimpleNamespace(type="cpu")), iteration=42)
     monkeypatch.setattr(rendering, "job_model", lambda settings, job_id, checkpoint_iteration: trained)
 
-    def render(model, c2w, intrinsics, outputs, path, should_stop):
+    def render(model, c2w, intrinsics, outputs, path, should_stop, antialias):
         assert path == settings.render_path
+        rendered_with.append(antialias)
         shape = (intrinsics.height, intrinsics.width)
         return {"rgb": np.full((*shape, 3), 0.5, np.float32), "depth": np.ones(shape, np.float32),
                 "opacity": np.ones(shape, np.float32)}
@@ -141,3 +145,6 @@ def test_render_task_answers_the_image_or_a_4xx(settings, monkeypatch):
     tasks.render_pose("r3", "b" * 32, {**request, "transform_matrix": [[1, 2]]})
     outcome = receive_outcome(settings, "r3", timeout_s=5)
     assert outcome.status == 500 and "render failed" in outcome.detail
+    rendered_with.clear()
+    tasks.render_pose("r4", "b" * 32, {**request, "antialias": False})  # the request's choice reaches the engine
+    assert receive_outcome(settings, "r4", timeout_s=5).status == 200 and rendered_with == [False]

@@ -15,7 +15,7 @@ from voxnerf.config import TrainConfig
 from voxnerf.data.image_io import encode_png, write_atomic
 from voxnerf.inference.fast_path import FAST
 from voxnerf.inference.metrics import LPIPS, LPIPS_UNAVAILABLE, evaluate_images, half_image_pairs
-from voxnerf.inference.render import render_normalized, resolved_render_path
+from voxnerf.inference.render import PIXEL_RAYS, pixel_rays, render_normalized, resolved_render_path
 from voxnerf.model.voxnerf_model import VoxNeRFModel
 
 
@@ -138,6 +138,8 @@ def evaluate_views(
         mean = scores["mean"]
         renderer = (FAST.describe(model.device) if resolved_render_path(path, model.device) == "fast"
                     else "full: every sample of every ray")
+        if len(pixel_rays(model, ("rgb",))) > 1:
+            renderer += f"; antialiased: {len(PIXEL_RAYS)} rays per pixel"
         entry = {"psnr": mean["psnr"], "ssim": mean["ssim"], "lpips": mean["lpips"], "renderer": renderer, "views": [
             {"name": v.name, "psnr": scores["psnr"][i], "ssim": scores["ssim"][i],
              "lpips": None if scores["lpips"] is None else scores["lpips"][i]}

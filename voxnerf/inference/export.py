@@ -192,8 +192,10 @@ def export_views(scene: Scene, extent: float, max_views: int | None = None) -> l
 
 def render_view(trained: TrainedModel, camera: ExportView, min_opacity: float) -> DepthView:
     """Render ``camera``: depth float32 [H, W] scene units, NaN where no surface (opacity below ``min_opacity``
-    or any non-finite output); rgb uint8 [H, W, 3] as rendered (composited over the model's background)."""
-    images = render(trained, camera.c2w, camera.intrinsics, OUTPUTS)
+    or any non-finite output); rgb uint8 [H, W, 3] as rendered (composited over the model's background), one ray per
+    pixel: the fusion averages each surface's colour over many views already, and antialiasing would cost five
+    times the rays."""
+    images = render(trained, camera.c2w, camera.intrinsics, OUTPUTS, antialias=False)
     depth, opacity, rgb = images["depth"], images["opacity"], images["rgb"]
     surface = (np.isfinite(depth) & (depth > 0) & np.isfinite(opacity) & (opacity >= min_opacity)
                & np.isfinite(rgb).all(axis=-1))

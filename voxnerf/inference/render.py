@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import BinaryIO
 
@@ -27,6 +27,13 @@ OUTPUTS = OUTPUT_NAMES
 RENDER_PATHS = ("auto", "fast", "full")
 FAST_CHUNK = 1 << 20  # rays per call of the fast path (it samples and composites them in cache-sized blocks)
 STOPPABLE_FAST_CHUNK = 1 << 18  # the same for a render that may be stopped: it stops within one such pass
+# An antialiased colour render (``antialias``): each pixel's colour is the weighted mean of the rays through these
+# points of it, (dx, dy) in pixels from its centre with their weights (summing to 1): the centre and the centres of
+# its four quarters, the centre weighing twice a quarter (chosen on the tuning suite's halves, docs/benchmarks.md,
+# "Antialiased renders").
+PIXEL_RAYS: tuple[tuple[float, float, float], ...] = (
+    (0.0, 0.0, 1 / 3), (-0.25, -0.25, 1 / 6), (0.25, -0.25, 1 / 6), (-0.25, 0.25, 1 / 6), (0.25, 0.25, 1 / 6))
+CENTRE_RAY = ((0.0, 0.0, 1.0),)
 
 
 @dataclass
@@ -94,6 +101,7 @@ def render_normalized(
     chunk: int | None = None,
     path: str = "auto",
     should_stop: Callable[[], bool] | None = None,
+    antialias: bool | None = None,
 ) -> dict[str, Tensor]:
     """Render one view whose pose is already in normalised units (a model that refined the training poses moves
     it by its nearest training cameras' corrections first, :mod:`voxnerf.cameras.pose_refinement`; one that learnt
@@ -112,14 +120,47 @@ def render_normalized(
             ``"auto"`` (:func:`resolved_render_path`).
         should_stop: asked before each pass over ``chunk`` rays (at most :data:`STOPPABLE_FAST_CHUNK` on the fast
             path); True stops the render there with RenderStopped (its caller gave up on it).
+        antialias: the colour as the weighted mean of :data:`PIXEL_RAYS` per pixel (five times the rays) instead of
+            the centre ray's; None: the model's ``antialias`` setting. Depth and opacity are the centre ray's.
     Returns:
         the requested outputs, rgb [H, W, 3] and depth/opacity [H, W], float32 on the model's device.
     """
     _check_outputs(outputs)
     c2w = c2w.to(model.device, torch.float32)
-    origins, dirs, z_per_t = _view_rays(model, c2w, intrinsics)
-    parts = _render_chunks(model, origins, dirs, outputs, chunk, path, should_stop)
-    return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
+
+    offsets = pixel_rays(model, outputs, antialias)
+
+    def render_at(k: int, wanted: Sequence[str]) -> dict[str, Tensor]:
+        # The rays through (px + 0.5 + dx, py + 0.5 + dy): the principal point moved the other way.
+        dx, dy, _ = offsets[k]
+        origins, dirs, z_per_t = _view_rays(model, c2w, replace(intrinsics, cx=intrinsics.cx - dx,
+                                                                cy=intrinsics.cy - dy))
+        parts = _render_chunks(model, origins, dirs, wanted, chunk, path, should_stop)
+        return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
+
+    return _mean_over_pixel([weight for _, _, weight in offsets], outputs, render_at)
+
+
+def _mean_over_pixel(weights: Sequence[float], outputs: Sequence[str],
+                     render_at: Callable[[int, Sequence[str]], dict[str, Tensor]]) -> dict[str, Tensor]:
+    """``outputs`` rendered through the points of each pixel that :func:`pixel_rays` gives (the centre first) with
+    their ``weights``: every output of the centre ray, the colour as the weighted mean over all of them.
+    ``render_at(k, wanted)`` renders the outputs ``wanted`` through the k-th point."""
+    result = dict(render_at(0, outputs))
+    if "rgb" in result:
+        result["rgb"] = result["rgb"] * weights[0]
+        for k in range(1, len(weights)):
+            result["rgb"] = result["rgb"] + render_at(k, ("rgb",))["rgb"] * weights[k]
+    return result
+
+
+def pixel_rays(model: VoxNeRFModel, outputs: Sequence[str], antialias: bool | None = None
+               ) -> tuple[tuple[float, float, float], ...]:
+    """The points of a pixel a render of ``outputs`` casts rays through, (dx, dy, weight) with the centre first:
+    :data:`PIXEL_RAYS` for a colour render when ``antialias`` (None: the model's setting) says so, else the centre
+    alone."""
+    wanted = model.config.model.antialias if antialias is None else antialias
+    return PIXEL_RAYS if wanted and "rgb" in outputs else CENTRE_RAY
 
 
 @dataclass
@@ -136,7 +177,8 @@ class PixelSet:
 def render_pixels(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
                   outputs: Sequence[str] = ("rgb",), path: str = "auto") -> dict[str, Tensor]:
     """Render some pixels of one view, as :func:`render_normalized` renders them in the whole image (the same
-    rays, pose and colour corrections): ``pixels`` [N] are row-major indices into the ``intrinsics``' image.
+    rays, antialiasing, pose and colour corrections): ``pixels`` [N] are row-major indices into the
+    ``intrinsics``' image.
 
     Returns the requested outputs, rgb [N, 3] and depth/opacity [N] (z-depth in normalised units), float32 on
     the model's device. RunError for an index outside the image.
@@ -150,6 +192,7 @@ def render_pixel_sets(model: VoxNeRFModel, sets: Sequence[PixelSet], outputs: Se
     """:func:`render_pixels` of several views in one pass over all their rays (a pass has a fixed cost: a few
     hundred pixels of each of many views cost little more than their rays); one dict per set, in order."""
     _check_outputs(outputs)
+    offsets = pixel_rays(model, outputs)
     rays, poses = [], []
     for one in sets:
         intr, pixels = one.intrinsics, one.pixels.to(model.device)
@@ -159,18 +202,23 @@ def render_pixel_sets(model: VoxNeRFModel, sets: Sequence[PixelSet], outputs: Se
                            f"{int(pixels.min())}..{int(pixels.max())}")
         c2w = one.c2w.to(model.device, torch.float32)
         lens = None if intr.lens is None else LensBatch.of([intr.lens], model.device)
-        rays.append(camera_rays(model.view_pose(c2w), intr.fl_x, intr.fl_y, intr.cx, intr.cy, pixels % intr.width,
-                                pixels // intr.width, lens))
+        px, py = (pixels % intr.width).float(), (pixels // intr.width).float()
+        rays.append([camera_rays(model.view_pose(c2w), intr.fl_x, intr.fl_y, intr.cx, intr.cy, px + dx, py + dy, lens)
+                     for dx, dy, _ in offsets])
         poses.append(c2w)
-    total = sum(r[0].shape[0] for r in rays)
-    if total:
-        parts = _render_chunks(model, torch.cat([r[0] for r in rays]), torch.cat([r[1] for r in rays]), outputs,
-                               None, path, None)
-        every = {name: torch.cat(values)[:total] for name, values in parts.items()}
-    else:
-        every = {name: torch.zeros((0, 3) if name == "rgb" else (0,), device=model.device) for name in outputs}
+    total = sum(r[0][0].shape[0] for r in rays)
+
+    def render_at(k: int, wanted: Sequence[str]) -> dict[str, Tensor]:
+        if not total:
+            return {name: torch.zeros((0, 3) if name == "rgb" else (0,), device=model.device) for name in wanted}
+        parts = _render_chunks(model, torch.cat([r[k][0] for r in rays]), torch.cat([r[k][1] for r in rays]),
+                               wanted, None, path, None)
+        return {name: torch.cat(values)[:total] for name, values in parts.items()}
+
+    every = _mean_over_pixel([weight for _, _, weight in offsets], outputs, render_at)
     results, start = [], 0
-    for (_, _, z_per_t), c2w in zip(rays, poses, strict=True):
+    for ray_sets, c2w in zip(rays, poses, strict=True):
+        z_per_t = ray_sets[0][2]
         end = start + z_per_t.shape[0]
         result = {name: values[start:end] for name, values in every.items()}
         if "depth" in result:
@@ -253,6 +301,7 @@ def render(
     outputs: Sequence[str] = OUTPUTS,
     path: str = "auto",
     should_stop: Callable[[], bool] | None = None,
+    antialias: bool | None = None,
 ) -> dict[str, np.ndarray]:
     """Render a pose given in scene units.
 
@@ -267,6 +316,7 @@ def render(
         path: ``"fast"`` or ``"full"``, see :func:`render_normalized`.
         should_stop: asked between passes over the rays; True stops the render with RenderStopped (see
             :func:`render_normalized`).
+        antialias: see :func:`render_normalized` (None: the model's setting).
     Returns:
         rgb float32 [H, W, 3] in [0, 1] (sRGB-encoded, as the images it was trained on), depth float32 [H, W]
         z-depth in scene units, opacity float32 [H, W].
@@ -278,7 +328,7 @@ def render(
     model = trained.model
     pose_n = torch.from_numpy(model.transform.c2w_to_normalized(pose)).float()
     out = render_normalized(model, pose_n, intrinsics or trained.default_intrinsics.undistorted(), outputs, path=path,
-                            should_stop=should_stop)
+                            should_stop=should_stop, antialias=antialias)
     result = {name: value.float().cpu().numpy() for name, value in out.items()}
     if "depth" in result:
         result["depth"] = result["depth"] / model.transform.scale

@@ -111,12 +111,13 @@ def _check_outputs(out: Path, fmt: str, outputs: Sequence[str], path: CameraPath
         raise RunError(f"{out}: width, height: H.264 (yuv420p) needs even sizes, got {width}x{height}")
 
 
-def _frames(trained: TrainedModel, path: CameraPath, outputs: Sequence[str], on_frame, should_stop):
+def _frames(trained: TrainedModel, path: CameraPath, outputs: Sequence[str], on_frame, should_stop,
+            antialias: bool | None):
     """Yield each frame's images (render's dict) in order; _Stopped when ``should_stop`` says so."""
     for i, (pose, intrinsics) in enumerate(zip(path.poses, path.intrinsics, strict=True)):
         if should_stop is not None and should_stop():
             raise _Stopped(i)
-        yield render(trained, pose, intrinsics, outputs)
+        yield render(trained, pose, intrinsics, outputs, antialias=antialias)
         if on_frame is not None:
             on_frame(i + 1, len(path))
 
@@ -194,6 +195,7 @@ def render_path(
     fmt: str | None = None,
     on_frame: Callable[[int, int], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
+    antialias: bool | None = None,
 ) -> PathRender:
     """Render every frame of ``path`` (poses in scene units) with ``trained`` into ``out``.
 
@@ -203,12 +205,13 @@ def render_path(
         fmt: ``mp4``, ``png`` or ``exr``; default from ``out`` (see :func:`format_of`).
         on_frame: called as ``on_frame(done, total)`` after each frame.
         should_stop: asked before each frame; True ends the render, leaving nothing at ``out``.
+        antialias: see :func:`voxnerf.inference.render.render_normalized` (None: the model's setting).
     Raises:
         RunError: what :func:`check_request` refuses, before anything is rendered.
     """
     out = Path(out)
     fmt = check_request(path, out, outputs, fmt)
-    frames = _frames(trained, path, outputs, on_frame, should_stop)
+    frames = _frames(trained, path, outputs, on_frame, should_stop, antialias)
     start = time.perf_counter()
     try:
         if fmt == "mp4":
