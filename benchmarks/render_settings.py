@@ -1,8 +1,9 @@
 """What a render-time setting changes, side by side on the same trained fields: ``--setting render_background``
 ('colour', the background colour, the training images' mean by default, against 'nearest_seen', the colour the
-training images show where the ray meets the prior, :mod:`voxnerf.model.colour_prior`) or ``--setting antialias``
-('centre_ray', each pixel's colour from its centre ray, against 'antialiased', the weighted mean of five rays through
-it, :data:`voxnerf.inference.render.PIXEL_RAYS`).
+training images show where the ray meets the prior, :mod:`voxnerf.model.colour_prior`), ``--setting
+nearest_seen_weight`` ('nearest_seen', that colour alone, against 'shrunk', 3/4 of it and 1/4 of the background) or
+``--setting antialias`` ('centre_ray', each pixel's colour from its centre ray, against 'antialiased', the weighted
+mean of five rays through it, :data:`voxnerf.inference.render.PIXEL_RAYS`).
 
 Such a setting acts only when rendering, so both choices are scored on one trained field per scene, without training
 twice: each run's set-up is replayed on its scene (the engine's own set-up stages, resumed from the run's checkpoint,
@@ -29,7 +30,7 @@ from pathlib import Path
 import torch
 from suite import BASELINE, HALVES, NOISE_DB, verdict, verdict_rows
 
-from voxnerf.config import TrainConfig
+from voxnerf.config import ModelConfig, TrainConfig
 from voxnerf.data.scene import load_scene
 from voxnerf.inference.evaluation import evaluate_views
 from voxnerf.inference.render import load_model, scene_as_trained
@@ -42,6 +43,7 @@ from voxnerf.training.setup import SETUP_STAGES, SetupContext, run_setup
 SETTINGS: dict[str, dict[str, object]] = {
     "render_background": {"colour": "colour", "nearest_seen": "nearest_seen"},
     "antialias": {"centre_ray": False, "antialiased": True},
+    "nearest_seen_weight": {"nearest_seen": 1.0, "shrunk": 0.75},
 }
 # The set-up replayed for the colour prior: every stage up to it (prior rays only shape training).
 REPLAYED = tuple(stage for stage in SETUP_STAGES if stage.name != "prior_rays")
@@ -71,12 +73,14 @@ def colour_prior_of(run_dir: Path, scene_dir: Path, device: str):
 
 
 def score_run(run_dir: Path, scene_dir: Path, device: str, setting: str = "render_background") -> dict:
-    """Both choices' metrics of ``setting`` per evaluation split (the run's other settings as it has them, the
-    colour prior replayed), and the colour prior stage's why."""
+    """Both choices' metrics of ``setting`` per evaluation split, and the colour prior stage's why. The field
+    renders as today's defaults render it (the colour prior replayed, every render-time setting of :data:`SETTINGS`
+    at its default, whatever the run's config said when it trained) but for ``setting``."""
     prior, why = colour_prior_of(run_dir, scene_dir, device)
     trained = load_model(run_dir, device)
     model = trained.model
     model.colour_prior = prior
+    model.config = model.config.updated(**{name: ModelConfig.model_fields[name].default for name in SETTINGS})
     scene = scene_as_trained(load_scene(scene_dir, downscale=model.config.run.downscale), model)
     views = eval_views_of(scene, model.transform)
     out = {"run": str(run_dir), "setting": setting, "colour_prior": why}

@@ -63,6 +63,24 @@ def test_antialiasing_is_scored_on_the_same_field_against_the_centre_ray(tmp_pat
     assert "`antialiased` - `centre_ray`" in table and "--setting antialias" in table
 
 
+def test_each_choice_renders_over_today_s_render_defaults_whatever_the_run_trained_with(tmp_path_factory, tmp_path,
+                                                                                         monkeypatch):
+    room = make_micro_scene(tmp_path_factory, "render-defaults")
+    run = tmp_path / "suite" / "runs" / room.name / "defaults"
+    train(room, run, micro_config(max_iters=2, render_background="colour", antialias=False, nearest_seen_weight=0.5,
+                                  final_eval=False), progress_bar=False)
+    seen = []
+
+    def recording(model, views, cfg, **kwargs):
+        seen.append({name: getattr(cfg.model, name) for name in render_settings.SETTINGS})
+        return {}
+
+    monkeypatch.setattr(render_settings, "evaluate_views", recording)
+    render_settings.score_run(run, room, "cpu", "antialias")
+    defaults = {"render_background": "nearest_seen", "nearest_seen_weight": 1.0}
+    assert seen == [{**defaults, "antialias": False}, {**defaults, "antialias": True}]
+
+
 def test_a_scene_without_a_run_is_refused_before_anything_is_written(tmp_path):
     (tmp_path / "runs" / "den" / "defaults").mkdir(parents=True)  # no checkpoint in it
     with pytest.raises(SystemExit):

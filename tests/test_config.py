@@ -109,7 +109,8 @@ OLD_RUN = Path(__file__).parent / "fixtures" / "run_v0_1"
 ADDED_SINCE_OLD_RUN = {"octree_misses": "auto", "prior_file": True, "window_centre": "surface",
                        "window_width": 1.0, "pixel_jitter": False, "cone_radius": None,
                        "weight_average": 0.995, "render_background": "nearest_seen", "error_map": 0.0,
-                       "error_map_weights": False, "antialias": True}
+                       "error_map_weights": False, "antialias": True,
+                       "nearest_seen_weight": 1.0}
 
 
 def test_a_checkpoint_of_the_flat_config_loads_and_renders():

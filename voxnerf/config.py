@@ -122,6 +122,14 @@ class ModelConfig(_Section):
         "without the octree. Training rays keep train_background. The default won on the tuning suite's halves "
         "(docs/benchmarks.md, 'What a view shows where no training view looked')",
     )
+    nearest_seen_weight: float = Field(
+        default=1.0, ge=0.0, le=1.0,
+        description="with render_background 'nearest_seen', the weight of the colour seen nearest to a rendered "
+        "ray's prior hit in what the ray shows there, the rest the background colour: the guess for a surface no "
+        "training view saw, shrunk towards the training images' mean; 1 shows the nearest seen colour alone. 0.75 "
+        "tied with 1 on the tuning suite's halves (docs/benchmarks.md, 'What a view shows where no training view "
+        "looked')",
+    )
     antialias: bool = Field(
         default=True,
         description="render each pixel's colour as the weighted mean of five rays through it, its centre (weight "

@@ -210,11 +210,23 @@ def _towards_the_leaf_and_away() -> tuple[torch.Tensor, torch.Tensor]:
 
 def test_a_ray_that_meets_the_prior_shows_the_colour_seen_there_and_one_that_misses_the_background():
     model = _seen_model()
+    assert model.config.model.nearest_seen_weight == 1.0  # the default: the colour seen, unshrunk
     rays = model.ray_bundle(*_towards_the_leaf_and_away())
     rays, background = model.view_background(rays, model.sampler())
     torch.testing.assert_close(background, torch.tensor([GREEN, [0.2, 0.3, 0.4]]))
     assert rays.hit.tolist() == [True, False]  # the first hits are kept: the sampler does not cast them again
     assert 0.5 < float(rays.hit_t[0]) < 0.7
+
+
+def test_the_colour_seen_is_shrunk_towards_the_background_by_its_weight():
+    model = _seen_model()
+    model.config = model.config.updated(nearest_seen_weight=0.75)
+    _, background = model.view_background(model.ray_bundle(*_towards_the_leaf_and_away()), model.sampler())
+    shrunk = [0.75 * g + 0.25 * b for g, b in zip(GREEN, [0.2, 0.3, 0.4], strict=True)]
+    torch.testing.assert_close(background, torch.tensor([shrunk, [0.2, 0.3, 0.4]]))
+    model.config = model.config.updated(nearest_seen_weight=0.0)  # the background alone, as render_background colour
+    _, background = model.view_background(model.ray_bundle(*_towards_the_leaf_and_away()), model.sampler())
+    torch.testing.assert_close(background, torch.tensor([[0.2, 0.3, 0.4], [0.2, 0.3, 0.4]]))
 
 
 @pytest.mark.parametrize(("sampler", "render_background", "prior"), [

@@ -181,7 +181,8 @@ class VoxNeRFModel:
         the colour prior needed them, so ``sampler`` does not cast them again) and the colour [R, 3] or [3].
 
         With ``render_background='nearest_seen'``, a colour prior and the voxnerf ``sampler``: each ray that meets
-        the prior gets the :class:`ColourPrior` colour at its window centre; every other ray :attr:`background`."""
+        the prior gets the :class:`ColourPrior` colour at its window centre, weighted by ``nearest_seen_weight``
+        against :attr:`background`; every other ray :attr:`background`."""
         if (self.config.model.render_background != "nearest_seen" or self.colour_prior is None
                 or not isinstance(sampler, VoxNeRFSampler)):
             return rays, self.background
@@ -189,7 +190,9 @@ class VoxNeRFModel:
         rays = RayBundle(rays.origins, rays.dirs, rays.near, rays.far, z, hit)
         points = rays.origins + torch.where(hit, z, torch.zeros_like(z))[:, None] * rays.dirs
         colour, found = self.colour_prior.lookup(points)
-        return rays, torch.where((hit & found)[:, None], colour, self.background)
+        weight = self.config.model.nearest_seen_weight
+        return rays, torch.where((hit & found)[:, None], weight * colour + (1.0 - weight) * self.background,
+                                 self.background)
 
     def use_sampler(self, name: str) -> None:
         """Sample with ``name`` from now on (sampler ``auto``'s choice at set-up; checkpoints keep it)."""
