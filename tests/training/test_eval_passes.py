@@ -53,7 +53,8 @@ def rendered(monkeypatch):
     """render_pixels stubbed: each pixel's ground truth plus 0.1 (a PSNR of 20 dB), the pixels asked kept."""
     calls = []
 
-    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto"):
+    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto", antialias=None):
+        assert antialias is False  # progress evaluations cast centre rays
         calls.append([one.pixels.tolist() for one in sets])  # one pass over every view's pixels
         out = []
         for one in sets:
@@ -131,12 +132,14 @@ def test_a_warm_up_renders_a_few_pixels_first_and_stays_out_of_the_cost_per_ray(
 
     calls = []
 
-    def render_pixels(model, c2w, intrinsics, pixels, outputs=("rgb",), path="auto"):
+    def render_pixels(model, c2w, intrinsics, pixels, outputs=("rgb",), path="auto", antialias=None):
+        assert antialias is False
         calls.append(len(pixels))
         time.sleep(0.2)  # the cold render
         return {"rgb": torch.zeros(len(pixels), 3)}
 
-    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto"):
+    def render_pixel_sets(model, sets, outputs=("rgb",), path="auto", antialias=None):
+        assert antialias is False  # progress evaluations cast centre rays
         calls.append([len(one.pixels) for one in sets])
         return [{"rgb": torch.zeros(len(one.pixels), 3)} for one in sets]
 

@@ -175,7 +175,8 @@ class PixelSet:
 
 @torch.no_grad()
 def render_pixels(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
-                  outputs: Sequence[str] = ("rgb",), path: str = "auto") -> dict[str, Tensor]:
+                  outputs: Sequence[str] = ("rgb",), path: str = "auto", antialias: bool | None = None
+                  ) -> dict[str, Tensor]:
     """Render some pixels of one view, as :func:`render_normalized` renders them in the whole image (the same
     rays, antialiasing, pose and colour corrections): ``pixels`` [N] are row-major indices into the
     ``intrinsics``' image.
@@ -183,16 +184,16 @@ def render_pixels(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics, pixe
     Returns the requested outputs, rgb [N, 3] and depth/opacity [N] (z-depth in normalised units), float32 on
     the model's device. RunError for an index outside the image.
     """
-    return render_pixel_sets(model, [PixelSet(c2w, intrinsics, pixels)], outputs, path)[0]
+    return render_pixel_sets(model, [PixelSet(c2w, intrinsics, pixels)], outputs, path, antialias)[0]
 
 
 @torch.no_grad()
 def render_pixel_sets(model: VoxNeRFModel, sets: Sequence[PixelSet], outputs: Sequence[str] = ("rgb",),
-                      path: str = "auto") -> list[dict[str, Tensor]]:
+                      path: str = "auto", antialias: bool | None = None) -> list[dict[str, Tensor]]:
     """:func:`render_pixels` of several views in one pass over all their rays (a pass has a fixed cost: a few
     hundred pixels of each of many views cost little more than their rays); one dict per set, in order."""
     _check_outputs(outputs)
-    offsets = pixel_rays(model, outputs)
+    offsets = pixel_rays(model, outputs, antialias)
     rays, poses = [], []
     for one in sets:
         intr, pixels = one.intrinsics, one.pixels.to(model.device)
