@@ -86,12 +86,6 @@ def scene_as_trained(scene: Scene, model: VoxNeRFModel) -> Scene:
     return with_focal_scale(scene, scale if isinstance(scale, float) else 1.0)
 
 
-def _view_rays(model: VoxNeRFModel, c2w: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`image_rays` of pose ``c2w`` [4, 4] (normalised, float32 on the model's device), moved by the model's
-    pose refinement where it has one."""
-    return image_rays(model.view_pose(c2w), intrinsics)
-
-
 @torch.no_grad()
 def render_normalized(
     model: VoxNeRFModel,
@@ -129,12 +123,12 @@ def render_normalized(
     c2w = c2w.to(model.device, torch.float32)
 
     offsets = pixel_rays(model, outputs, antialias)
+    pose = model.view_pose(c2w)  # once: every ray of the pixel shares the corrected pose
 
     def render_at(k: int, wanted: Sequence[str]) -> dict[str, Tensor]:
         # The rays through (px + 0.5 + dx, py + 0.5 + dy): the principal point moved the other way.
         dx, dy, _ = offsets[k]
-        origins, dirs, z_per_t = _view_rays(model, c2w, replace(intrinsics, cx=intrinsics.cx - dx,
-                                                                cy=intrinsics.cy - dy))
+        origins, dirs, z_per_t = image_rays(pose, replace(intrinsics, cx=intrinsics.cx - dx, cy=intrinsics.cy - dy))
         parts = _render_chunks(model, origins, dirs, wanted, chunk, path, should_stop)
         return _view_outputs(model, c2w, intrinsics, parts, z_per_t)
 
@@ -204,7 +198,8 @@ def render_pixel_sets(model: VoxNeRFModel, sets: Sequence[PixelSet], outputs: Se
         c2w = one.c2w.to(model.device, torch.float32)
         lens = None if intr.lens is None else LensBatch.of([intr.lens], model.device)
         px, py = (pixels % intr.width).float(), (pixels // intr.width).float()
-        rays.append([camera_rays(model.view_pose(c2w), intr.fl_x, intr.fl_y, intr.cx, intr.cy, px + dx, py + dy, lens)
+        pose = model.view_pose(c2w)
+        rays.append([camera_rays(pose, intr.fl_x, intr.fl_y, intr.cx, intr.cy, px + dx, py + dy, lens)
                      for dx, dy, _ in offsets])
         poses.append(c2w)
     total = sum(r[0][0].shape[0] for r in rays)
